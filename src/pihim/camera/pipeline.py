@@ -1,0 +1,214 @@
+"""Raw DoFP mosaic -> Stokes, DoLP and AoP images (the live-processing path).
+
+:func:`polar_image` is the entry point. It resolves the bit depth (including
+12-bit data stored in 16-bit containers), subtracts the dark level, flags
+saturated super-pixels and runs one of the fused numba kernels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pihim.camera import _kernels
+from pihim.camera.layout import IMX250MZR, MosaicLayout, check_mosaic_shape
+from pihim.errors import PihimInputError
+from pihim.polarimetry.analyser import AnalyserMatrix
+
+DemosaicMethod = Literal["superpixel", "full"]
+DEMOSAIC_METHODS: tuple[str, ...] = ("superpixel", "full")
+
+
+@dataclass(frozen=True)
+class BitDepth:
+    """How raw values map to the ADC range.
+
+    Attributes
+    ----------
+    bits : int
+        ADC resolution (8, 10, 12, 14 or 16).
+    shift : int
+        Right shift applied to MSB-aligned data (e.g. 4 for 12-bit data
+        stored in the high bits of 16-bit words).
+    """
+
+    bits: int
+    shift: int = 0
+
+    @property
+    def full_scale(self) -> int:
+        """Largest raw value after the shift, ``2**bits - 1``."""
+        return 2**self.bits - 1
+
+
+def resolve_bit_depth(mosaic: NDArray, bits: int | None = None) -> BitDepth:
+    """Decide the ADC bit depth of a raw mosaic.
+
+    Parameters
+    ----------
+    mosaic : numpy.ndarray
+        Unsigned-integer raw mosaic.
+    bits : int, optional
+        Known ADC resolution. If the data exceed ``2**bits - 1`` but every
+        value is a multiple of ``2**(container_bits - bits)``, the data are
+        taken as MSB-aligned and shifted down; otherwise an error is raised.
+        If omitted: 8 for ``uint8``; for ``uint16``, 12 when all values fit
+        in 12 bits or are 12-bit MSB-aligned, else 16.
+    """
+    if mosaic.dtype == np.uint8:
+        container = 8
+    elif mosaic.dtype == np.uint16:
+        container = 16
+    else:
+        raise PihimInputError(f"raw mosaic must be uint8 or uint16, got {mosaic.dtype}")
+    vmax = int(mosaic.max()) if mosaic.size else 0
+    if bits is None:
+        if container == 8:
+            return BitDepth(8)
+        if vmax <= 4095:
+            return BitDepth(12)
+        if not np.any(mosaic & np.uint16(0x000F)):
+            return BitDepth(12, shift=4)
+        return BitDepth(16)
+    if not 1 <= bits <= container:
+        raise PihimInputError(f"bit depth {bits} does not fit a {container}-bit container")
+    if vmax <= 2**bits - 1:
+        return BitDepth(bits)
+    shift = container - bits
+    if not np.any(mosaic & np.asarray(2**shift - 1, dtype=mosaic.dtype)):
+        return BitDepth(bits, shift=shift)
+    raise PihimInputError(
+        f"raw values up to {vmax} exceed {bits}-bit full scale and are not MSB-aligned"
+    )
+
+
+@dataclass(frozen=True)
+class PolarImage:
+    """Polarimetric images computed from one raw frame.
+
+    All images are float32 with the same shape (half the mosaic for the
+    super-pixel route). ``dolp`` and ``aop_deg`` are NaN where the input was
+    saturated or ``s0 <= 0``. AoP is in degrees in [0, 180), counter-clockwise
+    from image right (see ``docs/conventions.md``).
+    """
+
+    s0: NDArray[np.float32]
+    s1: NDArray[np.float32]
+    s2: NDArray[np.float32]
+    dolp: NDArray[np.float32]
+    aop_deg: NDArray[np.float32]
+    saturated: NDArray[np.bool_]
+    demosaic: str
+    bit_depth: BitDepth | None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, columns) of the output images."""
+        return self.s0.shape  # type: ignore[return-value]
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready statistics (see ``docs/schemas/polar-frame.schema.json``)."""
+        valid = np.isfinite(self.dolp)
+        d = self.dolp[valid].astype(np.float64)
+        a_rad = np.radians(2.0 * self.aop_deg[valid].astype(np.float64))
+
+        def _stats(x: NDArray) -> dict[str, float | None]:
+            if x.size == 0:
+                return {"mean": None, "median": None, "p05": None, "p95": None}
+            p05, med, p95 = np.percentile(x, [5, 50, 95])
+            return {"mean": float(x.mean()), "median": float(med), "p05": float(p05), "p95": float(p95)}
+
+        if a_rad.size:
+            c, s = np.cos(a_rad).mean(), np.sin(a_rad).mean()
+            aop = {
+                "circular_mean_deg": float(np.mod(0.5 * math.degrees(math.atan2(s, c)), 180.0)),
+                "resultant_length": float(math.hypot(c, s)),
+            }
+        else:
+            aop = {"circular_mean_deg": None, "resultant_length": None}
+        return {
+            "height": int(self.shape[0]),
+            "width": int(self.shape[1]),
+            "demosaic": self.demosaic,
+            "bit_depth": None if self.bit_depth is None else self.bit_depth.bits,
+            "msb_shift": None if self.bit_depth is None else self.bit_depth.shift,
+            "fraction_saturated": float(self.saturated.mean()) if self.saturated.size else 0.0,
+            "fraction_valid": float(valid.mean()) if valid.size else 0.0,
+            "s0": _stats(self.s0[valid].astype(np.float64)),
+            "dolp": _stats(d),
+            "aop": aop,
+        }
+
+
+def _position_ordered_pinv(analyser: AnalyserMatrix, layout: MosaicLayout) -> NDArray[np.float32]:
+    """Columns of ``pinv(A)`` reordered to super-pixel positions ``2*row + col``."""
+    w = np.empty((3, 4), dtype=np.float32)
+    for k, (r, c) in enumerate(layout.channel_positions):
+        w[:, 2 * r + c] = analyser.pinv[:, k]
+    return w
+
+
+def polar_image(
+    mosaic: NDArray,
+    *,
+    layout: MosaicLayout = IMX250MZR,
+    analyser: AnalyserMatrix | None = None,
+    demosaic: DemosaicMethod = "superpixel",
+    dark_level: float = 0.0,
+    bit_depth: int | None = None,
+    saturation_level: float | None = None,
+) -> PolarImage:
+    """Compute S0, S1, S2, DoLP and AoP images from a raw DoFP mosaic.
+
+    Parameters
+    ----------
+    mosaic : numpy.ndarray, shape (H, W)
+        Raw mosaic, ``uint8`` or ``uint16`` (float arrays are accepted for
+        synthetic data; they are not range-checked and saturate only at
+        ``saturation_level``). H and W must be even.
+    layout : MosaicLayout
+        Micro-polarizer arrangement; default IMX250MZR (90, 45 / 135, 0).
+    analyser : AnalyserMatrix, optional
+        Calibrated analyser; the ideal one (paper eq. 1) if omitted.
+    demosaic : {"superpixel", "full"}
+        ``superpixel`` gives (H/2, W/2) images; ``full`` gives (H, W).
+    dark_level : float
+        Dark level in raw units (after any MSB shift), subtracted first.
+    bit_depth : int, optional
+        ADC bits; see :func:`resolve_bit_depth` for the automatic choice.
+    saturation_level : float, optional
+        Raw value at or above which a pixel counts as saturated; default the
+        full scale ``2**bits - 1``. A super-pixel (or, for ``full``, an output
+        pixel whose interpolation support) containing one is flagged and its
+        DoLP and AoP are NaN.
+
+    Returns
+    -------
+    PolarImage
+    """
+    raw = np.asarray(mosaic)
+    check_mosaic_shape(raw)
+    if demosaic not in DEMOSAIC_METHODS:
+        raise PihimInputError(f"unknown demosaic method {demosaic!r}; choose one of {', '.join(DEMOSAIC_METHODS)}")
+    if raw.dtype.kind == "f":
+        depth = None
+        sat = np.inf if saturation_level is None else float(saturation_level)
+    else:
+        depth = resolve_bit_depth(raw, bit_depth)
+        if depth.shift:
+            raw = raw >> depth.shift
+        sat = float(depth.full_scale if saturation_level is None else saturation_level)
+    if not math.isfinite(dark_level):
+        raise PihimInputError("dark level must be finite")
+    w_pos = _position_ordered_pinv(analyser or AnalyserMatrix.ideal(), layout)
+    h, w = raw.shape
+    shape = (h // 2, w // 2) if demosaic == "superpixel" else (h, w)
+    s0, s1, s2, dolp, aop = (np.empty(shape, dtype=np.float32) for _ in range(5))
+    saturated = np.empty(shape, dtype=np.bool_)
+    kernel = _kernels.superpixel_polar if demosaic == "superpixel" else _kernels.fullres_polar
+    kernel(raw, w_pos, np.float32(dark_level), np.float32(sat), s0, s1, s2, dolp, aop, saturated)
+    return PolarImage(s0, s1, s2, dolp, aop, saturated, demosaic, depth)

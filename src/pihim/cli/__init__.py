@@ -1,0 +1,51 @@
+"""The ``pihim`` command line: a thin layer over the Python API.
+
+Every command reports invalid input as one line on stderr and exits with
+status 2; computed results can be printed as JSON (``--json``).
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+import typer
+
+from pihim.cli import calibrate, demo, polar
+from pihim.errors import PihimInputError
+
+app = typer.Typer(
+    name="pihim",
+    help="Polarimetric drone inspection of heliostat fields.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+app.command("polar")(polar.polar)
+app.command("calibrate-polarizer")(calibrate.calibrate_polarizer)
+app.command("demo")(demo.demo)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; returns the exit status (0 ok, 1 some items failed, 2 bad input)."""
+    try:
+        rv = app(args=argv, standalone_mode=False, prog_name="pihim")
+    except PihimInputError as exc:
+        print(f"pihim: error: {exc}", file=sys.stderr)
+        return 2
+    except click.exceptions.NoArgsIsHelpError as exc:
+        print(exc.format_message() if hasattr(exc, "format_message") else str(exc), file=sys.stderr)
+        return 2
+    except click.UsageError as exc:
+        print(f"pihim: error: {exc.format_message()}", file=sys.stderr)
+        return 2
+    except click.exceptions.Exit as exc:
+        return int(exc.exit_code)
+    except click.Abort:
+        print("pihim: aborted", file=sys.stderr)
+        return 130
+    return int(rv or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
