@@ -1,0 +1,111 @@
+"""Colour renderings of polarimetric images, as polarimetry users expect them.
+
+* AoP: cyclic HSV hue (0 and 180 deg share a colour), optionally with the
+  value channel weighted by DoLP so that unpolarized regions go dark.
+* DoLP: a perceptually uniform colour map (viridis by default), 0..``vmax``.
+* S0: grey levels with a robust percentile stretch.
+
+NaN (masked) pixels render black. All functions return ``uint8`` RGB arrays
+(``(H, W, 3)``; ``(H, W)`` for grey) and never modify their inputs.
+
+References
+----------
+.. [1] P. Kovesi, "Good colour maps: how to design them", arXiv:1509.03700
+   (2015) -- why a perceptual map for DoLP and a cyclic one for AoP.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from pihim._atomic import atomic_path
+from pihim.errors import PihimInputError
+
+
+def _hsv_to_rgb(h: NDArray, s: NDArray, v: NDArray) -> NDArray[np.float64]:
+    """Vectorised HSV -> RGB, all inputs in [0, 1]."""
+    h6 = np.mod(h, 1.0) * 6.0
+    c = v * s
+    x = c * (1.0 - np.abs(np.mod(h6, 2.0) - 1.0))
+    z = np.zeros_like(c)
+    sector = np.floor(h6).astype(int) % 6
+    r = np.choose(sector, [c, x, z, z, x, c])
+    g = np.choose(sector, [x, c, c, x, z, z])
+    b = np.choose(sector, [z, z, x, c, c, x])
+    m = v - c
+    return np.stack([r + m, g + m, b + m], axis=-1)
+
+
+def _to_u8(x: NDArray) -> NDArray[np.uint8]:
+    return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)
+
+
+def aop_to_rgb(
+    aop_deg: ArrayLike,
+    dolp: ArrayLike | None = None,
+    *,
+    dolp_max: float = 1.0,
+) -> NDArray[np.uint8]:
+    """AoP as cyclic hue (0 deg red, 60 green, 120 blue); value from DoLP if given.
+
+    Parameters
+    ----------
+    aop_deg : array_like
+        AoP in degrees (any real value; taken modulo 180).
+    dolp : array_like, optional
+        If given, the brightness is ``clip(dolp / dolp_max, 0, 1)``.
+    dolp_max : float
+        DoLP that maps to full brightness.
+    """
+    a = np.asarray(aop_deg, dtype=np.float64)
+    valid = np.isfinite(a)
+    v = np.ones_like(a)
+    if dolp is not None:
+        d = np.asarray(dolp, dtype=np.float64)
+        if d.shape != a.shape:
+            raise PihimInputError(f"AoP and DoLP shapes differ: {a.shape} vs {d.shape}")
+        valid &= np.isfinite(d)
+        v = np.clip(np.nan_to_num(d) / dolp_max, 0.0, 1.0)
+    rgb = _hsv_to_rgb(np.nan_to_num(a) / 180.0, np.ones_like(a), v)
+    rgb[~valid] = 0.0
+    return _to_u8(rgb)
+
+
+def dolp_to_rgb(dolp: ArrayLike, *, vmax: float = 1.0, cmap: str = "viridis") -> NDArray[np.uint8]:
+    """DoLP through a perceptual matplotlib colour map over ``[0, vmax]``."""
+    from matplotlib import colormaps
+
+    d = np.asarray(dolp, dtype=np.float64)
+    lut = colormaps[cmap].resampled(256)(np.linspace(0.0, 1.0, 256))[:, :3]
+    idx = np.clip(np.rint(np.nan_to_num(d) / vmax * 255.0), 0, 255).astype(np.intp)
+    rgb = lut[idx]
+    rgb[~np.isfinite(d)] = 0.0
+    return _to_u8(rgb)
+
+
+def s0_to_gray(s0: ArrayLike, *, percentiles: tuple[float, float] = (0.5, 99.5)) -> NDArray[np.uint8]:
+    """S0 as 8-bit grey with a percentile stretch (NaN -> 0)."""
+    x = np.asarray(s0, dtype=np.float64)
+    finite = x[np.isfinite(x)]
+    if finite.size == 0:
+        return np.zeros(x.shape, dtype=np.uint8)
+    lo, hi = np.percentile(finite, percentiles)
+    scale = (x - lo) / (hi - lo) if hi > lo else np.zeros_like(x)
+    return _to_u8(np.clip(np.nan_to_num(scale), 0.0, 1.0))
+
+
+def write_png(path: str | Path, image: NDArray[np.uint8]) -> Path:
+    """Write an RGB ``(H, W, 3)`` or grey ``(H, W)`` uint8 image as PNG, atomically."""
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or img.ndim not in (2, 3):
+        raise PihimInputError("PNG previews must be uint8 grey or RGB images")
+    if img.ndim == 3:
+        img = img[..., ::-1]  # OpenCV writes BGR
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(img)):
+            raise OSError(f"{path}: could not write PNG")
+    return Path(path)

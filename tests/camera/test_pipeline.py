@@ -1,0 +1,104 @@
+"""Tests for the raw-frame-to-Stokes pipeline (super-pixel route, bit depth, saturation)."""
+
+import numpy as np
+import pytest
+
+from pihim.camera import IMX250MZR, MosaicLayout, polar_image
+from pihim.camera.demosaic import superpixel
+from pihim.camera.pipeline import BitDepth, resolve_bit_depth
+from pihim.errors import PihimInputError
+from pihim.polarimetry import AnalyserMatrix, aop_deg, aop_difference_deg, dolp, stokes_from_dolp_aop
+from pihim.render import mosaic_from_stokes
+
+
+def _varying_scene(shape=(64, 96), seed=0):
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    block = lambda lo, hi: np.repeat(np.repeat(rng.uniform(lo, hi, (h // 2, w // 2)), 2, 0), 2, 1)
+    s0, p, a = block(200, 3000), block(0.0, 1.0), block(0, 180)
+    return stokes_from_dolp_aop(s0, p, a), (s0[::2, ::2], p[::2, ::2], a[::2, ::2])
+
+
+def test_exact_recovery_spatially_varying():
+    (s0, s1, s2), (t0, tp, ta) = _varying_scene()
+    m = mosaic_from_stokes(s0, s1, s2, bit_depth=None)
+    out = polar_image(m)
+    assert out.shape == (32, 48)
+    assert np.allclose(out.s0, t0, rtol=1e-5)
+    assert np.allclose(out.dolp, tp, atol=1e-5)
+    sel = tp > 0.01
+    assert np.max(aop_difference_deg(out.aop_deg, ta)[sel]) < 1e-3
+
+
+def test_kernel_matches_numpy_reference_with_calibration_and_dark():
+    (s0, s1, s2), _ = _varying_scene(seed=1)
+    an = AnalyserMatrix.from_parameters([1.0, 46.5, 89.0, 134.0], [1.0, 0.95, 1.04, 0.98], [100, 200, 150, 300])
+    lay = MosaicLayout.parse("0,45,135,90")
+    m = mosaic_from_stokes(s0, s1, s2, lay, an, bit_depth=12, dark_level=64)
+    out = polar_image(m, layout=lay, analyser=an, dark_level=64, bit_depth=12)
+    ref = an.stokes(superpixel(m, lay) - 64.0)
+    assert np.allclose(out.s0, ref[0], rtol=1e-5, atol=1e-3)
+    assert np.allclose(out.s1, ref[1], rtol=1e-5, atol=1e-3)
+    assert np.allclose(out.s2, ref[2], rtol=1e-5, atol=1e-3)
+    ok = ref[0] > 0
+    assert np.allclose(out.dolp[ok], dolp(*ref)[ok], atol=1e-5)
+    # float32 kernel vs float64 reference: AoP is ill-conditioned as DoLP -> 0
+    sel = ok & (dolp(*ref) > 0.02)
+    d = aop_difference_deg(out.aop_deg[sel], aop_deg(ref[1], ref[2])[sel])
+    assert np.max(d) < 2e-3
+
+
+def test_saturated_superpixel_flagged_and_nan():
+    s = stokes_from_dolp_aop(np.full((8, 8), 1000.0), 0.3, 20.0)
+    m = mosaic_from_stokes(*s, bit_depth=12)
+    m[2, 3] = 4095  # super-pixel (1, 1)
+    out = polar_image(m, bit_depth=12)
+    assert out.saturated[1, 1] and out.saturated.sum() == 1
+    assert np.isnan(out.dolp[1, 1]) and np.isnan(out.aop_deg[1, 1])
+    assert np.isfinite(np.delete(out.dolp.ravel(), 1 * 4 + 1)).all()
+    assert out.summary()["fraction_saturated"] == pytest.approx(1 / 16)
+
+
+def test_bit_depth_resolution():
+    m12 = np.array([[0, 4095], [17, 100]], dtype=np.uint16)
+    assert resolve_bit_depth(m12) == BitDepth(12)
+    assert resolve_bit_depth(m12 << 4) == BitDepth(12, shift=4)  # MSB-aligned in 16-bit words
+    assert resolve_bit_depth(np.array([[0, 40000], [1, 3]], np.uint16)) == BitDepth(16)
+    assert resolve_bit_depth(np.zeros((2, 2), np.uint8)) == BitDepth(8)
+    with pytest.raises(PihimInputError, match="exceed"):
+        resolve_bit_depth(np.array([[0, 5000], [1, 3]], np.uint16), 12)
+    with pytest.raises(PihimInputError, match="uint8 or uint16"):
+        resolve_bit_depth(np.zeros((2, 2), np.int32))
+
+
+def test_msb_aligned_12bit_gives_same_result():
+    s = stokes_from_dolp_aop(np.full((8, 8), 3000.0), 0.4, 70.0)
+    m = mosaic_from_stokes(*s, bit_depth=12)
+    a = polar_image(m, bit_depth=12)
+    b = polar_image(m << 4, bit_depth=12)
+    assert np.array_equal(a.dolp, b.dolp) and np.array_equal(a.s0, b.s0)
+    # full-scale 4095 stored MSB-aligned is 65520 and still counts as saturated
+    m2 = m.copy()
+    m2[0, 0] = 4095
+    assert polar_image(m2 << 4, bit_depth=12).saturated[0, 0]
+
+
+@pytest.mark.parametrize("bad", [np.zeros((3, 4), np.uint16), np.zeros((4,), np.uint16), np.zeros((4, 4, 3), np.uint8)])
+def test_bad_shapes(bad):
+    with pytest.raises(PihimInputError):
+        polar_image(bad)
+
+
+def test_unknown_demosaic():
+    with pytest.raises(PihimInputError, match="demosaic"):
+        polar_image(np.zeros((4, 4), np.uint16), demosaic="nearest")  # type: ignore[arg-type]
+
+
+def test_summary_statistics():
+    s = stokes_from_dolp_aop(np.full((16, 16), 1000.0), 0.25, 170.0)
+    out = polar_image(mosaic_from_stokes(*s, bit_depth=None))
+    summ = out.summary()
+    assert summ["dolp"]["median"] == pytest.approx(0.25, abs=1e-5)
+    assert aop_difference_deg(summ["aop"]["circular_mean_deg"], 170.0) < 1e-3
+    assert summ["aop"]["resultant_length"] == pytest.approx(1.0)
+    assert (summ["width"], summ["height"]) == (8, 8)
