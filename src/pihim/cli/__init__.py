@@ -8,8 +8,12 @@ from __future__ import annotations
 
 import sys
 
-import click
 import typer
+
+try:  # typer >= 0.2x vendors click; its exceptions live there
+    from typer._click import exceptions as _click_exc
+except ImportError:  # pragma: no cover - older typer uses click itself
+    from click import exceptions as _click_exc
 
 from pihim.cli import calibrate, demo, polar
 from pihim.errors import PihimInputError
@@ -33,15 +37,15 @@ def main(argv: list[str] | None = None) -> int:
     except PihimInputError as exc:
         print(f"pihim: error: {exc}", file=sys.stderr)
         return 2
-    except click.exceptions.NoArgsIsHelpError as exc:
-        print(exc.format_message() if hasattr(exc, "format_message") else str(exc), file=sys.stderr)
+    except _click_exc.NoArgsIsHelpError as exc:
+        print(exc.format_message(), file=sys.stderr)
         return 2
-    except click.UsageError as exc:
-        print(f"pihim: error: {exc.format_message()}", file=sys.stderr)
+    except _click_exc.UsageError as exc:
+        print(f"pihim: error: {' '.join(exc.format_message().split())}", file=sys.stderr)
         return 2
-    except click.exceptions.Exit as exc:
+    except typer.Exit as exc:
         return int(exc.exit_code)
-    except click.Abort:
+    except typer.Abort:
         print("pihim: aborted", file=sys.stderr)
         return 130
     return int(rv or 0)
