@@ -6,6 +6,7 @@ status 2; computed results can be printed as JSON (``--json``).
 
 from __future__ import annotations
 
+import logging
 import sys
 
 import typer
@@ -32,6 +33,8 @@ app.command("demo")(demo.demo)
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; returns the exit status (0 ok, 1 some items failed, 2 bad input)."""
+    # readers turn corrupt files into one-line errors; silence tifffile's own log lines
+    logging.getLogger("tifffile").setLevel(logging.CRITICAL)
     try:
         rv = app(args=argv, standalone_mode=False, prog_name="pihim")
     except PihimInputError as exc:

@@ -1,8 +1,182 @@
-"""``pihim calibrate-polarizer`` (stub: being implemented)."""
+"""``pihim calibrate-polarizer``: fit the analyser matrix from frames behind a rotated polarizer.
+
+A thin layer over :func:`pihim.camera.calibration.calibrate_polarizer`: it
+parses the options, reads the frames with :func:`pihim.camera.frames.read_frame`,
+writes the calibration JSON atomically and prints a summary. The JSON file
+is readable by :meth:`pihim.polarimetry.AnalyserMatrix.load` (``pihim polar
+--calibration``).
+"""
 
 from __future__ import annotations
 
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Annotated
 
-def calibrate_polarizer() -> None:
-    """Estimate the analyser matrix from frames behind a linear polarizer."""
-    raise NotImplementedError
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from pihim._atomic import write_json_atomic
+from pihim.camera import calibration
+from pihim.camera.frames import read_frame
+from pihim.camera.layout import MosaicLayout
+from pihim.errors import PihimInputError
+from pihim.polarimetry.analyser import NOMINAL_ANGLES_DEG
+
+
+def parse_angles(text: str) -> list[float]:
+    """Parse ``--angles``: comma-separated degrees, or ``START:STOP:STEP`` (STOP exclusive).
+
+    Examples
+    --------
+    >>> parse_angles("0, 22.5,45")
+    [0.0, 22.5, 45.0]
+    >>> parse_angles("0:180:45")
+    [0.0, 45.0, 90.0, 135.0]
+    """
+    s = text.strip()
+    try:
+        if ":" in s:
+            parts = [float(p) for p in s.split(":")]
+            if len(parts) != 3:
+                raise ValueError
+            start, stop, step = parts
+            if not all(math.isfinite(v) for v in parts) or step <= 0 or stop <= start:
+                raise ValueError
+            n = math.ceil((stop - start) / step - 1e-9)
+            vals = [start + i * step for i in range(n)]
+        else:
+            vals = [float(p) for p in s.replace(";", ",").split(",") if p.strip()]
+    except ValueError:
+        raise PihimInputError(
+            f"--angles: cannot parse {text!r}; give comma-separated degrees like 0,22.5,45 "
+            "or START:STOP:STEP like 0:180:22.5"
+        ) from None
+    if not vals or not all(math.isfinite(v) for v in vals):
+        raise PihimInputError(f"--angles: no finite angles in {text!r}")
+    return vals
+
+
+def parse_roi(text: str) -> tuple[int, int, int, int]:
+    """Parse ``--roi X,Y,W,H`` (mosaic pixels)."""
+    try:
+        vals = tuple(int(p) for p in text.replace(" ", "").split(","))
+    except ValueError:
+        vals = ()
+    if len(vals) != 4:
+        raise PihimInputError(f"--roi: expected four integers X,Y,WIDTH,HEIGHT, got {text!r}")
+    return vals  # type: ignore[return-value]
+
+
+def _summary(cal: calibration.PolarizerCalibration, out: Path) -> Table:
+    x, y, w, h = cal.roi or (0, 0, 0, 0)
+    table = Table(
+        title=f"Polarizer calibration: {cal.n_frames} frames -> {out}",
+        caption=(
+            f"ROI {w}x{h} px at ({x}, {y}), {cal.superpixels_used} super-pixels; "
+            f"cond(A) = {cal.condition_number:.3f}, angle design cond = {cal.design_condition_number:.2f}"
+        ),
+    )
+    for col in ("channel", "axis", "offset", "trans.", "diatt.", "ext. ratio", "resid. %"):
+        table.add_column(col, justify="right")
+    for k, nominal in enumerate(NOMINAL_ANGLES_DEG):
+        ang = float(cal.angles_deg[k])
+        off = (ang - nominal + 90.0) % 180.0 - 90.0
+        er = float(cal.extinction_ratio[k])
+        table.add_row(
+            f"{nominal:g}",
+            f"{ang:.2f}°",
+            f"{off:+.2f}°",
+            f"{cal.transmission[k]:.4f}",
+            f"{cal.diattenuation[k]:.4f}",
+            "inf" if math.isinf(er) else f"{er:.1f}",
+            f"{100 * cal.residual_rms_relative[k]:.3f}",
+        )
+    return table
+
+
+def calibrate_polarizer(
+    frames: Annotated[
+        list[Path],
+        typer.Argument(
+            metavar="FRAME",
+            help="Raw frames (.tif/.tiff, .png, .raw/.bin) of a uniformly lit scene behind the "
+            "reference polarizer, one per entry of --angles, in the same order.",
+            show_default=False,
+        ),
+    ],
+    angles: Annotated[
+        str,
+        typer.Option(
+            "--angles",
+            help="Polarizer angle of each frame in degrees, counter-clockwise from image right: "
+            "'0,22.5,45,...' or START:STOP:STEP (e.g. 0:180:22.5). At least 4 distinct angles.",
+            show_default=False,
+        ),
+    ],
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Calibration JSON to write (atomically).", show_default=False)
+    ],
+    layout: Annotated[
+        str, typer.Option("--layout", help="Mosaic layout: imx250mzr or four row-major angles like 90,45,135,0.")
+    ] = "imx250mzr",
+    dark_level: Annotated[
+        float, typer.Option("--dark-level", help="Dark level in DN (after any MSB shift), subtracted.")
+    ] = 0.0,
+    bit_depth: Annotated[
+        int | None, typer.Option("--bit-depth", help="ADC bits; default from the file or the data.")
+    ] = None,
+    polarizer_dolp: Annotated[
+        float, typer.Option("--polarizer-dolp", help="DoLP of the reference polarizer, in (0, 1].")
+    ] = 1.0,
+    roi: Annotated[
+        str | None,
+        typer.Option("--roi", help="Region X,Y,WIDTH,HEIGHT in pixels; default the central half of each side."),
+    ] = None,
+    fit_drift: Annotated[
+        bool,
+        typer.Option("--fit-drift", help="Also fit a per-frame source intensity drift (needs >= 5 angles)."),
+    ] = False,
+    width: Annotated[int | None, typer.Option("--width", help="Frame width for .raw buffers.")] = None,
+    height: Annotated[int | None, typer.Option("--height", help="Frame height for .raw buffers.")] = None,
+    pixel_format: Annotated[
+        str | None, typer.Option("--pixel-format", help="Lucid pixel format for .raw buffers, e.g. PolarizeMono12p.")
+    ] = None,
+    json_output: Annotated[
+        bool, typer.Option("--json", help="Print the calibration JSON on stdout (summary goes to stderr).")
+    ] = False,
+) -> None:
+    """Estimate the analyser matrix from frames behind a linear polarizer rotated to known angles."""
+    angle_list = parse_angles(angles)
+    if len(angle_list) != len(frames):
+        raise PihimInputError(f"got {len(frames)} frames but {len(angle_list)} angles in --angles")
+    mosaic_layout = MosaicLayout.parse(layout)
+    roi_box = None if roi is None else parse_roi(roi)
+    if bit_depth is not None and not 1 <= bit_depth <= 16:
+        raise PihimInputError(f"--bit-depth must be in 1..16, got {bit_depth}")
+    raws = [read_frame(p, width=width, height=height, pixel_format=pixel_format) for p in frames]
+    cal = calibration.calibrate_polarizer(
+        raws,
+        np.asarray(angle_list),
+        layout=mosaic_layout,
+        dark_level=dark_level,
+        bit_depth=bit_depth,
+        polarizer_dolp=polarizer_dolp,
+        roi=roi_box,
+        fit_frame_scale=fit_drift,
+    )
+    record = cal.to_dict()
+    try:
+        write_json_atomic(out, record)
+    except OSError as exc:
+        raise PihimInputError(f"{out}: cannot write the calibration ({exc.strerror or exc})") from None
+    console = Console(file=sys.stderr if json_output else sys.stdout)
+    console.print(_summary(cal, out))
+    for w in cal.warnings:
+        print(f"pihim: warning: {w}", file=sys.stderr)
+    if json_output:
+        sys.stdout.write(json.dumps(record) + "\n")
