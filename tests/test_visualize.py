@@ -1,0 +1,43 @@
+"""Tests for the polarimetric colour renderings."""
+
+import cv2
+import numpy as np
+import pytest
+
+from pihim.errors import PihimInputError
+from pihim.visualize import aop_to_rgb, dolp_to_rgb, s0_to_gray, write_png
+
+
+def test_aop_hue_is_cyclic_and_ordered():
+    rgb = aop_to_rgb(np.array([0.0, 60.0, 120.0, 179.999, 180.0]))
+    assert tuple(rgb[0]) == (255, 0, 0)  # 0 deg red
+    assert tuple(rgb[1]) == (0, 255, 0)  # 60 deg green
+    assert tuple(rgb[2]) == (0, 0, 255)  # 120 deg blue
+    assert np.abs(rgb[3].astype(int) - rgb[0].astype(int)).max() <= 1  # wraps: 180 == 0
+    assert tuple(rgb[4]) == tuple(rgb[0])
+
+
+def test_aop_brightness_follows_dolp_and_nan_is_black():
+    rgb = aop_to_rgb(np.array([30.0, 30.0, np.nan, 30.0]), np.array([1.0, 0.25, 0.5, np.nan]))
+    assert rgb[0].max() == 255 and rgb[1].max() == 64
+    assert rgb[2].max() == 0 and rgb[3].max() == 0
+    with pytest.raises(PihimInputError):
+        aop_to_rgb(np.zeros(3), np.zeros(4))
+
+
+def test_dolp_map_is_monotonic_in_luminance():
+    rgb = dolp_to_rgb(np.linspace(0, 1, 11)).astype(float)
+    luma = rgb @ [0.2126, 0.7152, 0.0722]
+    assert np.all(np.diff(luma) > 0)
+    assert dolp_to_rgb(np.array([np.nan])).max() == 0
+
+
+def test_s0_stretch_and_png_roundtrip(tmp_path):
+    s0 = np.linspace(0, 1000, 64).reshape(8, 8)
+    g = s0_to_gray(s0, percentiles=(0, 100))
+    assert g.min() == 0 and g.max() == 255 and g.dtype == np.uint8
+    rgb = aop_to_rgb(np.full((4, 4), 120.0))
+    p = write_png(tmp_path / "a.png", rgb)
+    back = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)[..., ::-1]
+    assert np.array_equal(back, rgb)  # written as RGB, not BGR
+    assert [f.name for f in tmp_path.iterdir()] == ["a.png"]
