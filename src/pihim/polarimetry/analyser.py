@@ -70,6 +70,9 @@ class AnalyserMatrix:
             raise PihimInputError("analyser matrix is rank deficient: Stokes cannot be recovered")
         m.setflags(write=False)
         p = np.linalg.pinv(m)
+        # snap round-off (e.g. 1e-17 instead of 0 for the ideal matrix) so that
+        # unpolarized light gives S1 = S2 = 0 exactly
+        p[np.abs(p) < 1e-12 * np.abs(p).max()] = 0.0
         p.setflags(write=False)
         object.__setattr__(self, "matrix", m)
         object.__setattr__(self, "pinv", p)
@@ -77,7 +80,7 @@ class AnalyserMatrix:
     @classmethod
     def ideal(cls) -> AnalyserMatrix:
         """Ideal polarizers at 0/45/90/135 deg (reproduces paper eq. 1)."""
-        return cls.from_parameters(NOMINAL_ANGLES_DEG)
+        return _IDEAL
 
     @classmethod
     def from_parameters(
@@ -184,3 +187,6 @@ class AnalyserMatrix:
             return cls.from_dict(obj)
         except PihimInputError as exc:
             raise PihimInputError(f"{p}: {exc}") from None
+
+
+_IDEAL = AnalyserMatrix.from_parameters(NOMINAL_ANGLES_DEG)
