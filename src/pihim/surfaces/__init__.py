@@ -1,0 +1,1 @@
+"""Reflecting surfaces: Fresnel interfaces, heliostat mirrors and rough ground."""
