@@ -117,3 +117,16 @@ def aop4_deg(s: ArrayLike) -> NDArray[np.float64]:
     """AoP in [0, 180) deg of (..., 4) or (..., 3) Stokes vectors, relative to their frame's axis."""
     s = np.asarray(s, float)
     return aop_deg(s[..., 1], s[..., 2])
+
+
+def field_direction(s: ArrayLike, d: ArrayLike, e: ArrayLike) -> NDArray[np.float64]:
+    """Unit vector along the oscillation (major) axis of the polarized part of ``s``.
+
+    ``cos(AoP) e + sin(AoP) (d x e)``; defined up to sign (an orientation). This
+    turns a Stokes vector back into geometry, which is how the tests pin signs
+    independently of the Mueller algebra.
+    """
+    a = np.radians(aop4_deg(s))[..., None]
+    d = np.asarray(d, float)
+    e = np.asarray(e, float)
+    return np.cos(a) * e + np.sin(a) * np.cross(d, e)
