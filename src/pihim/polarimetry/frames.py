@@ -51,11 +51,13 @@ def perpendicular_reference(d: ArrayLike, hint: ArrayLike = _UP, fallback: Array
     hint = np.broadcast_to(np.asarray(hint, float), d.shape)
     fallback = np.broadcast_to(np.asarray(fallback, float), d.shape)
     e = hint - dot(hint, d)[..., None] * d
-    weak = np.linalg.norm(e, axis=-1) < 1e-9
+    weak = np.linalg.norm(e, axis=-1) < 1e-6
     if np.any(weak):
         ef = fallback - dot(fallback, d)[..., None] * d
         e = np.where(weak[..., None], ef, e)
-    return normalize(e)
+    e = normalize(e)
+    # one Gram-Schmidt pass more: keeps e perpendicular to round-off for nearly parallel hints
+    return normalize(e - dot(e, d)[..., None] * d)
 
 
 def rotation_angle_deg(d: ArrayLike, e_from: ArrayLike, e_to: ArrayLike) -> NDArray[np.float64]:

@@ -72,12 +72,13 @@ def incidence_basis(d: ArrayLike, normal: ArrayLike, fallback: ArrayLike) -> NDA
     """The s axis ``normalize(d x n)``; ``fallback`` (projected) at normal incidence."""
     d = normalize(d)
     s = np.cross(d, normalize(normal))
-    weak = np.linalg.norm(s, axis=-1) < 1e-12
+    weak = np.linalg.norm(s, axis=-1) < 1e-12  # a cross product this small is still accurate
     if np.any(weak):
         fb = np.broadcast_to(np.asarray(fallback, float), s.shape)
         fb = fb - dot(fb, d)[..., None] * d
         s = np.where(weak[..., None], fb, s)
-    return normalize(s)
+    s = normalize(s)
+    return normalize(s - dot(s, d)[..., None] * d)
 
 
 def reflect_stokes(

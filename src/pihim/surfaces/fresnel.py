@@ -24,8 +24,9 @@ from pihim.polarimetry.reflection import mueller_from_amplitudes
 
 def _cos_transmitted(cos_i: NDArray, n1: NDArray, n2: NDArray) -> NDArray[np.complex128]:
     """Complex cosine of the refraction angle (branch with a decaying transmitted wave)."""
-    sin2_t = (n1 / n2) ** 2 * (1.0 - cos_i**2)
-    cos_t = np.sqrt(1.0 - sin2_t + 0j)
+    ratio2 = (n1 / n2) ** 2
+    # 1 - ratio2 * sin^2_i, arranged to avoid cancellation near grazing incidence when n1 ~ n2
+    cos_t = np.sqrt((1.0 - ratio2) + ratio2 * cos_i**2 + 0j)
     # choose the root whose wave decays into medium 2: Im(n2 cos_t) >= 0
     flip = np.imag(n2 * cos_t) < 0
     return np.where(flip, -cos_t, cos_t)
@@ -75,3 +76,106 @@ def fresnel_reflection_mueller(cos_i: ArrayLike, n1: ArrayLike = 1.0, n2: ArrayL
 def brewster_angle_deg(n1: float = 1.0, n2: float = 1.5) -> float:
     """Brewster angle ``atan(n2 / n1)`` in degrees (real indices)."""
     return float(np.degrees(np.arctan2(n2, n1)))
+
+
+# --------------------------------------------------------------------------
+# Transmission (used by the second-surface heliostat mirror)
+# --------------------------------------------------------------------------
+
+from pihim.errors import PihimInputError  # kept with the section that uses it
+
+
+def fresnel_transmission_amplitudes(
+    cos_i: ArrayLike, n1: ArrayLike = 1.0, n2: ArrayLike = 1.5
+) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+    """Transmission amplitude coefficients ``(t_s, t_p)`` of an n1 | n2 interface.
+
+    Born & Wolf sec. 1.5.2, eqs. (20)::
+
+        t_s = 2 n1 cos_i / (n1 cos_i + n2 cos_t)
+        t_p = 2 n1 cos_i / (n2 cos_i + n1 cos_t)
+
+    They pair with :func:`fresnel_amplitudes` (same time convention
+    ``exp(-i omega t)``, same branch of ``cos_t``): ``t_s = 1 + r_s`` and
+    ``(n2 / n1) t_p = 1 + r_p``. In the s/p frames of
+    :mod:`pihim.polarimetry.reflection` (``p = d x s`` for the incident and
+    for the refracted direction), ``t_s`` and ``t_p`` are positive for
+    dielectrics below the critical angle: refraction does not flip the field.
+
+    Parameters
+    ----------
+    cos_i : array_like
+        Cosine of the angle of incidence in medium 1, in [0, 1] (clipped).
+    n1, n2 : array_like (complex allowed)
+        Refractive indices of the incidence medium and of the medium entered.
+        Beyond the critical angle (``n1 > n2``) the amplitudes describe the
+        evanescent wave; no power is transmitted (see
+        :func:`fresnel_transmission_mueller`).
+
+    Returns
+    -------
+    t_s, t_p : complex ndarray
+        Ratios of transmitted to incident field amplitude (dimensionless).
+
+    References
+    ----------
+    .. [1] M. Born, E. Wolf, *Principles of Optics*, 7th ed., 1999,
+       sec. 1.5.2, eqs. (20) and (21).
+    """
+    cos_i = np.clip(np.asarray(cos_i, float), 0.0, 1.0)
+    n1 = np.asarray(n1, dtype=complex)
+    n2 = np.asarray(n2, dtype=complex)
+    cos_t = _cos_transmitted(cos_i, n1, n2)
+    t_s = 2.0 * n1 * cos_i / (n1 * cos_i + n2 * cos_t)
+    t_p = 2.0 * n1 * cos_i / (n2 * cos_i + n1 * cos_t)
+    return t_s, t_p
+
+
+def fresnel_transmission_mueller(cos_i: ArrayLike, n1: ArrayLike = 1.0, n2: ArrayLike = 1.5) -> NDArray[np.float64]:
+    """Transmission Mueller matrix ``(..., 4, 4)`` of an n1 | n2 interface, s as the x axis.
+
+    Power (flux) transmission: the amplitude Mueller matrix of ``(t_s, t_p)``
+    (layout of :func:`pihim.polarimetry.reflection.mueller_from_amplitudes`)
+    times the beam-area and impedance factor ``eta = Re(n2 cos_t) / (n1 cos_i)``
+    (Born & Wolf sec. 1.5.3), so that for lossless dielectrics
+    ``R_s + T_s = 1`` and ``R_p + T_p = 1`` with ``T_s = M00 + M01`` and
+    ``T_p = M00 - M01``. Beyond the critical angle ``cos_t`` is imaginary and
+    the matrix is zero (total internal reflection).
+
+    This is a flux ratio, not a radiance ratio: radiance inside medium 2 is
+    a further ``(n2 / n1)**2`` higher (solid-angle compression); the factor
+    cancels on any path that leaves through the same kind of interface,
+    such as the glass of a second-surface mirror.
+
+    Parameters
+    ----------
+    cos_i : array_like
+        Cosine of the angle of incidence in medium 1, in [0, 1] (clipped).
+    n1, n2 : array_like
+        Real refractive indices (non-absorbing media; absorption in a slab is
+        handled separately with Beer-Lambert, see
+        :class:`pihim.surfaces.mirror.SecondSurfaceMirror`).
+
+    Raises
+    ------
+    pihim.errors.PihimInputError
+        If an index has a non-zero imaginary part or is not positive: the
+        transmitted power into an absorbing medium is not a property of the
+        interface alone.
+
+    References
+    ----------
+    .. [1] M. Born, E. Wolf, *Principles of Optics*, 7th ed., 1999,
+       sec. 1.5.3 (reflectivity and transmissivity).
+    """
+    n1c = np.asarray(n1, dtype=complex)
+    n2c = np.asarray(n2, dtype=complex)
+    for name, n in (("n1", n1c), ("n2", n2c)):
+        if np.any(n.imag != 0.0) or np.any(~(n.real > 0.0)):
+            raise PihimInputError(f"fresnel_transmission_mueller needs real positive indices, got {name}={n}")
+    cos_i = np.clip(np.asarray(cos_i, float), 0.0, 1.0)
+    cos_t = _cos_transmitted(cos_i, n1c, n2c)
+    # sqrt(eta) * t without dividing by cos_i (stable at grazing incidence):
+    # sqrt(eta) * 2 n1 cos_i = 2 sqrt(n1 cos_i Re(n2 cos_t))
+    num = 2.0 * np.sqrt(n1c.real * cos_i * np.clip(np.real(n2c * cos_t), 0.0, None))
+    return mueller_from_amplitudes(num / (n1c * cos_i + n2c * cos_t), num / (n2c * cos_i + n1c * cos_t))
