@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from pihim.errors import PihimInputError
 from pihim.polarimetry.reflection import mueller_from_amplitudes
 
 
@@ -82,7 +83,6 @@ def brewster_angle_deg(n1: float = 1.0, n2: float = 1.5) -> float:
 # Transmission (used by the second-surface heliostat mirror)
 # --------------------------------------------------------------------------
 
-from pihim.errors import PihimInputError  # kept with the section that uses it
 
 
 def fresnel_transmission_amplitudes(
