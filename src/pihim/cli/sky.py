@@ -1,0 +1,228 @@
+"""``pihim sky``: all-sky DoLP and AoP maps for a sun position or a time and site.
+
+Writes, atomically, into ``--out``:
+
+``sky-dolp.png``, ``sky-aop.png``
+    Polar plots like the paper's Fig. 2c-d: North up, azimuth clockwise
+    (a map of the sky dome seen from above), radius = zenith angle 0-90 deg;
+    the sun is a star, Berry neutral points are crosses. AoP uses the cyclic
+    'twilight' colormap.
+``sky-maps.npz``
+    ``zenith_deg``, ``azimuth_deg`` (cell-centre grids, shape
+    ``(90/res, 360/res)``, azimuth clockwise from North), ``s0`` (relative to
+    the zenith for the CIE radiance), ``dolp``, ``aop_deg`` (float64), the
+    sun's ``sun_zenith_deg`` and ``sun_azimuth_deg``, and ``aop_reference``
+    (the frame, in words).
+
+AoP frame: skylight from direction ``v`` travels along ``d = -v``; the AoP is
+measured from the local meridian (0 = E-field pointing toward the zenith),
+counter-clockwise looking into the beam -- i.e. as an observer on the ground
+looking up at that point of the sky sees it: 0 = along the meridian,
+90 = horizontal. On the solar meridian the Rayleigh AoP is 90.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+import typer
+
+from pihim._atomic import atomic_path
+from pihim.cli._common import emit_json
+from pihim.errors import PihimInputError
+from pihim.sky.berry import neutral_points
+from pihim.sky.model import SkyMap, SkyModel, _grid_size, sky_map
+from pihim.sky.sun import (
+    SunPosition,
+    angles_from_direction,
+    parse_site,
+    parse_time,
+    require_daylight,
+    sun_position,
+)
+
+SCHEMA_ID = "pihim.sky/1"
+AOP_REFERENCE = (
+    "AoP in [0, 180) deg from the local meridian (0 = E-field toward the zenith), counter-clockwise "
+    "looking into the beam, i.e. as an observer on the ground looking up at that sky point sees it"
+)
+FILES = {"dolp_png": "sky-dolp.png", "aop_png": "sky-aop.png", "npz": "sky-maps.npz"}
+
+
+def resolve_sun(
+    time: str | None, site: str | None, sun_zenith: float | None, sun_azimuth: float | None
+) -> tuple[SunPosition, dict[str, Any]]:
+    """The sun position from ``--time``/``--site`` or ``--sun-zenith``/``--sun-azimuth``; and a JSON record."""
+    angles_given = sun_zenith is not None or sun_azimuth is not None
+    if time is not None:
+        if angles_given:
+            raise PihimInputError("give either --time (with --site) or --sun-zenith and --sun-azimuth, not both")
+        where = parse_site(site if site is not None else "nsttf")
+        when = parse_time(time)
+        pos = sun_position(where, when)
+        return pos, {"time": when.isoformat(), "site": where.as_dict(), "refraction": "apparent"}
+    if site is not None:
+        raise PihimInputError("--site needs --time")
+    if sun_zenith is None or sun_azimuth is None:
+        raise PihimInputError("give --time (and optionally --site), or both --sun-zenith and --sun-azimuth")
+    if not (math.isfinite(sun_zenith) and 0.0 <= sun_zenith <= 90.0):
+        raise PihimInputError(f"--sun-zenith must be in [0, 90] deg, got {sun_zenith:g}")
+    if not math.isfinite(sun_azimuth):
+        raise PihimInputError("--sun-azimuth must be a finite number of degrees")
+    return SunPosition.from_angles(sun_zenith, sun_azimuth), {"time": None, "site": None}
+
+
+def _summary(result: SkyMap, resolution: float) -> dict[str, Any]:
+    """Maximum DoLP and its direction; DoLP statistics on the band 90 deg from the sun."""
+    dolp = result.dolp
+    i = int(np.nanargmax(dolp))
+    iz, ia = np.unravel_index(i, dolp.shape)
+    v = np.stack(
+        [
+            np.sin(np.radians(result.zenith_deg)) * np.sin(np.radians(result.azimuth_deg)),
+            np.sin(np.radians(result.zenith_deg)) * np.cos(np.radians(result.azimuth_deg)),
+            np.cos(np.radians(result.zenith_deg)),
+        ],
+        axis=-1,
+    )
+    scat = np.degrees(np.arccos(np.clip(v @ result.sun_dir, -1.0, 1.0)))
+    half = max(1.0, resolution / 2.0)
+    band = np.abs(scat - 90.0) <= half
+    vals = dolp[band & np.isfinite(dolp)]
+    return {
+        "dolp_max": {
+            "value": float(dolp[iz, ia]),
+            "zenith_deg": float(result.zenith_deg[iz, ia]),
+            "azimuth_deg": float(result.azimuth_deg[iz, ia]),
+            "scattering_angle_deg": float(scat[iz, ia]),
+        },
+        "band_90deg_from_sun": {
+            "half_width_deg": half,
+            "cells": int(vals.size),
+            "dolp_mean": float(vals.mean()) if vals.size else None,
+            "dolp_min": float(vals.min()) if vals.size else None,
+            "dolp_max": float(vals.max()) if vals.size else None,
+        },
+    }
+
+
+def plot_polar(
+    result: SkyMap, quantity: str, path: Path, *, title: str, markers: list[tuple[float, float, str, str]]
+) -> Path:
+    """Write a polar plot (North up, azimuth clockwise, radius = zenith) of ``dolp`` or ``aop_deg``."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    data = getattr(result, quantity)
+    nz, na = data.shape
+    res = 90.0 / nz
+    theta_edges = np.radians(np.arange(na + 1) * res)
+    r_edges = np.arange(nz + 1) * res
+    fig = Figure(figsize=(6.4, 5.6), dpi=110)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(projection="polar")
+    ax.set_theta_zero_location("N")
+    ax.set_theta_direction(-1)
+    if quantity == "dolp":
+        cmap, vmin, vmax, label = "viridis", 0.0, 1.0, "DoLP"
+    else:
+        cmap, vmin, vmax, label = "twilight", 0.0, 180.0, "AoP (deg, from local meridian, seen from the ground)"
+    mesh = ax.pcolormesh(theta_edges, r_edges, data, cmap=cmap, vmin=vmin, vmax=vmax, shading="flat", rasterized=True)
+    for az, zen, marker, name in markers:
+        if 0.0 <= zen <= 90.0:
+            ax.plot([math.radians(az)], [zen], marker=marker, markersize=13 if marker == "*" else 9,
+                    color="gold" if marker == "*" else "white", markeredgecolor="black", linestyle="none", label=name)
+    ax.set_ylim(0.0, 90.0)
+    ax.set_yticks([30.0, 60.0, 90.0])
+    ax.set_yticklabels(["30", "60", "90"], fontsize=8)
+    for lab in ax.get_yticklabels():
+        lab.set_bbox({"facecolor": "white", "alpha": 0.7, "edgecolor": "none", "pad": 1.0})
+    ax.set_rlabel_position(22.5)
+    ax.set_xticks(np.radians([0, 90, 180, 270]))
+    ax.set_xticklabels(["N", "E", "S", "W"])
+    ax.set_title(title, fontsize=10)
+    cb = fig.colorbar(mesh, ax=ax, shrink=0.8, pad=0.08)
+    cb.set_label(label)
+    if quantity == "aop_deg":
+        cb.set_ticks([0, 45, 90, 135, 180])
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return path
+
+
+def write_outputs(result: SkyMap, out: Path, *, sun: SunPosition, title: str) -> dict[str, str]:
+    """Write the two PNGs and the npz atomically; returns the written paths."""
+    out.mkdir(parents=True, exist_ok=True)
+    markers = [(float(sun.azimuth_deg), float(sun.zenith_deg), "*", "sun")]
+    if result.model.kind == "berry":
+        pts = neutral_points(result.sun_dir, result.model.neutral_point_separation_deg)
+        for name in ("babinet", "brewster", "arago", "fourth"):
+            zen, az = angles_from_direction(getattr(pts, name))
+            markers.append((float(az), float(zen), "X", name))
+    written = {
+        "dolp_png": plot_polar(result, "dolp", out / FILES["dolp_png"], title=f"DoLP -- {title}", markers=markers),
+        "aop_png": plot_polar(result, "aop_deg", out / FILES["aop_png"], title=f"AoP -- {title}", markers=markers),
+    }
+    npz = out / FILES["npz"]
+    with atomic_path(npz) as tmp:
+        np.savez_compressed(
+            tmp,
+            zenith_deg=result.zenith_deg,
+            azimuth_deg=result.azimuth_deg,
+            s0=result.s0,
+            dolp=result.dolp,
+            aop_deg=result.aop_deg,
+            sun_zenith_deg=np.float64(sun.zenith_deg),
+            sun_azimuth_deg=np.float64(sun.azimuth_deg),
+            aop_reference=np.str_(AOP_REFERENCE),
+        )
+    written["npz"] = npz
+    return {k: str(v) for k, v in written.items()}
+
+
+def sky(
+    out: Annotated[Path, typer.Option("--out", help="Output directory.")],
+    time: Annotated[str | None, typer.Option(help="ISO 8601 time with UTC offset (2024-06-21T10:30-06:00).")] = None,
+    site: Annotated[str | None, typer.Option(help="With --time: nsttf (default) or LAT,LON,H (ellipsoidal m).")] = None,
+    sun_zenith: Annotated[float | None, typer.Option(help="Sun zenith, deg in [0, 90] (instead of --time).")] = None,
+    sun_azimuth: Annotated[float | None, typer.Option(help="Sun azimuth, deg clockwise from North.")] = None,
+    model: Annotated[str, typer.Option(help="Sky polarization model: rayleigh or berry.")] = "rayleigh",
+    dmax: Annotated[float, typer.Option(help="Maximum DoLP (90 deg from the sun), in [0, 1].")] = 0.8,
+    neutral_separation: Annotated[float, typer.Option(help="Berry: neutral points' distance from sun, deg.")] = 15.0,
+    radiance: Annotated[str, typer.Option(help="S0 model: cie-clear (CIE type 12) or uniform.")] = "cie-clear",
+    resolution: Annotated[float, typer.Option(help="Grid step in zenith and azimuth, deg (must divide 90).")] = 0.5,
+    json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
+) -> int:
+    """All-sky DoLP and AoP maps (PNG polar plots and float arrays in .npz).
+
+    Give the sun as --time (and --site, default NSTTF) or as --sun-zenith and
+    --sun-azimuth. AoP is relative to the local meridian as seen from the
+    ground (see the .npz's aop_reference).
+    """
+    sky_model = SkyModel(kind=model, dmax=dmax, neutral_point_separation_deg=neutral_separation, radiance=radiance)  # type: ignore[arg-type]
+    _grid_size(resolution)
+    sun, when = resolve_sun(time, site, sun_zenith, sun_azimuth)
+    require_daylight(sun, what="pihim sky")
+    if out.exists() and not out.is_dir():
+        raise PihimInputError(f"{out}: exists and is not a directory")
+    result = sky_map(sky_model, sun.vector, resolution)
+    title = f"sun zenith {float(sun.zenith_deg):.1f}, azimuth {float(sun.azimuth_deg):.1f} deg, {model}"
+    files = write_outputs(result, out, sun=sun, title=title)
+    if json_out:
+        emit_json(
+            {
+                "schema": SCHEMA_ID,
+                "sun": sun.as_dict(),
+                **when,
+                "model": sky_model.describe(),
+                "resolution_deg": float(90.0 / result.dolp.shape[0]),
+                "grid_shape": list(result.dolp.shape),
+                **_summary(result, resolution),
+                "aop_reference": AOP_REFERENCE,
+                "files": files,
+            }
+        )
+    return 0

@@ -1,0 +1,397 @@
+"""Sun position in the East-North-Up field frame, sites and time parsing.
+
+Conventions (``docs/conventions.md``; each one is pinned by a test in
+``tests/sky/test_sun.py``):
+
+* Field frame East-North-Up: ``x`` East, ``y`` North, ``z`` Up.
+* Directions are unit vectors. Azimuth is measured **clockwise from North**
+  (0 = N, 90 = E, 180 = S, 270 = W), zenith from ``+z``, elevation =
+  90 - zenith -- the same angles as pvlib. A direction with zenith ``Z`` and
+  azimuth ``A`` is ``(sin Z sin A, sin Z cos A, cos Z)``.
+* The sun vector points **from the scene toward the sun**.
+* Times must be timezone-aware; a naive time is refused with a
+  :class:`~pihim.errors.PihimInputError`.
+
+The sun position comes from pvlib's implementation of the NREL Solar Position
+Algorithm (SPA, ``pvlib.solarposition.spa_python``, quoted uncertainty
++/-0.0003 deg over -2000..6000) [1]_. By default the **apparent** (refraction
+corrected) position is returned, because that is the direction from which
+sunlight -- and the sky polarization pattern centred on it -- actually
+arrives at the site; pass ``refraction=False`` for the true (geometric)
+topocentric position.
+
+References
+----------
+.. [1] I. Reda and A. Andreas, "Solar position algorithm for solar radiation
+   applications", Solar Energy 76(5), 577-589 (2004),
+   doi:10.1016/j.solener.2003.12.003; corrigendum Solar Energy 81(6), 838
+   (2007), doi:10.1016/j.solener.2007.01.003.
+.. [2] M. Tian et al., "Heliostat Optical Error Inspection with Polarimetric
+   Imaging Drone" (pihim paper), section 3: NSTTF field frame, x East,
+   y North, z up, origin at the base of the tower.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import ArrayLike, NDArray
+
+from pihim.errors import PihimInputError
+
+__all__ = [
+    "NSTTF",
+    "NSTTF_GEOID_UNDULATION_M",
+    "NSTTF_ORTHOMETRIC_HEIGHT_M",
+    "Site",
+    "SunPosition",
+    "angles_from_direction",
+    "direction_from_angles",
+    "parse_site",
+    "parse_time",
+    "require_daylight",
+    "sun_position",
+]
+
+
+def _is_real(x: Any) -> bool:
+    """True for a finite real number (bools excluded)."""
+    if isinstance(x, bool):
+        return False
+    try:
+        return math.isfinite(float(x))
+    except (TypeError, ValueError):
+        return False
+
+
+@dataclass(frozen=True)
+class Site:
+    """A place on the WGS84 ellipsoid.
+
+    Attributes
+    ----------
+    name : str
+        Short label.
+    latitude_deg : float
+        Geodetic latitude, degrees, positive North.
+    longitude_deg : float
+        Longitude, degrees, positive East.
+    height_m : float
+        **Ellipsoidal** height above WGS84, metres (not height above sea
+        level: ellipsoidal = orthometric + geoid undulation).
+    timezone : str
+        IANA time zone name for local-time displays (e.g. ``America/Denver``).
+        Computations never depend on it: times carry their own offsets.
+    """
+
+    name: str
+    latitude_deg: float
+    longitude_deg: float
+    height_m: float
+    timezone: str = "UTC"
+
+    def __post_init__(self) -> None:
+        for label, value, lim in (("latitude", self.latitude_deg, 90.0), ("longitude", self.longitude_deg, 180.0)):
+            if not (_is_real(value) and -lim <= float(value) <= lim):
+                raise PihimInputError(f"site {label} must be a number in [-{lim:g}, {lim:g}] deg, got {value!r}")
+        if not _is_real(self.height_m):
+            raise PihimInputError(f"site height must be a finite number of metres, got {self.height_m!r}")
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-friendly record of the site."""
+        return {
+            "name": self.name,
+            "latitude_deg": self.latitude_deg,
+            "longitude_deg": self.longitude_deg,
+            "height_m": self.height_m,
+            "timezone": self.timezone,
+        }
+
+
+#: Orthometric height (above mean sea level) of the NSTTF heliostat field,
+#: metres. 1706.88 m = 5600 ft, the elevation Sandia's OpenCSP scripts give
+#: for heliostat 5E9 near the tower (they put the tower's balcony at
+#: 1755.648 m = 5760 ft). It is a rounded figure, not a survey of the tower
+#: base: treat it as +/-10 m.
+NSTTF_ORTHOMETRIC_HEIGHT_M = 1706.88
+
+#: Geoid undulation (EGM96 geoid above the WGS84 ellipsoid) at the NSTTF,
+#: metres. Central New Mexico lies about 21-23 m below the ellipsoid; -22 m
+#: is an estimate that could not be checked against a geoid grid from this
+#: project (to be replaced by a GEOID18/EGM96 lookup if it ever matters).
+NSTTF_GEOID_UNDULATION_M = -22.0
+
+#: The NSTTF field origin (base of the tower): lon -106.509606,
+#: lat 34.962276 (OpenCSP's ``NSTTF_ORIGIN``), ellipsoidal height
+#: ``NSTTF_ORTHOMETRIC_HEIGHT_M + NSTTF_GEOID_UNDULATION_M`` = 1684.88 m
+#: (uncertain by ~10 m; see the two constants above). Local time:
+#: America/Denver. A 10 m height error moves the sun by less than 1e-6 deg
+#: (topocentric parallax) and the refraction correction by less than 1e-4 deg.
+NSTTF = Site(
+    name="NSTTF",
+    latitude_deg=34.962276,
+    longitude_deg=-106.509606,
+    height_m=NSTTF_ORTHOMETRIC_HEIGHT_M + NSTTF_GEOID_UNDULATION_M,
+    timezone="America/Denver",
+)
+
+_KNOWN_SITES = {"nsttf": NSTTF}
+
+
+def parse_site(text: str | Site) -> Site:
+    """A site from ``"nsttf"`` (case-insensitive) or ``"LAT,LON,H"``.
+
+    Parameters
+    ----------
+    text : str or Site
+        A known site name, or latitude (deg, +N), longitude (deg, +E) and
+        ellipsoidal height (m) separated by commas. A :class:`Site` is
+        returned unchanged.
+
+    Raises
+    ------
+    PihimInputError
+        Unknown name, wrong number of fields or values out of range.
+    """
+    if isinstance(text, Site):
+        return text
+    key = str(text).strip()
+    if key.lower() in _KNOWN_SITES:
+        return _KNOWN_SITES[key.lower()]
+    parts = [p.strip() for p in key.split(",")]
+    if len(parts) != 3:
+        raise PihimInputError(
+            f"site {text!r}: expected a known name ({', '.join(_KNOWN_SITES)}) or LAT,LON,H "
+            "(degrees, degrees, ellipsoidal metres)"
+        )
+    try:
+        lat, lon, h = (float(p) for p in parts)
+    except ValueError:
+        raise PihimInputError(f"site {text!r}: LAT,LON,H must be numbers") from None
+    return Site(name="custom", latitude_deg=lat, longitude_deg=lon, height_m=h, timezone="UTC")
+
+
+def parse_time(time: str | datetime | pd.Timestamp) -> pd.Timestamp:
+    """A timezone-aware :class:`pandas.Timestamp` from an ISO 8601 string or datetime.
+
+    Parameters
+    ----------
+    time : str, datetime.datetime or pandas.Timestamp
+        E.g. ``"2024-06-21T10:30:00-06:00"`` or ``"2024-06-21T16:30Z"``.
+
+    Raises
+    ------
+    PihimInputError
+        Malformed text, or a time without a UTC offset (naive): pihim never
+        guesses a time zone.
+    """
+    if isinstance(time, str):
+        text = time.strip()
+        try:
+            ts = pd.Timestamp(datetime.fromisoformat(text))
+        except ValueError:
+            raise PihimInputError(
+                f"time {time!r} is not an ISO 8601 date-time (e.g. 2024-06-21T10:30:00-06:00)"
+            ) from None
+    elif isinstance(time, datetime):  # includes pandas.Timestamp
+        ts = pd.Timestamp(time)
+    else:
+        raise PihimInputError(f"time must be an ISO 8601 string or a datetime, got {type(time).__name__}")
+    if ts.tzinfo is None or ts.tzinfo.utcoffset(ts.to_pydatetime()) is None:
+        raise PihimInputError(
+            f"time {str(time)!r} has no UTC offset; give one, e.g. 2024-06-21T10:30:00-06:00 or ...Z"
+        )
+    return ts
+
+
+def direction_from_angles(zenith_deg: ArrayLike, azimuth_deg: ArrayLike) -> NDArray[np.float64]:
+    """Unit ENU vectors ``(..., 3)`` from zenith and azimuth (deg, azimuth clockwise from North).
+
+    ``x = sin Z sin A`` (East), ``y = sin Z cos A`` (North), ``z = cos Z`` (Up).
+    """
+    z_rad = np.radians(np.asarray(zenith_deg, dtype=float))
+    a_rad = np.radians(np.asarray(azimuth_deg, dtype=float))
+    z_rad, a_rad = np.broadcast_arrays(z_rad, a_rad)
+    sz = np.sin(z_rad)
+    return np.stack([sz * np.sin(a_rad), sz * np.cos(a_rad), np.cos(z_rad)], axis=-1)
+
+
+def angles_from_direction(v: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Zenith and azimuth (deg) of ENU directions ``(..., 3)``; the inverse of :func:`direction_from_angles`.
+
+    Vectors need not be normalised. Azimuth is in [0, 360), clockwise from
+    North; it is 0 for directions along the vertical.
+    """
+    v = np.asarray(v, dtype=float)
+    if v.shape[-1:] != (3,):
+        raise PihimInputError(f"directions need 3 components on the last axis, got shape {v.shape}")
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    zen = np.degrees(np.arctan2(np.hypot(x, y), z))
+    az = np.mod(np.degrees(np.arctan2(x, y)), 360.0)
+    az = np.where(az >= 360.0, 0.0, az)
+    return zen, az
+
+
+@dataclass(frozen=True)
+class SunPosition:
+    """Where the sun is, seen from a site.
+
+    Scalars for one time; arrays of shape ``(n,)`` (vector ``(n, 3)``) for
+    ``n`` times.
+
+    Attributes
+    ----------
+    zenith_deg, azimuth_deg, elevation_deg : float or numpy.ndarray
+        Degrees; azimuth clockwise from North; elevation = 90 - zenith.
+        Apparent (refraction-corrected) unless computed with
+        ``refraction=False``.
+    vector : numpy.ndarray
+        Unit ENU vector(s) from the scene toward the sun, ``(3,)`` or ``(n, 3)``.
+    """
+
+    zenith_deg: Any
+    azimuth_deg: Any
+    elevation_deg: Any
+    vector: NDArray[np.float64] = field(repr=False)
+
+    @classmethod
+    def from_angles(cls, zenith_deg: ArrayLike, azimuth_deg: ArrayLike) -> SunPosition:
+        """A position from zenith and azimuth (deg); azimuth is folded into [0, 360)."""
+        zen = np.asarray(zenith_deg, dtype=float)
+        az = np.mod(np.asarray(azimuth_deg, dtype=float), 360.0)
+        if not (np.all(np.isfinite(zen)) and np.all(np.isfinite(az))):
+            raise PihimInputError("sun zenith and azimuth must be finite numbers")
+        if np.any((zen < 0.0) | (zen > 180.0)):
+            raise PihimInputError(f"sun zenith must be in [0, 180] deg, got {zenith_deg!r}")
+        vec = direction_from_angles(zen, az)
+        conv = float if zen.ndim == 0 else np.asarray
+        return cls(conv(zen), conv(az), conv(90.0 - zen), vec)
+
+    @property
+    def above_horizon(self) -> Any:
+        """True where the sun's centre is above the horizon (elevation >= 0)."""
+        above = np.asarray(self.elevation_deg) >= 0.0
+        return bool(above) if above.ndim == 0 else above
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-friendly record (lists for several times)."""
+        def conv(x: Any) -> Any:
+            return np.asarray(x).tolist()
+
+        return {
+            "zenith_deg": conv(self.zenith_deg),
+            "azimuth_deg": conv(self.azimuth_deg),
+            "elevation_deg": conv(self.elevation_deg),
+            "vector": conv(self.vector),
+        }
+
+
+def _as_index(time: Any) -> tuple[pd.DatetimeIndex, bool]:
+    """Times as a UTC DatetimeIndex, and whether the input was a single time."""
+    if isinstance(time, str | datetime):
+        return pd.DatetimeIndex([parse_time(time)]).tz_convert("UTC"), True
+    if isinstance(time, pd.DatetimeIndex):
+        if time.tz is None:
+            raise PihimInputError("times have no UTC offset (naive DatetimeIndex); localise them first")
+        return time.tz_convert("UTC"), False
+    if isinstance(time, Sequence | np.ndarray | pd.Series):
+        stamps = [parse_time(t) for t in time]
+        if not stamps:
+            raise PihimInputError("no times given")
+        return pd.DatetimeIndex([t.tz_convert("UTC") for t in stamps]), False
+    raise PihimInputError(
+        f"time must be an ISO 8601 string, a datetime or a sequence of them, got {type(time).__name__}"
+    )
+
+
+def sun_position(
+    site: Site | str,
+    time: Any,
+    *,
+    refraction: bool = True,
+    pressure_pa: float | None = None,
+    temperature_c: float = 12.0,
+    delta_t_s: float | None = None,
+) -> SunPosition:
+    """Sun position at ``site`` for one or many timezone-aware times (NREL SPA via pvlib).
+
+    Parameters
+    ----------
+    site : Site or str
+        A :class:`Site` or text accepted by :func:`parse_site` (``"nsttf"``).
+    time : str, datetime, sequence of them, or tz-aware DatetimeIndex
+        Times with UTC offsets; naive times raise :class:`PihimInputError`.
+    refraction : bool
+        ``True`` (default): apparent, refraction-corrected zenith (SPA's
+        topocentric zenith with the refraction term, which depends on
+        ``pressure_pa`` and ``temperature_c``). ``False``: true zenith.
+    pressure_pa : float, optional
+        Air pressure for the refraction term, Pa. Default: the standard
+        atmosphere at the site height (``pvlib.atmosphere.alt2pres``).
+    temperature_c : float
+        Air temperature for the refraction term, deg C (SPA default 12).
+    delta_t_s : float, optional
+        TT - UT1 in seconds; default: pvlib's estimate for the year and month.
+
+    Returns
+    -------
+    SunPosition
+        Scalars for a single time, arrays for a sequence.
+    """
+    import pvlib  # local: importing pvlib costs ~0.5 s and is needed only here
+
+    site = parse_site(site)
+    index, single = _as_index(time)
+    if pressure_pa is None:
+        pressure_pa = float(pvlib.atmosphere.alt2pres(site.height_m))
+    if not (math.isfinite(pressure_pa) and pressure_pa > 0 and math.isfinite(temperature_c)):
+        raise PihimInputError("pressure must be positive and temperature finite")
+    df = pvlib.solarposition.spa_python(
+        index,
+        site.latitude_deg,
+        site.longitude_deg,
+        altitude=site.height_m,
+        pressure=pressure_pa,
+        temperature=temperature_c,
+        delta_t=delta_t_s,
+        how="numpy",
+    )
+    zen = df["apparent_zenith" if refraction else "zenith"].to_numpy(dtype=float)
+    az = df["azimuth"].to_numpy(dtype=float)
+    if single:
+        return SunPosition.from_angles(zen[0], az[0])
+    return SunPosition.from_angles(zen, az)
+
+
+def require_daylight(sun: SunPosition | ArrayLike, *, what: str = "a sky model") -> None:
+    """Raise :class:`PihimInputError` if the sun (any of several) is below the horizon.
+
+    Parameters
+    ----------
+    sun : SunPosition or array_like
+        A position, or ENU sun vector(s) ``(..., 3)`` (below the horizon
+        when ``z < 0``).
+    what : str
+        What needs daylight, for the message.
+    """
+    if isinstance(sun, SunPosition):
+        elev = np.atleast_1d(np.asarray(sun.elevation_deg, float))
+    else:
+        v = np.asarray(sun, dtype=float)
+        if v.shape[-1:] != (3,):
+            raise PihimInputError(f"sun vectors need 3 components on the last axis, got shape {v.shape}")
+        n = np.linalg.norm(v, axis=-1)
+        if np.any(~np.isfinite(n) | (n == 0)):
+            raise PihimInputError("sun direction must be a finite non-zero vector")
+        elev = np.atleast_1d(np.degrees(np.arcsin(np.clip(v[..., 2] / n, -1, 1))))
+    if np.any(elev < 0.0):
+        worst = float(np.min(elev))
+        raise PihimInputError(
+            f"the sun is below the horizon (elevation {worst:.2f} deg); {what} needs the sun above it"
+        )

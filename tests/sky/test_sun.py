@@ -1,0 +1,146 @@
+"""Sun position, sites and times: ENU and azimuth conventions pinned against independent oracles."""
+
+from __future__ import annotations
+
+from datetime import datetime
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from pihim.errors import PihimInputError
+from pihim.sky.sun import (
+    NSTTF,
+    NSTTF_GEOID_UNDULATION_M,
+    NSTTF_ORTHOMETRIC_HEIGHT_M,
+    Site,
+    SunPosition,
+    angles_from_direction,
+    direction_from_angles,
+    parse_site,
+    parse_time,
+    require_daylight,
+    sun_position,
+)
+
+
+@pytest.mark.parametrize(
+    "zenith, azimuth, expected",
+    [
+        (90.0, 0.0, (0.0, 1.0, 0.0)),  # North is +y
+        (90.0, 90.0, (1.0, 0.0, 0.0)),  # East is +x: azimuth clockwise from North
+        (90.0, 180.0, (0.0, -1.0, 0.0)),
+        (90.0, 270.0, (-1.0, 0.0, 0.0)),
+        (0.0, 123.0, (0.0, 0.0, 1.0)),  # zenith is +z
+        (60.0, 90.0, (np.sin(np.radians(60)), 0.0, 0.5)),
+    ],
+)
+def test_direction_from_angles_enu_axes(zenith, azimuth, expected):
+    assert np.allclose(direction_from_angles(zenith, azimuth), expected, atol=1e-15)
+
+
+@given(st.floats(0.01, 179.99), st.floats(0.0, 359.99))
+def test_angles_direction_roundtrip(zenith, azimuth):
+    v = direction_from_angles(zenith, azimuth)
+    assert np.linalg.norm(v) == pytest.approx(1.0)
+    z, a = angles_from_direction(v)
+    assert z == pytest.approx(zenith, abs=1e-9)
+    assert (a - azimuth + 180.0) % 360.0 - 180.0 == pytest.approx(0.0, abs=1e-7)
+
+
+def test_nrel_spa_reference_value():
+    """Reda & Andreas (2004) test case, as in NREL's SPA and pvlib's tests."""
+    site = Site("SPA test", 39.742476, -105.1786, 1830.14)
+    pos = sun_position(site, "2003-10-17T12:30:30-07:00", pressure_pa=82000.0, temperature_c=11.0, delta_t_s=67.0)
+    assert pos.zenith_deg == pytest.approx(50.11162, abs=2e-5)
+    assert pos.azimuth_deg == pytest.approx(194.34024, abs=2e-5)
+    assert pos.elevation_deg == pytest.approx(90.0 - 50.11162, abs=2e-5)
+
+
+def test_equinox_solar_noon_at_nsttf():
+    """Independent oracle: at an equinox the noon sun stands 90 - latitude high, due South."""
+    times = pd.date_range("2024-03-20T11:30:00-06:00", "2024-03-20T15:30:00-06:00", freq="1min")
+    pos = sun_position(NSTTF, times, refraction=False)
+    i = int(np.argmax(pos.elevation_deg))
+    # declination is about +0.3 deg at local noon on 2024-03-20 (equinox at 03:06 UTC)
+    assert pos.elevation_deg[i] == pytest.approx(90.0 - NSTTF.latitude_deg, abs=0.6)
+    assert pos.azimuth_deg[i] == pytest.approx(180.0, abs=1.5)
+    # solar noon near 13:14 MDT: 106.5 deg W is 7.1 h behind UTC, minus ~7.5 min equation of time
+    noon = times[i].tz_convert("America/Denver")
+    assert 13 * 60 + 5 <= noon.hour * 60 + noon.minute <= 13 * 60 + 22
+
+
+def test_morning_sun_is_east_afternoon_sun_is_west():
+    pos = sun_position("nsttf", ["2024-06-21T07:00:00-06:00", "2024-06-21T17:30:00-06:00"])
+    morning, afternoon = pos.azimuth_deg
+    assert 50.0 < morning < 90.0  # ENE in June
+    assert 270.0 < afternoon < 310.0  # WNW
+    assert pos.vector[0, 0] > 0.5 and pos.vector[1, 0] < -0.5  # x is East
+    assert pos.vector[0, 2] > 0.0 and pos.vector[1, 2] > 0.0  # toward the sun: up in daytime
+    assert np.allclose(pos.vector, direction_from_angles(pos.zenith_deg, pos.azimuth_deg))
+    assert np.allclose(np.linalg.norm(pos.vector, axis=1), 1.0)
+
+
+def test_vectorised_matches_scalar_calls_and_apparent_is_higher():
+    times = ["2024-06-21T08:00:00-06:00", "2024-12-21T12:00:00-07:00", "2024-09-01T18:00:00Z"]
+    many = sun_position(NSTTF, times)
+    assert many.zenith_deg.shape == (3,) and many.vector.shape == (3, 3)
+    for k, t in enumerate(times):
+        one = sun_position(NSTTF, t)
+        assert isinstance(one.zenith_deg, float) and one.vector.shape == (3,)
+        assert one.zenith_deg == pytest.approx(many.zenith_deg[k], abs=1e-9)
+        true = sun_position(NSTTF, t, refraction=False)
+        assert 0.0 < true.zenith_deg - one.zenith_deg < 0.1  # refraction lifts the sun
+
+
+def test_parse_time_offsets_and_z():
+    a = parse_time("2024-06-21T10:00:00-06:00")
+    b = parse_time("2024-06-21T16:00Z")
+    assert a == b and a.tzinfo is not None
+    assert parse_time(datetime.fromisoformat("2024-06-21T10:00:00+02:00")).utcoffset().total_seconds() == 7200
+
+
+@pytest.mark.parametrize("naive", ["2024-06-21T10:00:00", "2024-06-21 10:00", datetime(2024, 6, 21, 10)])
+def test_naive_time_refused(naive):
+    with pytest.raises(PihimInputError, match="no UTC offset"):
+        parse_time(naive)
+    with pytest.raises(PihimInputError, match="no UTC offset"):
+        sun_position(NSTTF, naive)
+
+
+def test_naive_index_and_malformed_time_refused():
+    with pytest.raises(PihimInputError, match="no UTC offset"):
+        sun_position(NSTTF, pd.date_range("2024-01-01", periods=3, freq="h"))
+    with pytest.raises(PihimInputError, match="ISO 8601"):
+        parse_time("yesterday at noon")
+    with pytest.raises(PihimInputError):
+        sun_position(NSTTF, ["2024-06-21T10:00:00-06:00", "2024-06-21T11:00:00"])
+
+
+def test_nsttf_site_and_parse_site():
+    assert (NSTTF.latitude_deg, NSTTF.longitude_deg) == (34.962276, -106.509606)
+    assert NSTTF.timezone == "America/Denver"
+    assert NSTTF.height_m == pytest.approx(NSTTF_ORTHOMETRIC_HEIGHT_M + NSTTF_GEOID_UNDULATION_M)
+    assert 1600.0 < NSTTF.height_m < 1750.0
+    assert parse_site("NSTTF") is NSTTF and parse_site(" nsttf ") is NSTTF
+    custom = parse_site("35.1, -106.6, 1650")
+    assert (custom.latitude_deg, custom.longitude_deg, custom.height_m) == (35.1, -106.6, 1650.0)
+
+
+@pytest.mark.parametrize("bad", ["mars", "35,-106", "95,0,0", "10,200,0", "a,b,c", "1,2,nan"])
+def test_parse_site_refuses_bad_text(bad):
+    with pytest.raises(PihimInputError):
+        parse_site(bad)
+
+
+def test_require_daylight():
+    night = sun_position(NSTTF, "2024-06-21T23:30:00-06:00")
+    assert night.elevation_deg < 0 and not night.above_horizon
+    with pytest.raises(PihimInputError, match="below the horizon"):
+        require_daylight(night)
+    with pytest.raises(PihimInputError, match="below the horizon"):
+        require_daylight([0.0, 0.6, -0.8])
+    require_daylight(SunPosition.from_angles(90.0, 10.0))  # on the horizon is allowed
+    require_daylight(direction_from_angles(30.0, 235.0))
