@@ -72,3 +72,29 @@ def test_mirror_facing_away_or_showing_ground_is_flagged():
     steep = mirror_reflection(CAMERA, pt, normalize([0, -1.0, -0.3]), SUN, SKY, IdealMirror())
     assert not steep.shows_sky
     assert steep.stokes[0] == 0.0  # no ground model given: the reflected ground contributes nothing
+
+
+def test_ground_vs_ground_with_real_models():
+    from pihim.sky.model import with_horizontal_irradiance
+    from pihim.surfaces.ground import GroundModel
+    from pihim.scenarios import ground_vs_ground
+
+    sky = with_horizontal_irradiance(SKY, SUN, 100.0)
+    ground = GroundModel(sigma_deg=15.0)
+    pt = np.array([0.0, 0.0, 2.0])
+    cam = np.array([0.0, -15.0, 25.0])
+    n = normalize([0.0, -1.0, -0.1])  # steep mirror facing the camera side: shows the ground
+    res = ground_vs_ground(cam, pt, n, SUN, sky, SecondSurfaceMirror(), ground)
+    assert res.mirror.facing and not res.mirror.shows_sky
+    assert 0.0 <= res.aop_difference_deg <= 90.0
+    assert res.aop_difference_deg == pytest.approx(aop_difference_deg(res.mirror.aop_deg, res.ground_aop_deg))
+    assert res.aop_raw_difference_deg == pytest.approx(abs(res.mirror.aop_deg - res.ground_aop_deg))
+    assert bool(res.usable) == bool(res.aop_difference_deg > 50.0)
+    # the real-ground point defaults to the line of sight meeting z = 0
+    g, e = ground.stokes(normalize(cam - (pt + (pt - cam) * (2.0 / 23.0))), SUN, sky)
+    assert res.ground_stokes[0] == pytest.approx(g[0], rel=1e-9)
+    # with an ideal mirror the reflected ground keeps its DoLP
+    ideal = ground_vs_ground(cam, pt, n, SUN, sky, IdealMirror(), ground)
+    src = -ideal.mirror.source_dir  # light travels from the ground toward the mirror
+    s_src, _ = ground.stokes(src, SUN, sky)
+    assert ideal.mirror.dolp == pytest.approx(np.hypot(s_src[1], s_src[2]) / s_src[0], rel=1e-9)

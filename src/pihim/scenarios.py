@@ -95,8 +95,11 @@ class Reflection:
     facing: NDArray[np.bool_]
 
 
-def _to_image(s: NDArray, d: NDArray, e: NDArray, right: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-    # the image reference axis must be perpendicular to d: project "right" onto the beam's plane
+def to_image_frame(s: NDArray, d: NDArray, e: NDArray, right: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """Stokes (d, e) re-expressed with reference ``right`` (image right); also DoLP and image AoP (deg).
+
+    ``right`` is projected onto the plane perpendicular to ``d`` first.
+    """
     r = right - dot(right, d)[..., None] * d
     s_img = change_reference(s, d, e, normalize(r))
     return s_img, dolp(s_img[..., 0], s_img[..., 1], s_img[..., 2]), aop_deg(s_img[..., 1], s_img[..., 2])
@@ -137,7 +140,7 @@ def mirror_reflection(
     s_src = np.where(facing[..., None], s_src, 0.0)
     s_out, d_out, e_out = reflect_stokes(s_src, d_in, e_src, n, mirror.mueller)
     right = image_right(camera, point if gaze is None else gaze)
-    s_img, p, a = _to_image(s_out, d_out, e_out, right)
+    s_img, p, a = to_image_frame(s_out, d_out, e_out, right)
     return Reflection(s_img, p, a, source, shows_sky, facing)
 
 
@@ -218,7 +221,7 @@ def ground_vs_ground(
         ground_point = point + t[..., None] * v
     to_cam = normalize(camera - np.asarray(ground_point, float))
     s_g, e_g = ground.stokes(to_cam, np.asarray(sun_dir, float), sky)
-    s_img, p_g, a_g = _to_image(s_g, to_cam, e_g, image_right(camera, point))
+    s_img, p_g, a_g = to_image_frame(s_g, to_cam, e_g, image_right(camera, point))
     axial = aop_difference_deg(refl.aop_deg, a_g)
     raw = aop_raw_difference_deg(refl.aop_deg, a_g)
     usable = (~refl.shows_sky) & refl.facing & (axial > GROUND_AOP_DIFFERENCE_MIN_DEG)

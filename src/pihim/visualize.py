@@ -109,3 +109,73 @@ def write_png(path: str | Path, image: NDArray[np.uint8]) -> Path:
         if not cv2.imwrite(str(tmp), np.ascontiguousarray(img)):
             raise OSError(f"{path}: could not write PNG")
     return Path(path)
+
+
+#: Colour settings for hemisphere maps: (colour map, vmin, vmax).
+POLAR_MAP_STYLES: dict[str, tuple[str, float, float]] = {
+    "dolp": ("viridis", 0.0, 1.0),
+    "aop": ("twilight", 0.0, 180.0),
+    "aop_difference": ("magma", 0.0, 90.0),
+}
+
+
+def polar_map_png(
+    values: ArrayLike,
+    path: str | Path,
+    *,
+    style: str,
+    label: str,
+    title: str,
+    markers: tuple[tuple[float, float, str, str], ...] = (),
+) -> Path:
+    """Write a hemisphere map as a polar plot PNG (atomically).
+
+    North up, azimuth clockwise (a map seen from above), radius = zenith
+    angle 0-90 deg, as the paper's Fig. 2c-d and 5c-d.
+
+    Parameters
+    ----------
+    values : array_like, shape (nz, na)
+        Cell values on a regular grid: rows are zenith bands from 0 to 90 deg,
+        columns azimuth bins from 0 (North) clockwise to 360 deg. NaN cells are blank.
+    style : {"dolp", "aop", "aop_difference"}
+        Colour map and range (:data:`POLAR_MAP_STYLES`); AoP uses a cyclic map.
+    markers : tuple of (azimuth_deg, zenith_deg, matplotlib marker, name)
+        Points to mark (e.g. the sun as ``"*"``).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    if style not in POLAR_MAP_STYLES:
+        raise PihimInputError(f"unknown map style {style!r}")
+    cmap, vmin, vmax = POLAR_MAP_STYLES[style]
+    data = np.asarray(values, dtype=float)
+    nz, na = data.shape
+    theta_edges = np.radians(np.linspace(0.0, 360.0, na + 1))
+    r_edges = np.linspace(0.0, 90.0, nz + 1)
+    fig = Figure(figsize=(6.4, 5.6), dpi=110)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(projection="polar")
+    ax.set_theta_zero_location("N")
+    ax.set_theta_direction(-1)
+    mesh = ax.pcolormesh(theta_edges, r_edges, data, cmap=cmap, vmin=vmin, vmax=vmax, shading="flat", rasterized=True)
+    for az, zen, marker, name in markers:
+        if 0.0 <= zen <= 90.0:
+            ax.plot([np.radians(az)], [zen], marker=marker, markersize=13 if marker == "*" else 9,
+                    color="gold" if marker == "*" else "white", markeredgecolor="black", linestyle="none", label=name)
+    ax.set_ylim(0.0, 90.0)
+    ax.set_yticks([30.0, 60.0, 90.0])
+    ax.set_yticklabels(["30", "60", "90"], fontsize=8)
+    for lab in ax.get_yticklabels():
+        lab.set_bbox({"facecolor": "white", "alpha": 0.7, "edgecolor": "none", "pad": 1.0})
+    ax.set_rlabel_position(22.5)
+    ax.set_xticks(np.radians([0, 90, 180, 270]))
+    ax.set_xticklabels(["N", "E", "S", "W"])
+    ax.set_title(title, fontsize=10)
+    cb = fig.colorbar(mesh, ax=ax, shrink=0.8, pad=0.08)
+    cb.set_label(label)
+    if style == "aop":
+        cb.set_ticks([0, 45, 90, 135, 180])
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return Path(path)

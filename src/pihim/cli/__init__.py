@@ -16,7 +16,7 @@ try:  # typer >= 0.2x vendors click; its exceptions live there
 except ImportError:  # pragma: no cover - older typer uses click itself
     from click import exceptions as _click_exc
 
-from pihim.cli import calibrate, demo, polar, sky
+from pihim.cli import calibrate, demo, ground, polar, sky
 from pihim.errors import PihimInputError
 
 app = typer.Typer(
@@ -29,6 +29,7 @@ app = typer.Typer(
 app.command("polar")(polar.polar)
 app.command("calibrate-polarizer")(calibrate.calibrate_polarizer)
 app.command("sky")(sky.sky)
+app.command("ground")(ground.ground)
 app.command("demo")(demo.demo)
 
 

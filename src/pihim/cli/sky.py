@@ -35,6 +35,7 @@ from pihim.cli._common import emit_json
 from pihim.errors import PihimInputError
 from pihim.sky.berry import neutral_points
 from pihim.sky.model import SkyMap, SkyModel, _grid_size, sky_map
+from pihim.visualize import polar_map_png
 from pihim.sky.sun import (
     SunPosition,
     angles_from_direction,
@@ -113,44 +114,11 @@ def plot_polar(
     result: SkyMap, quantity: str, path: Path, *, title: str, markers: list[tuple[float, float, str, str]]
 ) -> Path:
     """Write a polar plot (North up, azimuth clockwise, radius = zenith) of ``dolp`` or ``aop_deg``."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    data = getattr(result, quantity)
-    nz, na = data.shape
-    res = 90.0 / nz
-    theta_edges = np.radians(np.arange(na + 1) * res)
-    r_edges = np.arange(nz + 1) * res
-    fig = Figure(figsize=(6.4, 5.6), dpi=110)
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot(projection="polar")
-    ax.set_theta_zero_location("N")
-    ax.set_theta_direction(-1)
     if quantity == "dolp":
-        cmap, vmin, vmax, label = "viridis", 0.0, 1.0, "DoLP"
+        style, label = "dolp", "DoLP"
     else:
-        cmap, vmin, vmax, label = "twilight", 0.0, 180.0, "AoP (deg, from local meridian, seen from the ground)"
-    mesh = ax.pcolormesh(theta_edges, r_edges, data, cmap=cmap, vmin=vmin, vmax=vmax, shading="flat", rasterized=True)
-    for az, zen, marker, name in markers:
-        if 0.0 <= zen <= 90.0:
-            ax.plot([math.radians(az)], [zen], marker=marker, markersize=13 if marker == "*" else 9,
-                    color="gold" if marker == "*" else "white", markeredgecolor="black", linestyle="none", label=name)
-    ax.set_ylim(0.0, 90.0)
-    ax.set_yticks([30.0, 60.0, 90.0])
-    ax.set_yticklabels(["30", "60", "90"], fontsize=8)
-    for lab in ax.get_yticklabels():
-        lab.set_bbox({"facecolor": "white", "alpha": 0.7, "edgecolor": "none", "pad": 1.0})
-    ax.set_rlabel_position(22.5)
-    ax.set_xticks(np.radians([0, 90, 180, 270]))
-    ax.set_xticklabels(["N", "E", "S", "W"])
-    ax.set_title(title, fontsize=10)
-    cb = fig.colorbar(mesh, ax=ax, shrink=0.8, pad=0.08)
-    cb.set_label(label)
-    if quantity == "aop_deg":
-        cb.set_ticks([0, 45, 90, 135, 180])
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    return path
+        style, label = "aop", "AoP (deg, from local meridian, seen from the ground)"
+    return polar_map_png(getattr(result, quantity), path, style=style, label=label, title=title, markers=tuple(markers))
 
 
 def write_outputs(result: SkyMap, out: Path, *, sun: SunPosition, title: str) -> dict[str, str]:

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 from functools import lru_cache
 from typing import Literal, get_args
 
+import dataclasses
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -250,3 +252,33 @@ def sky_map(model: SkyModel, sun_dir: ArrayLike, resolution_deg: float = 0.5) ->
         sun_dir=s,
         model=model,
     )
+
+
+def horizontal_irradiance(sky: object, sun_dir: ArrayLike, n_mu: int = 24, n_phi: int = 48) -> float:
+    """Diffuse irradiance of a sky on a horizontal plane, ``integral S0(l) l_z d omega``.
+
+    Works for any object with a ``stokes(view_dirs, sun_dir)`` method
+    (S0 in radiance units gives W m^-2). Gauss-Legendre in ``cos(zenith)``
+    times the midpoint rule in azimuth: exact (``pi L``) for a uniform sky.
+    """
+    x, w = np.polynomial.legendre.leggauss(n_mu)
+    mu, w_mu = 0.5 * (x + 1.0), 0.5 * w
+    phi = (np.arange(n_phi) + 0.5) * (2.0 * np.pi / n_phi)
+    mm, pp = np.meshgrid(mu, phi, indexing="ij")
+    sin_z = np.sqrt(1.0 - mm**2)
+    dirs = np.stack([sin_z * np.sin(pp), sin_z * np.cos(pp), mm], axis=-1)
+    s, _ = sky.stokes(dirs, np.asarray(sun_dir, float))  # type: ignore[attr-defined]
+    return float(np.sum(np.asarray(s)[..., 0] * mm * w_mu[:, None]) * 2.0 * np.pi / n_phi)
+
+
+def with_horizontal_irradiance(model: SkyModel, sun_dir: ArrayLike, irradiance_w_m2: float) -> SkyModel:
+    """The same sky scaled so that its diffuse horizontal irradiance is ``irradiance_w_m2``.
+
+    Clear skies give roughly 60-150 W m^-2 of diffuse horizontal irradiance
+    beside about 900-1000 W m^-2 of direct normal sun, which sets how much the
+    sky and the sun each contribute to the light leaving the ground.
+    """
+    if not _finite(irradiance_w_m2) or float(irradiance_w_m2) <= 0.0:
+        raise PihimInputError(f"sky irradiance must be a positive number of W m^-2, got {irradiance_w_m2!r}")
+    unit = dataclasses.replace(model, scale=1.0)
+    return dataclasses.replace(model, scale=float(irradiance_w_m2) / horizontal_irradiance(unit, sun_dir))

@@ -131,6 +131,7 @@ from numba import njit, prange
 from numpy.typing import ArrayLike, NDArray
 
 from pihim.errors import PihimInputError
+from pihim.sky.model import horizontal_irradiance
 from pihim.polarimetry.frames import (
     aop4_deg,
     change_reference,
@@ -807,22 +808,10 @@ class GroundModel:
         return partial(fresnel_reflection_mueller, n1=1.0, n2=self.refractive_index)
 
     def sky_irradiance(self, sky: SkyRadiance | None, sun_dir: ArrayLike, n_mu: int = 24, n_phi: int = 48) -> float:
-        """Sky irradiance on the horizontal ground, ``integral S0_sky(l) l_z d omega``, W m^-2.
-
-        Gauss-Legendre in ``cos(zenith)`` times the midpoint rule in azimuth
-        (exact for a uniform sky: ``pi L``).
-        """
+        """Sky irradiance on the horizontal ground, W m^-2 (see :func:`pihim.sky.model.horizontal_irradiance`)."""
         if sky is None:
             return 0.0
-        sun = _sun_vector(sun_dir)
-        x, wq = _gauss_legendre(n_mu)
-        mu = 0.5 * (x + 1.0)
-        wmu = 0.5 * wq
-        phi = (np.arange(n_phi) + 0.5) * (2.0 * math.pi / n_phi)
-        mm, pp = np.meshgrid(mu, phi, indexing="ij")
-        l = _direction(np.arccos(mm), pp)
-        s, _ = sky.stokes(l, sun)
-        return float(np.sum(np.asarray(s)[..., 0] * mm * wmu[:, None]) * 2.0 * math.pi / n_phi)
+        return horizontal_irradiance(sky, _sun_vector(sun_dir), n_mu, n_phi)
 
     def diffuse_radiance(self, sun_dir: ArrayLike, sky: SkyRadiance | None = None) -> float:
         """Radiance of the Lambertian part, ``albedo / pi * (E cos(theta_sun) + E_sky)``, W m^-2 sr^-1."""

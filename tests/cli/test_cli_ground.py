@@ -1,0 +1,43 @@
+"""End-to-end tests of ``pihim ground``."""
+
+import json
+
+import numpy as np
+import pytest
+
+from pihim.cli import main
+
+
+def test_ground_maps_written(tmp_path, capsys):
+    out = tmp_path / "g"
+    rc = main(["ground", "--sun-zenith", "30", "--sun-azimuth", "235", "--resolution", "5", "--out", str(out), "--json"])
+    assert rc == 0
+    rec = json.loads(capsys.readouterr().out)
+    assert rec["schema"] == "pihim.ground/1"
+    for key in ("ground_dolp_png", "ground_aop_png", "mirror_aop_png", "aop_difference_png", "npz"):
+        assert (out / rec["files"][key].split("/")[-1]).stat().st_size > 0
+    z = np.load(out / "ground-maps.npz")
+    assert z["ground_aop_deg"].shape == (18, 72)
+    d = z["aop_difference_deg"]
+    ok = np.isfinite(d)
+    assert ok.any() and (d[ok] >= 0).all() and (d[ok] <= 90).all()
+    assert rec["fraction_usable"] == pytest.approx((d[ok] > 50).sum() / d.size)
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--sun-zenith", "95", "--sun-azimuth", "0"], "zenith"),
+        (["--sun-zenith", "30", "--sun-azimuth", "0", "--model", "mie"], "sky model"),
+        (["--sun-zenith", "30", "--sun-azimuth", "0", "--sigma", "-2"], "sigma"),
+        (["--time", "2025-06-01T10:00"], "time"),
+        (["--time", "yesterday-ish+01:00"], "time"),
+        (["--sun-zenith", "30", "--sun-azimuth", "0", "--mirror", "bronze"], "mirror"),
+    ],
+)
+def test_bad_input_one_line_exit_2(tmp_path, capsys, args, needle):
+    out = tmp_path / "g"
+    assert main(["ground", *args, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and needle in err.lower()
+    assert not out.exists()
