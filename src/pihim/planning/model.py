@@ -1,0 +1,196 @@
+"""Data model of a polarimetric inspection flight plan.
+
+A :class:`Plan` holds scan passes (straight lines flown at constant altitude
+and heading), each imaging a sequence of heliostat-under-assessment (HUA) /
+target pairs from planned waypoints, and the flights the passes are split
+into by battery endurance. Positions are field ENU metres and WGS84
+(latitude, longitude, ellipsoidal height); headings are degrees clockwise
+from North; gimbal pitch is degrees, negative below the horizon.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+WaypointKind = Literal["takeoff", "transit", "lead_in", "scan", "run_past", "return", "land"]
+PLAN_SCHEMA_ID = "pihim.plan/1"
+
+
+@dataclass(frozen=True)
+class Waypoint:
+    """One planned drone position and camera attitude.
+
+    Attributes
+    ----------
+    x_m, y_m, z_m : float
+        Field ENU position, metres (z above the field origin).
+    latitude_deg, longitude_deg, height_m : float
+        WGS84 geodetic position; ``height_m`` is ellipsoidal.
+    heading_deg : float
+        Drone (and camera) heading, deg clockwise from North, in [0, 360).
+    gimbal_pitch_deg : float
+        Camera pitch, deg; 0 = horizontal, -90 = straight down.
+    speed_m_s : float
+        Ground speed toward this waypoint.
+    kind : str
+        Role in the flight (``scan`` waypoints image a HUA).
+    capture : bool
+        Take an image here.
+    hua : str or None
+        The heliostat under assessment imaged here (scan waypoints).
+    """
+
+    x_m: float
+    y_m: float
+    z_m: float
+    latitude_deg: float
+    longitude_deg: float
+    height_m: float
+    heading_deg: float
+    gimbal_pitch_deg: float
+    speed_m_s: float
+    kind: WaypointKind = "scan"
+    capture: bool = False
+    hua: str | None = None
+
+
+@dataclass(frozen=True)
+class PairPrediction:
+    """Predicted polarimetric contrast of one planned image of a HUA-target pair.
+
+    ``None`` values mean the scenario does not arise for this image (for
+    example the HUA shows no ground, so there is no ground-vs-ground edge).
+    """
+
+    hua: str
+    target: str
+    waypoint_index: int
+    reflection_dolp: float | None
+    sky_dolp_difference: float | None
+    ground_aop_difference_deg: float | None
+    ground_aop_raw_difference_deg: float | None
+    reflection_dolp_ok: bool
+    sky_vs_sky_ok: bool
+    ground_vs_ground_ok: bool
+
+    @property
+    def usable(self) -> bool:
+        """The paper's criteria: reflection DoLP > 0.2 and at least one scenario usable."""
+        return self.reflection_dolp_ok and (self.sky_vs_sky_ok or self.ground_vs_ground_ok)
+
+
+@dataclass(frozen=True)
+class PassShift:
+    """How a pass was moved from its nominal geometry to raise contrast, and the gain."""
+
+    altitude_delta_m: float = 0.0
+    lateral_offset_m: float = 0.0
+    gaze_delta_deg: float = 0.0
+    usable_fraction_before: float = 0.0
+    usable_fraction_after: float = 0.0
+
+
+@dataclass(frozen=True)
+class ScanPass:
+    """A straight scan line imaging HUA-target pairs.
+
+    Attributes
+    ----------
+    index : int
+        Order within the plan (boustrophedon order).
+    azimuth_deg : float
+        Direction of travel, deg clockwise from North.
+    altitude_m : float
+        Flight altitude, metres above the field origin.
+    gimbal_pitch_deg : float
+        Nominal camera pitch along the pass.
+    pairs : tuple of (str, str)
+        (HUA, target) pairs imaged, in flight order.
+    waypoints : tuple of Waypoint
+        Lead-in, scan and run-past waypoints.
+    predictions : tuple of PairPrediction
+    feasible : bool
+        False if any constraint fails; ``issues`` says which.
+    issues : tuple of str
+        Human-readable constraint violations or warnings for this pass.
+    shift : PassShift or None
+        Contrast-driven adjustment applied, if any.
+    """
+
+    index: int
+    azimuth_deg: float
+    altitude_m: float
+    gimbal_pitch_deg: float
+    pairs: tuple[tuple[str, str], ...]
+    waypoints: tuple[Waypoint, ...]
+    predictions: tuple[PairPrediction, ...] = ()
+    feasible: bool = True
+    issues: tuple[str, ...] = ()
+    shift: PassShift | None = None
+
+    @property
+    def heliostats(self) -> tuple[str, ...]:
+        """Every heliostat involved (HUAs and targets), first appearance order."""
+        seen: dict[str, None] = {}
+        for h, t in self.pairs:
+            seen.setdefault(h)
+            seen.setdefault(t)
+        return tuple(seen)
+
+    @property
+    def usable_fraction(self) -> float:
+        """Fraction of predicted images meeting the paper's criteria."""
+        if not self.predictions:
+            return 0.0
+        return sum(p.usable for p in self.predictions) / len(self.predictions)
+
+
+@dataclass(frozen=True)
+class Flight:
+    """One battery's worth of passes, from take-off to landing."""
+
+    index: int
+    pass_indices: tuple[int, ...]
+    waypoints: tuple[Waypoint, ...]
+    duration_s: float
+    distance_m: float
+    heliostats_assessed: int
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A complete inspection plan for one instant."""
+
+    time_iso: str
+    site: dict[str, Any]
+    sun: dict[str, Any]
+    aim_point: tuple[float, float, float]
+    min_altitude_m: float
+    max_altitude_m: float
+    camera: dict[str, Any]
+    home: Waypoint
+    passes: tuple[ScanPass, ...]
+    flights: tuple[Flight, ...] = ()
+    summary: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready nested dictionaries (schema ``pihim.plan/1``)."""
+
+        def conv(obj: Any) -> Any:
+            if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+                d = {f.name: conv(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+                if isinstance(obj, ScanPass):
+                    d["heliostats"] = list(obj.heliostats)
+                    d["usable_fraction"] = obj.usable_fraction
+                if isinstance(obj, PairPrediction):
+                    d["usable"] = obj.usable
+                return d
+            if isinstance(obj, (list, tuple)):
+                return [conv(x) for x in obj]
+            if isinstance(obj, dict):
+                return {k: conv(v) for k, v in obj.items()}
+            return obj
+
+        return {"schema": PLAN_SCHEMA_ID, **conv(self)}
