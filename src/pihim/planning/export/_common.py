@@ -1,0 +1,222 @@
+"""Checks and conversions shared by the mission exporters (private).
+
+Every exporter calls :func:`check_plan` before it creates any file, so bad
+input raises :class:`~pihim.errors.PihimInputError` with a one-line message
+and leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from pihim.errors import PihimInputError
+from pihim.planning.model import Plan, Waypoint
+
+#: Numeric :class:`~pihim.planning.model.Waypoint` fields that must be finite.
+WAYPOINT_NUMBERS = (
+    "x_m",
+    "y_m",
+    "z_m",
+    "latitude_deg",
+    "longitude_deg",
+    "height_m",
+    "heading_deg",
+    "gimbal_pitch_deg",
+    "speed_m_s",
+)
+
+# Sites within this many degrees of the NSTTF origin get the NSTTF geoid undulation by default.
+_NSTTF_DEFAULT_RADIUS_DEG = 0.5
+
+
+def _finite(value: Any) -> float | None:
+    """``float(value)`` if it is a finite real number (bools excluded), else None."""
+    if isinstance(value, bool):
+        return None
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
+
+
+def check_waypoint(w: Any, where: str) -> None:
+    """Raise a one-line :class:`PihimInputError` unless ``w`` is a usable waypoint.
+
+    Every numeric field must be finite, latitude within +/-90 deg, longitude
+    within +/-180 deg and the speed non-negative.
+    """
+    if not isinstance(w, Waypoint):
+        raise PihimInputError(f"{where}: expected a Waypoint, got {type(w).__name__}")
+    for name in WAYPOINT_NUMBERS:
+        v = getattr(w, name)
+        if _finite(v) is None:
+            raise PihimInputError(f"{where}: {name} is {v!r}, not a finite number")
+    if not -90.0 <= w.latitude_deg <= 90.0:
+        raise PihimInputError(f"{where}: latitude_deg {w.latitude_deg!r} is outside [-90, 90]")
+    if not -180.0 <= w.longitude_deg <= 180.0:
+        raise PihimInputError(f"{where}: longitude_deg {w.longitude_deg!r} is outside [-180, 180]")
+    if w.speed_m_s < 0:
+        raise PihimInputError(f"{where}: speed_m_s {w.speed_m_s!r} is negative")
+
+
+def check_plan(plan: Any) -> Plan:
+    """Validate a plan for export: it has passes and every waypoint is finite.
+
+    Returns
+    -------
+    Plan
+        ``plan`` itself.
+
+    Raises
+    ------
+    PihimInputError
+        Not a :class:`Plan`, no passes, a pass without waypoints, or a
+        waypoint (home, pass or flight) with a non-finite or out-of-range
+        number.
+    """
+    if not isinstance(plan, Plan):
+        raise PihimInputError(f"expected a pihim Plan, got {type(plan).__name__}")
+    if not plan.passes:
+        raise PihimInputError("the plan has no scan passes: nothing to export")
+    check_waypoint(plan.home, "home")
+    for k, p in enumerate(plan.passes):
+        if not p.waypoints:
+            raise PihimInputError(f"pass {p.index} (#{k}) has no waypoints")
+        for j, w in enumerate(p.waypoints):
+            check_waypoint(w, f"pass {p.index} waypoint {j}")
+    for f in plan.flights:
+        for j, w in enumerate(f.waypoints):
+            check_waypoint(w, f"flight {f.index} waypoint {j}")
+    return plan
+
+
+def mission_waypoints(plan: Plan, flight: int | None = None) -> tuple[Waypoint, ...]:
+    """The waypoints one mission file flies.
+
+    Parameters
+    ----------
+    plan : Plan
+    flight : int, optional
+        :attr:`Flight.index` of one battery's flight: its waypoints (take-off,
+        transits, passes, return, landing) as planned. Default: the waypoints
+        of every pass, in plan order, joined by straight legs (no transit
+        planning; see ``docs/plan-formats.md``).
+
+    Raises
+    ------
+    PihimInputError
+        Unknown flight index, or a flight without waypoints.
+    """
+    if flight is None:
+        return tuple(w for p in plan.passes for w in p.waypoints)
+    if isinstance(flight, bool) or not isinstance(flight, int):
+        raise PihimInputError(f"flight must be a flight index (int) or None, got {flight!r}")
+    matches = [f for f in plan.flights if f.index == flight]
+    if not matches:
+        known = ", ".join(str(f.index) for f in plan.flights) or "none"
+        raise PihimInputError(f"no flight with index {flight} in the plan (flights: {known})")
+    if not matches[0].waypoints:
+        raise PihimInputError(f"flight {flight} has no waypoints")
+    return tuple(matches[0].waypoints)
+
+
+def heading_0_360(deg: float) -> float:
+    """A heading folded into [0, 360) degrees."""
+    h = float(deg) % 360.0
+    return 0.0 if h >= 360.0 else h
+
+
+def geoid_undulation(plan: Plan, value: float | None) -> float:
+    """EGM96 geoid height above the WGS84 ellipsoid at the site, metres.
+
+    Orthometric (above mean sea level, "AMSL") height = ellipsoidal height -
+    undulation. Resolution order: ``value`` if given; ``plan.site
+    ["geoid_undulation_m"]`` if present; the NSTTF estimate
+    (:data:`pihim.sky.sun.NSTTF_GEOID_UNDULATION_M`, -22 m) for a site within
+    0.5 deg of the NSTTF; otherwise an error, because a wrong value shifts
+    every sea-level height by the same error.
+    """
+    if value is not None:
+        f = _finite(value)
+        if f is None or abs(f) > 120.0:
+            raise PihimInputError(f"geoid_undulation_m must be a finite number of metres within +/-120, got {value!r}")
+        return f
+    site = plan.site if isinstance(plan.site, dict) else {}
+    f = _finite(site.get("geoid_undulation_m"))
+    if f is not None:
+        return f
+    from pihim.field.geodesy import (
+        NSTTF_ORIGIN_LATITUDE_DEG,
+        NSTTF_ORIGIN_LONGITUDE_DEG,
+    )
+    from pihim.sky.sun import NSTTF_GEOID_UNDULATION_M
+
+    lat, lon = plan.home.latitude_deg, plan.home.longitude_deg
+    if (abs(lat - NSTTF_ORIGIN_LATITUDE_DEG) <= _NSTTF_DEFAULT_RADIUS_DEG
+            and abs(lon - NSTTF_ORIGIN_LONGITUDE_DEG) <= _NSTTF_DEFAULT_RADIUS_DEG):
+        return NSTTF_GEOID_UNDULATION_M
+    raise PihimInputError(
+        f"geoid undulation unknown at lat {lat:.5f}, lon {lon:.5f}: pass geoid_undulation_m= "
+        "(EGM96 geoid height above the WGS84 ellipsoid, m) or put it in plan.site"
+    )
+
+
+def site_origin(plan: Plan) -> Any:
+    """The field-frame origin (:class:`~pihim.field.geodesy.GeodeticOrigin`) from ``plan.site``.
+
+    ``plan.site`` must hold ``latitude_deg``, ``longitude_deg`` and the
+    ellipsoidal ``height_m`` of the field origin (as
+    :meth:`pihim.sky.sun.Site.as_dict` writes them).
+    """
+    from pihim.field.geodesy import GeodeticOrigin
+
+    site = plan.site if isinstance(plan.site, dict) else {}
+    vals = [_finite(site.get(k)) for k in ("latitude_deg", "longitude_deg", "height_m")]
+    if any(v is None for v in vals):
+        raise PihimInputError(
+            "plan.site needs finite latitude_deg, longitude_deg and height_m (the field origin) "
+            "to place field objects on the map"
+        )
+    return GeodeticOrigin(*vals)  # type: ignore[arg-type]
+
+
+def json_ready(obj: Any) -> Any:
+    """A copy of nested dicts/lists with non-finite floats replaced by None (JSON has no NaN)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
+    if hasattr(obj, "item") and callable(obj.item) and getattr(obj, "ndim", None) == 0:  # numpy scalar
+        return json_ready(obj.item())
+    return obj
+
+
+def plan_counts(plan: Plan) -> dict[str, Any]:
+    """Counts used in titles, descriptions and ``plan.json``'s ``export.counts``."""
+    waypoints = [w for p in plan.passes for w in p.waypoints]
+    heliostats: dict[str, None] = {}
+    huas: dict[str, None] = {}
+    for p in plan.passes:
+        for h, t in p.pairs:
+            heliostats.setdefault(h)
+            heliostats.setdefault(t)
+            huas.setdefault(h)
+    predictions = [q for p in plan.passes for q in p.predictions]
+    usable = sum(q.usable for q in predictions)
+    return {
+        "passes": len(plan.passes),
+        "feasible_passes": sum(p.feasible for p in plan.passes),
+        "flights": len(plan.flights),
+        "waypoints": len(waypoints),
+        "capture_waypoints": sum(w.capture for w in waypoints),
+        "pairs": sum(len(p.pairs) for p in plan.passes),
+        "heliostats": len(heliostats),
+        "huas": len(huas),
+        "predictions": len(predictions),
+        "usable_predictions": int(usable),
+        "usable_fraction": (usable / len(predictions)) if predictions else 0.0,
+    }

@@ -1,0 +1,200 @@
+"""Litchi waypoint-mission CSV (``litchi.csv``) for DJI drones.
+
+The metric Litchi CSV [1]_ [2]_ has one row per waypoint under the header
+:data:`LITCHI_HEADER`. pihim writes:
+
+* ``latitude``, ``longitude``: WGS84 degrees, 8 decimals (1 mm);
+* ``altitude(m)``: height above the **take-off point** (waypoint ellipsoidal
+  height - home ellipsoidal height), with ``altitudemode`` = 0 ("Above
+  Ground" unchecked: relative to the take-off elevation) -- Litchi's range
+  is -200..500 m;
+* ``heading(deg)``: the waypoint heading, degrees clockwise from North in
+  [0, 360). Litchi uses it only with the mission's Heading Mode set to
+  *Custom* (a global setting the CSV cannot carry);
+* ``curvesize(m)`` 0 (straight lines through the waypoints, so that actions
+  run), ``rotationdir`` 0 (clockwise), ``gimbalmode`` 2 (*interpolate*) and
+  ``gimbalpitchangle`` = waypoint gimbal pitch (degrees, negative down);
+* actions: at capture waypoints, optionally *stay for* (type 0, milliseconds)
+  ``hover_ms``, then *take photo* (type 1, parameter 0); every unused slot
+  is ``-1,0`` (no action) up to ``actiontype15``/``actionparam15``;
+* ``speed(m/s)``: the waypoint speed (0 = the mission cruising speed);
+* no point of interest (``poi_*`` 0), ``photo_timeinterval`` and
+  ``photo_distinterval`` -1 (off).
+
+Take-off and landing are Litchi's own; waypoints of kind ``takeoff`` and
+``land`` are left out. Global settings (Heading Mode *Custom*, Finish
+Action, Path Mode *straight lines*, Cruising Speed) must be set in the
+Mission Hub after import. Litchi missions hold at most 99 waypoints (the DJI
+waypoint-mission limit); longer plans are refused by default
+(``max_waypoints``): export one flight at a time.
+
+OpenCSP's UFACET planner writes Litchi CSVs the same way (from a template
+exported by the Mission Hub, 8-decimal longitude and latitude, altitude,
+heading, gimbal pitch) [3]_.
+
+References
+----------
+.. [1] Litchi Mission Hub, https://flylitchi.com/hub (CSV import/export).
+.. [2] W. Barris, "Litchi CSV Format Description", Litchi Utilities,
+   https://www.litchiutilities.com/docs/litchiCsv.php.
+.. [3] Sandia National Laboratories, OpenCSP,
+   ``contrib/app/ufacet-s/flight_planner_ufacet/U_Code/lib/FlightPlan.py``
+   (``save_to_litchi_csv``), https://github.com/sandialabs/OpenCSP.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+
+from pihim._atomic import write_atomic
+from pihim.errors import PihimInputError
+from pihim.planning.export._common import check_plan, heading_0_360, mission_waypoints
+from pihim.planning.model import Plan, Waypoint
+
+__all__ = [
+    "LITCHI_ACTION_NONE",
+    "LITCHI_ACTION_STAY_MS",
+    "LITCHI_ACTION_TAKE_PHOTO",
+    "LITCHI_HEADER",
+    "LITCHI_MAX_WAYPOINTS",
+    "litchi_csv_text",
+    "litchi_waypoints",
+    "write_litchi_csv",
+]
+
+#: The metric Litchi CSV header, in column order.
+LITCHI_HEADER: tuple[str, ...] = (
+    "latitude",
+    "longitude",
+    "altitude(m)",
+    "heading(deg)",
+    "curvesize(m)",
+    "rotationdir",
+    "gimbalmode",
+    "gimbalpitchangle",
+    *(f"action{kind}{k}" for k in range(1, 16) for kind in ("type", "param")),
+    "altitudemode",
+    "speed(m/s)",
+    "poi_latitude",
+    "poi_longitude",
+    "poi_altitude(m)",
+    "poi_altitudemode",
+    "photo_timeinterval",
+    "photo_distinterval",
+)
+
+LITCHI_ACTION_NONE = -1
+LITCHI_ACTION_STAY_MS = 0
+LITCHI_ACTION_TAKE_PHOTO = 1
+LITCHI_MAX_WAYPOINTS = 99
+_GIMBAL_INTERPOLATE = 2
+_ALTITUDE_RELATIVE_TO_TAKEOFF = 0
+_ALTITUDE_RANGE_M = (-200.0, 500.0)
+
+
+def litchi_waypoints(plan: Plan, flight: int | None = None) -> tuple[Waypoint, ...]:
+    """The waypoints written to the CSV: the mission waypoints without take-off and landing."""
+    return tuple(w for w in mission_waypoints(plan, flight) if w.kind not in ("takeoff", "land"))
+
+
+def _f(v: float, decimals: int) -> str:
+    text = f"{v:.{decimals}f}"
+    return f"{0.0:.{decimals}f}" if float(text) == 0.0 else text
+
+
+def litchi_csv_text(
+    plan: Plan,
+    *,
+    flight: int | None = None,
+    hover_ms: int = 0,
+    max_waypoints: int | None = LITCHI_MAX_WAYPOINTS,
+) -> str:
+    """The Litchi CSV text (see :func:`write_litchi_csv`)."""
+    check_plan(plan)
+    if isinstance(hover_ms, bool) or not isinstance(hover_ms, int) or hover_ms < 0:
+        raise PihimInputError(f"hover_ms must be a whole number of milliseconds >= 0, got {hover_ms!r}")
+    wps = litchi_waypoints(plan, flight)
+    if not wps:
+        raise PihimInputError("no waypoints to write to the Litchi CSV (only take-off/landing)")
+    if max_waypoints is not None and len(wps) > max_waypoints:
+        raise PihimInputError(
+            f"{len(wps)} waypoints exceed Litchi's limit of {max_waypoints} per mission: "
+            "export one flight at a time (flight=...) or pass max_waypoints=None"
+        )
+    home_h = plan.home.height_m
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(LITCHI_HEADER)
+    for j, w in enumerate(wps):
+        altitude = w.height_m - home_h
+        if not _ALTITUDE_RANGE_M[0] <= altitude <= _ALTITUDE_RANGE_M[1]:
+            raise PihimInputError(
+                f"waypoint {j}: altitude {altitude:.1f} m above take-off is outside Litchi's range -200..500 m"
+            )
+        actions: list[tuple[int, int]] = []
+        if w.capture:
+            if hover_ms:
+                actions.append((LITCHI_ACTION_STAY_MS, hover_ms))
+            actions.append((LITCHI_ACTION_TAKE_PHOTO, 0))
+        actions += [(LITCHI_ACTION_NONE, 0)] * (15 - len(actions))
+        writer.writerow([
+            _f(w.latitude_deg, 8),
+            _f(w.longitude_deg, 8),
+            _f(altitude, 3),
+            _f(heading_0_360(w.heading_deg), 3),
+            0,
+            0,
+            _GIMBAL_INTERPOLATE,
+            _f(w.gimbal_pitch_deg, 3),
+            *(v for a in actions for v in a),
+            _ALTITUDE_RELATIVE_TO_TAKEOFF,
+            _f(w.speed_m_s, 2),
+            0,
+            0,
+            0,
+            0,
+            -1,
+            -1,
+        ])
+    return buf.getvalue()
+
+
+def write_litchi_csv(
+    plan: Plan,
+    path: str | Path,
+    *,
+    flight: int | None = None,
+    hover_ms: int = 0,
+    max_waypoints: int | None = LITCHI_MAX_WAYPOINTS,
+) -> Path:
+    """Write a Litchi mission CSV atomically.
+
+    Parameters
+    ----------
+    plan : Plan
+    path : str or path-like
+        Output file, conventionally ``litchi.csv``.
+    flight : int, optional
+        Export one flight (:attr:`Flight.index`); default all passes.
+    hover_ms : int
+        Hover before each photo ("stay for" action), milliseconds; 0 for
+        none.
+    max_waypoints : int or None
+        Refuse more waypoints than this (Litchi's limit, 99); None writes
+        any number.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    PihimInputError
+        Invalid plan or option, too many waypoints, or an altitude outside
+        Litchi's -200..500 m; no file is written.
+    """
+    text = litchi_csv_text(plan, flight=flight, hover_ms=hover_ms, max_waypoints=max_waypoints)
+    return write_atomic(path, lambda p: p.write_text(text, encoding="utf-8", newline="\n"))

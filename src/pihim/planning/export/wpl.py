@@ -1,0 +1,102 @@
+"""``QGC WPL 110`` plain-text mission files (``mission.waypoints``).
+
+The de-facto plain-text mission format read by QGroundControl, Mission
+Planner, MAVProxy and pymavlink [1]_: a first line ``QGC WPL 110``, then one
+tab-separated line per mission item::
+
+    INDEX  CURRENT  FRAME  COMMAND  P1  P2  P3  P4  LAT  LON  ALT  AUTOCONTINUE
+
+Index 0 is the home position (``MAV_CMD_NAV_WAYPOINT`` in ``MAV_FRAME_GLOBAL``
+with its altitude above mean sea level, ``CURRENT`` = 1): QGroundControl reads
+row 0 of a version-110 file as the planned home position and ArduPilot keeps
+home in mission slot 0. Rows 1.. are exactly the items of the ``.plan`` file
+(:func:`pihim.planning.export.qgc.mission_items`, same options, same frames
+and altitudes).
+
+Numbers: latitude and longitude of coordinate commands with 10 decimals
+(0.1 mm), other values with 8. The text format has no way to say "unset":
+parameters that are NaN in the ``.plan`` file (``null`` there: the reserved
+parameters 5-7 of ``MAV_CMD_IMAGE_START_CAPTURE`` and the pitch/yaw rates of
+``MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW``) are written as ``0``, which every
+reader parses; ArduPilot and PX4 act on the gimbal angles when they are
+given, so a zero rate there does not change what the mission does.
+
+References
+----------
+.. [1] MAVLink Developer Guide, "File Formats: Mission Plain-Text File
+   Format", https://mavlink.io/en/file_formats/; QGroundControl
+   ``MissionController::_loadTextMissionFile`` and ``MissionItem::load``
+   (12 tab-separated fields per row; version 110 carries home in row 0).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+from pihim._atomic import write_atomic
+from pihim.planning.export.qgc import (
+    MAV_CMD_NAV_WAYPOINT,
+    MAV_FRAME_GLOBAL,
+    MissionItem,
+    mission_items,
+)
+from pihim.planning.model import Plan
+
+__all__ = ["WPL_HEADER", "wpl_text", "write_wpl"]
+
+#: First line of the file.
+WPL_HEADER = "QGC WPL 110"
+
+
+def _num(v: float, decimals: int) -> str:
+    if not math.isfinite(v):
+        v = 0.0
+    text = f"{v:.{decimals}f}"
+    return "0" if float(text) == 0.0 else text  # no "-0.00000000"
+
+
+def _row(index: int, current: int, item: MissionItem) -> str:
+    p = item.params
+    xy = 10 if item.specifies_coordinate else 8
+    cells = [str(index), str(current), str(item.frame), str(item.command),
+             *(_num(v, 8) for v in p[:4]), _num(p[4], xy), _num(p[5], xy), _num(p[6], 8),
+             "1" if item.autocontinue else "0"]
+    return "\t".join(cells)
+
+
+def wpl_text(plan: Plan, **mission_options: Any) -> str:
+    """The ``QGC WPL 110`` file text (see :func:`write_wpl`)."""
+    mission = mission_items(plan, **mission_options)
+    lat, lon, amsl = mission.home
+    home = MissionItem(MAV_CMD_NAV_WAYPOINT, MAV_FRAME_GLOBAL, (0.0, 0.0, 0.0, 0.0, lat, lon, amsl))
+    lines = [WPL_HEADER, _row(0, 1, home)]
+    lines += [_row(k, 0, it) for k, it in enumerate(mission.items, start=1)]
+    return "\n".join(lines) + "\n"
+
+
+def write_wpl(plan: Plan, path: str | Path, **mission_options: Any) -> Path:
+    """Write a ``QGC WPL 110`` mission file atomically.
+
+    Parameters
+    ----------
+    plan : Plan
+    path : str or path-like
+        Output file, conventionally ``mission.waypoints``.
+    **mission_options
+        Passed to :func:`pihim.planning.export.qgc.mission_items`
+        (``flight``, ``autopilot``, ``altitude_frame``, ``camera``, ...).
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    PihimInputError
+        Invalid plan or option; no file is written.
+    """
+    text = wpl_text(plan, **mission_options)
+    return write_atomic(path, lambda p: p.write_text(text, encoding="utf-8", newline="\n"))

@@ -1,0 +1,557 @@
+"""Mission export: plan.json, QGroundControl .plan, QGC WPL 110, KML, Litchi CSV and the map."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import struct
+import xml.etree.ElementTree as ET
+from dataclasses import replace
+
+import jsonschema
+import numpy as np
+import pytest
+
+from pihim.errors import PihimInputError
+from pihim.field.geodesy import enu_to_geodetic
+from pihim.field.layout import NSTTF_TOWER, Field, nsttf_spec
+from pihim.planning.export import (
+    LITCHI_HEADER,
+    OUTPUT_NAMES,
+    export_all,
+    litchi_csv_text,
+    load_plan_schema,
+    load_qgc_plan_schema,
+    mission_items,
+    qgc_plan_document,
+    write_kml,
+    write_litchi_csv,
+    write_plan_figure,
+    write_plan_json,
+    write_qgc_plan,
+    write_wpl,
+)
+from pihim.planning.export.kml import KML_NS
+from pihim.planning.export.qgc import (
+    MAV_CMD_CONDITION_YAW,
+    MAV_CMD_DO_CHANGE_SPEED,
+    MAV_CMD_DO_DIGICAM_CONTROL,
+    MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+    MAV_CMD_DO_MOUNT_CONTROL,
+    MAV_CMD_IMAGE_START_CAPTURE,
+    MAV_CMD_NAV_LAND,
+    MAV_CMD_NAV_RETURN_TO_LAUNCH,
+    MAV_CMD_NAV_TAKEOFF,
+    MAV_CMD_NAV_WAYPOINT,
+)
+from pihim.planning.model import (
+    Flight,
+    PairPrediction,
+    PassShift,
+    Plan,
+    ScanPass,
+    Waypoint,
+)
+
+# NSTTF field origin (OpenCSP lon/lat), ellipsoidal height 1684.88 m (pihim.sky.sun.NSTTF)
+ORIGIN = (34.962276, -106.509606, 1684.88)
+GEOID_NSTTF = -22.0
+LITCHI_HEADER_TEXT = (
+    "latitude,longitude,altitude(m),heading(deg),curvesize(m),rotationdir,gimbalmode,gimbalpitchangle,"
+    + ",".join(f"actiontype{k},actionparam{k}" for k in range(1, 16))
+    + ",altitudemode,speed(m/s),poi_latitude,poi_longitude,poi_altitude(m),poi_altitudemode,"
+    "photo_timeinterval,photo_distinterval"
+)
+CAPTURE_COMMANDS = {MAV_CMD_IMAGE_START_CAPTURE, MAV_CMD_DO_DIGICAM_CONTROL}
+NAV = {MAV_CMD_NAV_TAKEOFF, MAV_CMD_NAV_WAYPOINT, MAV_CMD_NAV_LAND, MAV_CMD_NAV_RETURN_TO_LAUNCH}
+
+
+# --------------------------------------------------------------------------- a small synthetic plan
+
+
+def _wp(x, y, z, heading, pitch, speed=2.0, kind="scan", capture=False, hua=None) -> Waypoint:
+    lat, lon, h = enu_to_geodetic([x, y, z], ORIGIN)
+    return Waypoint(x, y, z, float(lat), float(lon), float(h), heading, pitch, speed, kind, capture, hua)
+
+
+def _pass(index: int, x: float, altitude: float, northbound: bool, pitch: float, huas, targets) -> ScanPass:
+    heading = 0.0 if northbound else 180.0
+    ys = [50.0, 60.0, 72.0, 84.0, 96.0]
+    if not northbound:
+        ys = ys[::-1]
+    wps = [_wp(x, ys[0], altitude, heading, pitch, speed=3.0, kind="lead_in")]
+    for k, (y, hua) in enumerate(zip(ys[1:4], huas, strict=True)):
+        wps.append(_wp(x, y, altitude, heading, pitch + k, speed=2.0, kind="scan", capture=True, hua=hua))
+    wps.append(_wp(x, ys[4], altitude, heading, pitch, speed=3.0, kind="run_past"))
+    preds = []
+    for k, (hua, target) in enumerate(zip(huas, targets, strict=True)):
+        preds.append(PairPrediction(
+            hua=hua, target=target, waypoint_index=k + 1,
+            reflection_dolp=0.15 + 0.1 * k, sky_dolp_difference=0.08 if k else None,
+            ground_aop_difference_deg=12.0 + k, ground_aop_raw_difference_deg=168.0 - k,
+            reflection_dolp_ok=0.15 + 0.1 * k > 0.2, sky_vs_sky_ok=bool(k), ground_vs_ground_ok=k == 2,
+        ))
+    return ScanPass(
+        index=index, azimuth_deg=heading, altitude_m=altitude, gimbal_pitch_deg=pitch,
+        pairs=tuple(zip(huas, targets, strict=True)), waypoints=tuple(wps), predictions=tuple(preds),
+        feasible=index != 2, issues=() if index != 2 else ("passes within 12 m of the tower",),
+        shift=PassShift(altitude_delta_m=5.0, usable_fraction_before=0.33, usable_fraction_after=0.67) if index == 1
+        else None,
+    )
+
+
+def make_plan(*, with_flight: bool = True) -> Plan:
+    passes = (
+        _pass(0, 25.0, 35.0, True, -28.0, ("5E3", "6E3", "7E3"), ("5E2", "6E2", "7E2")),
+        _pass(1, 35.0, 40.0, False, -31.0, ("7E4", "6E4", "5E4"), ("7E3", "6E3", "5E3")),
+        _pass(2, 45.0, 45.0, True, -34.0, ("5E5", "6E5", "7E5"), ("5E4", "6E4", "7E4")),
+    )
+    home = _wp(-30.0, 20.0, 0.0, 0.0, 0.0, speed=0.0, kind="takeoff")
+    flights = ()
+    if with_flight:
+        body = [w for p in passes for w in p.waypoints]
+        fw = (
+            _wp(-30.0, 20.0, 0.0, 0.0, 0.0, speed=0.0, kind="takeoff"),
+            _wp(-30.0, 20.0, 35.0, 45.0, -28.0, speed=5.0, kind="transit"),
+            *body,
+            _wp(-30.0, 20.0, 45.0, 225.0, 0.0, speed=5.0, kind="return"),
+            _wp(-30.0, 20.0, 0.0, 225.0, 0.0, speed=1.0, kind="land"),
+        )
+        flights = (Flight(index=0, pass_indices=(0, 1, 2), waypoints=fw, duration_s=612.0, distance_m=1450.0,
+                          heliostats_assessed=9),)
+    site = {"name": "NSTTF", "latitude_deg": ORIGIN[0], "longitude_deg": ORIGIN[1], "height_m": ORIGIN[2],
+            "timezone": "America/Denver"}
+    return Plan(
+        time_iso="2024-06-21T10:30:00-06:00", site=site, sun={"zenith_deg": 25.3, "azimuth_deg": 112.4},
+        aim_point=(0.0, 8.8, 28.9), min_altitude_m=20.0, max_altitude_m=120.0,
+        camera={"name": "Lucid Triton TRI050S-PC", "focal_length_mm": 35.0}, home=home, passes=passes,
+        flights=flights, summary={"heliostats_assessed": 9, "note": "synthetic"},
+    )
+
+
+def make_field() -> Field:
+    names, pivots = [], []
+    for row, y in ((5, 57.9), (6, 70.1), (7, 82.3)):
+        for col in range(1, 6):
+            for side, sign in (("E", 1.0), ("W", -1.0)):
+                names.append(f"{row}{side}{col}")
+                pivots.append((sign * (col - 0.5) * 9.7536, y, 3.8))
+    return Field(tuple(names), np.array(pivots), nsttf_spec(), NSTTF_TOWER)
+
+
+@pytest.fixture(scope="module")
+def plan() -> Plan:
+    return make_plan()
+
+
+@pytest.fixture(scope="module")
+def field() -> Field:
+    return make_field()
+
+
+def _all_wps(plan: Plan) -> list[Waypoint]:
+    return [w for p in plan.passes for w in p.waypoints]
+
+
+def _groups(items: list[dict]) -> list[tuple[dict, list[dict]]]:
+    """(navigation item, DO/CONDITION items that follow it) in mission order."""
+    groups: list[tuple[dict, list[dict]]] = []
+    for it in items:
+        if it["command"] in NAV:
+            groups.append((it, []))
+        else:
+            assert groups, "a mission starts with a navigation item"
+            groups[-1][1].append(it)
+    return groups
+
+
+# --------------------------------------------------------------------------- plan.json
+
+
+def test_plan_json_validates_against_schema(plan, tmp_path):
+    path = write_plan_json(plan, tmp_path / "plan.json")
+    doc = json.loads(path.read_text())
+    schema = load_plan_schema()
+    jsonschema.Draft202012Validator.check_schema(schema)
+    jsonschema.validate(doc, schema, cls=jsonschema.Draft202012Validator)
+    assert doc["schema"] == "pihim.plan/1"
+    assert doc["export"]["generator"].startswith("pihim ")
+    c = doc["export"]["counts"]
+    assert (c["passes"], c["waypoints"], c["capture_waypoints"], c["pairs"], c["flights"]) == (3, 15, 9, 9, 1)
+    assert c["predictions"] == 9 and 0 <= c["usable_fraction"] <= 1
+    # everything from Plan.to_dict() is there unchanged
+    ref = json.loads(json.dumps(plan.to_dict()))
+    assert {k: doc[k] for k in ref} == ref
+    w = doc["passes"][0]["waypoints"][1]
+    assert w["capture"] is True and w["hua"] == "5E3" and w["kind"] == "scan"
+    assert doc["passes"][0]["predictions"][0]["sky_dolp_difference"] is None
+    assert set(doc["passes"][0]["predictions"][0]) >= {"reflection_dolp_ok", "sky_vs_sky_ok", "ground_vs_ground_ok",
+                                                      "usable"}
+
+
+def test_plan_schema_has_teeth(plan):
+    schema = load_plan_schema()
+    doc = json.loads(json.dumps(plan.to_dict()))
+    doc["passes"][0]["waypoints"][0]["heading_deg"] = 400.0
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(doc, schema, cls=jsonschema.Draft202012Validator)
+    doc = json.loads(json.dumps(plan.to_dict()))
+    del doc["passes"][1]["predictions"][0]["sky_vs_sky_ok"]
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(doc, schema, cls=jsonschema.Draft202012Validator)
+
+
+def test_plan_json_non_finite_prediction_becomes_null(plan, tmp_path):
+    p0 = plan.passes[0]
+    bad = replace(p0, predictions=(replace(p0.predictions[0], reflection_dolp=math.nan), *p0.predictions[1:]))
+    doc = json.loads(write_plan_json(replace(plan, passes=(bad, *plan.passes[1:])), tmp_path / "p.json").read_text())
+    assert doc["passes"][0]["predictions"][0]["reflection_dolp"] is None
+    jsonschema.validate(doc, load_plan_schema(), cls=jsonschema.Draft202012Validator)
+
+
+# --------------------------------------------------------------------------- QGroundControl .plan
+
+
+def test_qgc_plan_validates_and_has_the_file_constants(plan, tmp_path):
+    path = write_qgc_plan(plan, tmp_path / "mission.plan", geofence_margin_m=30.0)
+    doc = json.loads(path.read_text())
+    schema = load_qgc_plan_schema()
+    jsonschema.Draft202012Validator.check_schema(schema)
+    jsonschema.validate(doc, schema, cls=jsonschema.Draft202012Validator)
+    assert (doc["fileType"], doc["version"], doc["groundStation"]) == ("Plan", 1, "QGroundControl")
+    m = doc["mission"]
+    assert (m["version"], m["firmwareType"], m["vehicleType"], m["globalPlanAltitudeMode"]) == (2, 3, 2, 1)
+    home = plan.home
+    assert m["plannedHomePosition"] == pytest.approx([home.latitude_deg, home.longitude_deg,
+                                                      home.height_m - GEOID_NSTTF], abs=1e-9)
+    assert doc["geoFence"]["version"] == 2 and doc["rallyPoints"] == {"points": [], "version": 2}
+    circle = doc["geoFence"]["circles"][0]
+    assert circle["inclusion"] is True and circle["circle"]["center"] == [home.latitude_deg, home.longitude_deg]
+    far = max(math.hypot(w.x_m - home.x_m, w.y_m - home.y_m) for w in _all_wps(plan))
+    assert far + 30.0 - 0.05 <= circle["circle"]["radius"] <= far + 30.0 + 0.05
+    for it in m["items"]:
+        assert len(it["params"]) == 7 and it["type"] == "SimpleItem" and it["autoContinue"] is True
+        if it["command"] in (MAV_CMD_NAV_TAKEOFF, MAV_CMD_NAV_WAYPOINT, MAV_CMD_NAV_LAND):
+            assert it["frame"] == 3 and it["AltitudeMode"] == 1 and it["AMSLAltAboveTerrain"] is None
+            assert it["Altitude"] == it["params"][6]
+        else:
+            assert it["frame"] == 2 and "Altitude" not in it
+    assert m["items"][0]["command"] == MAV_CMD_NAV_TAKEOFF
+    assert m["items"][-1]["command"] == MAV_CMD_NAV_RETURN_TO_LAUNCH
+
+
+def test_qgc_schema_rejects_what_qgc_rejects(plan):
+    schema = load_qgc_plan_schema()
+    good = qgc_plan_document(plan)
+    for mutate in (
+        lambda d: d["mission"]["items"][0]["params"].pop(),  # params must hold 7 values
+        lambda d: d["mission"]["items"][0]["params"].__setitem__(0, "15"),  # number or null
+        lambda d: d["mission"]["plannedHomePosition"].pop(),  # lat, lon, alt
+        lambda d: d.__setitem__("fileType", "Mission"),
+        lambda d: d.pop("rallyPoints"),
+        lambda d: d["mission"]["items"][0].pop("AltitudeMode"),  # all three altitude keys or none
+        lambda d: d["mission"]["items"][1].__setitem__("autoContinue", 1),
+    ):
+        doc = json.loads(json.dumps(good))
+        mutate(doc)
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(doc, schema, cls=jsonschema.Draft202012Validator)
+
+
+def test_do_jump_ids_unique_and_increasing(plan):
+    items = qgc_plan_document(plan)["mission"]["items"]
+    ids = [it["doJumpId"] for it in items]
+    assert ids == list(range(1, len(items) + 1))
+
+
+def test_one_navigation_waypoint_per_plan_waypoint_with_relative_altitudes(plan):
+    items = qgc_plan_document(plan)["mission"]["items"]
+    navs = [it for it in items if it["command"] == MAV_CMD_NAV_WAYPOINT]
+    wps = _all_wps(plan)
+    assert len(navs) == len(wps)
+    for it, w in zip(navs, wps, strict=True):
+        assert it["params"][4:6] == [w.latitude_deg, w.longitude_deg]
+        assert it["params"][6] == pytest.approx(w.height_m - plan.home.height_m, abs=1e-9)
+        assert it["params"][6] == pytest.approx(w.z_m - plan.home.z_m, abs=0.01)  # flat-earth sanity check
+        assert it["params"][3] == w.heading_deg  # PX4 flies the waypoint yaw
+    takeoff = items[0]
+    assert takeoff["params"][4:7] == [plan.home.latitude_deg, plan.home.longitude_deg,
+                                      pytest.approx(wps[0].height_m - plan.home.height_m)]
+    assert takeoff["params"][3] == wps[0].heading_deg  # face the first waypoint's heading
+
+
+def test_condition_yaw_gimbal_and_capture_commands_follow_their_waypoint(plan):
+    items = qgc_plan_document(plan)["mission"]["items"]
+    groups = [(nav, dos) for nav, dos in _groups(items) if nav is not None and nav["command"] == MAV_CMD_NAV_WAYPOINT]
+    wps = _all_wps(plan)
+    assert len(groups) == len(wps)
+    seq = 0
+    for (nav, dos), w in zip(groups, wps, strict=True):
+        cmds = [d["command"] for d in dos]
+        yaw = [d for d in dos if d["command"] == MAV_CMD_CONDITION_YAW]
+        assert len(yaw) == 1
+        assert yaw[0]["params"][0] == w.heading_deg  # angle
+        assert yaw[0]["params"][2:4] == [0, 0]  # shortest direction, absolute angle
+        gimbal = [d for d in dos if d["command"] == MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW]
+        assert len(gimbal) == 1 and gimbal[0]["params"][0] == w.gimbal_pitch_deg
+        assert gimbal[0]["params"][1] == 0 and gimbal[0]["params"][2:4] == [None, None]
+        assert gimbal[0]["params"][4] == 12  # ROLL_LOCK | PITCH_LOCK: pitch relative to the horizon
+        captures = [d for d in dos if d["command"] in CAPTURE_COMMANDS]
+        assert len(captures) == (1 if w.capture else 0)
+        if w.capture:
+            seq += 1
+            assert captures[0]["params"][:4] == [0, 0, 1, seq]  # all cameras, interval 0, one image, sequence
+            assert cmds.index(MAV_CMD_IMAGE_START_CAPTURE) > cmds.index(MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW)
+            assert nav["params"][0] == 0  # no hold by default
+    # speed changes come before the waypoint they apply to
+    speeds = [(k, it["params"][1]) for k, it in enumerate(items) if it["command"] == MAV_CMD_DO_CHANGE_SPEED]
+    assert speeds and all(items[k + 1]["command"] == MAV_CMD_NAV_WAYPOINT for k, _ in speeds)
+    assert [s for _, s in speeds] == [3.0, 2.0] * 3 + [3.0]  # run-past and next lead-in share 3 m/s
+
+
+def test_mission_options(plan):
+    px4 = qgc_plan_document(plan, autopilot="px4", mount_control=True, camera="digicam", capture_hold_s=1.5,
+                            altitude_frame="amsl", end="land")
+    jsonschema.validate(px4, load_qgc_plan_schema(), cls=jsonschema.Draft202012Validator)
+    m = px4["mission"]
+    assert m["firmwareType"] == 12 and m["globalPlanAltitudeMode"] == 2
+    cmds = [it["command"] for it in m["items"]]
+    assert MAV_CMD_CONDITION_YAW not in cmds and MAV_CMD_IMAGE_START_CAPTURE not in cmds
+    assert cmds.count(MAV_CMD_DO_DIGICAM_CONTROL) == 9 and cmds.count(MAV_CMD_DO_MOUNT_CONTROL) == 15
+    assert cmds[-1] == MAV_CMD_NAV_LAND
+    mounts = [it for it in m["items"] if it["command"] == MAV_CMD_DO_MOUNT_CONTROL]
+    assert [it["params"][0] for it in mounts] == [w.gimbal_pitch_deg for w in _all_wps(plan)]
+    assert all(it["params"][6] == 2 for it in mounts)  # MAV_MOUNT_MODE_MAVLINK_TARGETING
+    for it, w in zip([it for it in m["items"] if it["command"] == MAV_CMD_NAV_WAYPOINT], _all_wps(plan), strict=True):
+        assert it["frame"] == 0 and it["AltitudeMode"] == 2
+        assert it["params"][6] == pytest.approx(w.height_m - GEOID_NSTTF)  # metres above mean sea level
+        assert it["params"][0] == (1.5 if w.capture else 0)
+    digicam = next(it for it in m["items"] if it["command"] == MAV_CMD_DO_DIGICAM_CONTROL)
+    assert digicam["params"][4] == 1  # shoot
+
+
+def test_flight_export_uses_the_flight_waypoints(plan):
+    items = qgc_plan_document(plan, flight=0)["mission"]["items"]
+    f = plan.flights[0]
+    assert items[0]["command"] == MAV_CMD_NAV_TAKEOFF and items[-1]["command"] == MAV_CMD_NAV_LAND
+    assert items[0]["params"][4:6] == [f.waypoints[0].latitude_deg, f.waypoints[0].longitude_deg]
+    assert items[0]["params"][6] == pytest.approx(35.0, abs=0.01)  # climbs to the first transit waypoint
+    assert items[0]["params"][3] == 45.0  # facing the first transit heading
+    assert sum(it["command"] == MAV_CMD_NAV_WAYPOINT for it in items) == len(f.waypoints) - 2
+    assert MAV_CMD_NAV_RETURN_TO_LAUNCH not in [it["command"] for it in items]
+    with pytest.raises(PihimInputError, match="no flight with index 3"):
+        mission_items(plan, flight=3)
+
+
+# --------------------------------------------------------------------------- QGC WPL 110
+
+
+def _parse_wpl(text: str) -> list[dict]:
+    lines = text.split("\n")
+    assert lines[0] == "QGC WPL 110" and lines[-1] == ""
+    rows = []
+    for line in lines[1:-1]:
+        cells = line.split("\t")
+        assert len(cells) == 12, line
+        rows.append({"index": int(cells[0]), "current": int(cells[1]), "frame": int(cells[2]),
+                     "command": int(cells[3]), "params": [float(c) for c in cells[4:11]],
+                     "autocontinue": int(cells[11]), "text": cells})
+    return rows
+
+
+def test_wpl_round_trip(plan, tmp_path):
+    path = write_wpl(plan, tmp_path / "mission.waypoints")
+    rows = _parse_wpl(path.read_text())
+    items = qgc_plan_document(plan)["mission"]["items"]
+    assert len(rows) == len(items) + 1
+    assert [r["index"] for r in rows] == list(range(len(rows)))
+    home = rows[0]
+    assert (home["current"], home["frame"], home["command"]) == (1, 0, MAV_CMD_NAV_WAYPOINT)
+    assert home["params"][4] == pytest.approx(plan.home.latitude_deg, abs=1e-8)
+    assert home["params"][5] == pytest.approx(plan.home.longitude_deg, abs=1e-8)
+    assert home["params"][6] == pytest.approx(plan.home.height_m - GEOID_NSTTF, abs=1e-6)
+    for r, it in zip(rows[1:], items, strict=True):
+        assert (r["current"], r["frame"], r["command"], r["autocontinue"]) == (0, it["frame"], it["command"], 1)
+        expected = [0.0 if v is None else v for v in it["params"]]  # NaN (null) is 0 in the text file
+        assert r["params"] == pytest.approx(expected, abs=1e-8)
+    navs = [r for r in rows if r["command"] == MAV_CMD_NAV_WAYPOINT and r["index"] > 0]
+    for r, w in zip(navs, _all_wps(plan), strict=True):
+        assert abs(r["params"][4] - w.latitude_deg) <= 1e-8 and abs(r["params"][5] - w.longitude_deg) <= 1e-8
+        assert len(r["text"][8].split(".")[1]) >= 8 and len(r["text"][9].split(".")[1]) >= 8
+    assert sum(r["command"] == MAV_CMD_IMAGE_START_CAPTURE for r in rows) == 9
+
+
+def test_wpl_takes_the_mission_options(plan, tmp_path):
+    rows = _parse_wpl(write_wpl(plan, tmp_path / "m.waypoints", autopilot="px4", flight=0).read_text())
+    cmds = [r["command"] for r in rows]
+    assert MAV_CMD_CONDITION_YAW not in cmds and cmds[1] == MAV_CMD_NAV_TAKEOFF and cmds[-1] == MAV_CMD_NAV_LAND
+
+
+# --------------------------------------------------------------------------- KML
+
+
+def _q(tag: str) -> str:
+    return f"{{{KML_NS}}}{tag}"
+
+
+def test_kml_well_formed_with_expected_placemarks(plan, field, tmp_path):
+    path = write_kml(plan, tmp_path / "plan.kml", field=field)
+    root = ET.parse(path).getroot()
+    assert root.tag == _q("kml")
+    doc = root.find(_q("Document"))
+    folders = doc.findall(_q("Folder"))
+    pass_folders = [f for f in folders if f.findtext(_q("name")).startswith("Pass ")]
+    assert len(pass_folders) == 3
+    n_capture = sum(w.capture for w in _all_wps(plan))
+    placemarks = root.findall(f".//{_q('Placemark')}")
+    # home + one line per pass + capture waypoints + flights + heliostats + tower
+    assert len(placemarks) == 1 + 3 + n_capture + 1 + len(field) + 1
+    for folder, p in zip(pass_folders, plan.passes, strict=True):
+        line = folder.find(f".//{_q('LineString')}")
+        assert line.findtext(_q("altitudeMode")) == "relativeToGround"
+        coords = [tuple(map(float, c.split(","))) for c in line.findtext(_q("coordinates")).split()]
+        assert len(coords) == len(p.waypoints)
+        for (lon, lat, alt), w in zip(coords, p.waypoints, strict=True):
+            assert abs(lon - w.longitude_deg) < 1e-8 and abs(lat - w.latitude_deg) < 1e-8
+            assert alt == pytest.approx(w.z_m, abs=1e-3)
+        points = folder.findall(f"{_q('Placemark')}/{_q('Point')}")
+        assert len(points) == sum(w.capture for w in p.waypoints)
+    first_capture = pass_folders[0].findall(_q("Placemark"))[1]
+    desc = first_capture.findtext(_q("description"))
+    assert "heading 0.00 deg" in desc and "gimbal pitch -28.00 deg" in desc and "HUA 5E3" in desc
+    names = [pm.findtext(_q("name")) for pm in placemarks]
+    assert "5E1" in names and "Tower" in names
+
+
+def test_kml_absolute_altitudes_use_the_geoid(plan, tmp_path):
+    root = ET.parse(write_kml(plan, tmp_path / "a.kml", altitude_mode="absolute", geoid_undulation_m=-21.5)).getroot()
+    line = root.find(f".//{_q('LineString')}")
+    assert line.findtext(_q("altitudeMode")) == "absolute"
+    alt = float(line.findtext(_q("coordinates")).split()[0].split(",")[2])
+    assert alt == pytest.approx(plan.passes[0].waypoints[0].height_m + 21.5, abs=1e-3)
+    # no field: only home, pass lines, captures and flights
+    assert len(root.findall(f".//{_q('Placemark')}")) == 1 + 3 + 9 + 1
+
+
+# --------------------------------------------------------------------------- Litchi
+
+
+def test_litchi_csv_header_and_rows(plan, tmp_path):
+    path = write_litchi_csv(plan, tmp_path / "litchi.csv")
+    text = path.read_text()
+    assert text.split("\n")[0] == LITCHI_HEADER_TEXT == ",".join(LITCHI_HEADER)
+    rows = list(csv.DictReader(text.splitlines()))
+    wps = _all_wps(plan)
+    assert len(rows) == len(wps)
+    for r, w in zip(rows, wps, strict=True):
+        assert float(r["latitude"]) == pytest.approx(w.latitude_deg, abs=1e-8)
+        assert float(r["longitude"]) == pytest.approx(w.longitude_deg, abs=1e-8)
+        assert float(r["altitude(m)"]) == pytest.approx(w.height_m - plan.home.height_m, abs=1e-3)
+        assert float(r["heading(deg)"]) == pytest.approx(w.heading_deg, abs=1e-3)
+        assert float(r["gimbalpitchangle"]) == pytest.approx(w.gimbal_pitch_deg, abs=1e-3)
+        assert (r["gimbalmode"], r["altitudemode"], r["curvesize(m)"]) == ("2", "0", "0")
+        assert float(r["speed(m/s)"]) == w.speed_m_s
+        assert r["actiontype1"] == ("1" if w.capture else "-1")
+        assert all(r[f"actiontype{k}"] == "-1" for k in range(2, 16))
+        assert (r["photo_timeinterval"], r["photo_distinterval"]) == ("-1", "-1")
+
+
+def test_litchi_options_and_limits(plan):
+    rows = list(csv.DictReader(litchi_csv_text(plan, hover_ms=800).splitlines()))
+    cap = next(r for r in rows if r["actiontype1"] != "-1")
+    assert (cap["actiontype1"], cap["actionparam1"], cap["actiontype2"]) == ("0", "800", "1")
+    flight_rows = list(csv.DictReader(litchi_csv_text(plan, flight=0).splitlines()))
+    assert len(flight_rows) == len(plan.flights[0].waypoints) - 2  # no take-off, no landing
+    with pytest.raises(PihimInputError, match="exceed Litchi's limit of 10"):
+        litchi_csv_text(plan, max_waypoints=10)
+
+
+# --------------------------------------------------------------------------- map
+
+
+def _png_size(data: bytes) -> tuple[int, int]:
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR"
+    return struct.unpack(">II", data[16:24])
+
+
+def test_plan_figure_png(plan, field, tmp_path):
+    path = write_plan_figure(plan, tmp_path / "plan.png", field=field)
+    data = path.read_bytes()
+    assert len(data) > 10_000
+    assert _png_size(data) == (1200, 960)
+    small = write_plan_figure(plan, tmp_path / "small.png", figsize=(4, 3), dpi=50).read_bytes()
+    assert _png_size(small) == (200, 150)
+
+
+# --------------------------------------------------------------------------- export_all and bad input
+
+
+def test_export_all_writes_six_files(plan, field, tmp_path):
+    out = export_all(plan, tmp_path / "out", field=field, geofence_margin_m=20.0)
+    assert set(out) == set(OUTPUT_NAMES)
+    for key, path in out.items():
+        assert path == tmp_path / "out" / OUTPUT_NAMES[key] and path.stat().st_size > 0
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == sorted(OUTPUT_NAMES.values())  # no temporaries
+    jsonschema.validate(json.loads(out["qgc_plan"].read_text()), load_qgc_plan_schema(),
+                        cls=jsonschema.Draft202012Validator)
+    jsonschema.validate(json.loads(out["plan_json"].read_text()), load_plan_schema(),
+                        cls=jsonschema.Draft202012Validator)
+
+
+def _nan_latitude_plan(plan: Plan) -> Plan:
+    p1 = plan.passes[1]
+    wps = list(p1.waypoints)
+    wps[2] = replace(wps[2], latitude_deg=math.nan)
+    return replace(plan, passes=(plan.passes[0], replace(p1, waypoints=tuple(wps)), plan.passes[2]))
+
+
+WRITERS = [
+    ("plan.json", write_plan_json),
+    ("mission.plan", write_qgc_plan),
+    ("mission.waypoints", write_wpl),
+    ("plan.kml", write_kml),
+    ("litchi.csv", write_litchi_csv),
+    ("plan.png", write_plan_figure),
+]
+
+
+@pytest.mark.parametrize(("name", "writer"), WRITERS)
+def test_bad_plans_raise_one_line_errors_and_write_nothing(plan, tmp_path, name, writer):
+    for bad, pattern in ((replace(plan, passes=()), "no scan passes"),
+                         (_nan_latitude_plan(plan), "pass 1 waypoint 2: latitude_deg is nan")):
+        with pytest.raises(PihimInputError, match=pattern) as exc:
+            writer(bad, tmp_path / name)
+        assert "\n" not in str(exc.value)
+        assert list(tmp_path.iterdir()) == []
+
+
+def test_export_all_bad_plan_writes_nothing(plan, tmp_path):
+    with pytest.raises(PihimInputError, match="latitude_deg"):
+        export_all(_nan_latitude_plan(plan), tmp_path / "out")
+    assert not (tmp_path / "out").exists() or list((tmp_path / "out").iterdir()) == []
+    flight_wps = list(plan.flights[0].waypoints)
+    flight_wps[1] = replace(flight_wps[1], heading_deg=math.inf)
+    bad = replace(plan, flights=(replace(plan.flights[0], waypoints=tuple(flight_wps)),))
+    with pytest.raises(PihimInputError, match="flight 0 waypoint 1: heading_deg"):
+        export_all(bad, tmp_path / "out")
+
+
+def test_failed_write_keeps_the_previous_file(plan, tmp_path):
+    path = write_qgc_plan(plan, tmp_path / "mission.plan")
+    before = path.read_bytes()
+    with pytest.raises(PihimInputError, match="autopilot"):
+        write_qgc_plan(plan, path, autopilot="betaflight")
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["mission.plan"]
+
+
+def test_geoid_undulation_needed_away_from_the_nsttf(plan, tmp_path):
+    shift = 10.0  # degrees of longitude: far from the NSTTF
+    moved = replace(plan, home=replace(plan.home, longitude_deg=plan.home.longitude_deg + shift), site={})
+    with pytest.raises(PihimInputError, match="geoid_undulation_m"):
+        write_qgc_plan(moved, tmp_path / "m.plan")
+    doc = qgc_plan_document(moved, geoid_undulation_m=-30.0)
+    assert doc["mission"]["plannedHomePosition"][2] == pytest.approx(moved.home.height_m + 30.0)
+    with pytest.raises(PihimInputError, match="plan.site needs"):
+        write_kml(moved, tmp_path / "m.kml", field=make_field())
+    assert list(tmp_path.iterdir()) == []
