@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import sys
+import warnings
 
 import typer
 
@@ -16,7 +17,7 @@ try:  # typer >= 0.2x vendors click; its exceptions live there
 except ImportError:  # pragma: no cover - older typer uses click itself
     from click import exceptions as _click_exc
 
-from pihim.cli import calibrate, demo, ground, polar, sky
+from pihim.cli import calibrate, demo, ground, plan, polar, sky, windows
 from pihim.errors import PihimInputError
 
 app = typer.Typer(
@@ -30,13 +31,21 @@ app.command("polar")(polar.polar)
 app.command("calibrate-polarizer")(calibrate.calibrate_polarizer)
 app.command("sky")(sky.sky)
 app.command("ground")(ground.ground)
+app.command("plan")(plan.plan)
+app.command("windows")(windows.windows)
 app.command("demo")(demo.demo)
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
+    """Show library warnings as one ``pihim: warning:`` line, without source context."""
+    print(f"pihim: warning: {message}", file=sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; returns the exit status (0 ok, 1 some items failed, 2 bad input)."""
     # readers turn corrupt files into one-line errors; silence tifffile's own log lines
     logging.getLogger("tifffile").setLevel(logging.CRITICAL)
+    warnings.showwarning = _one_line_warning
     try:
         rv = app(args=argv, standalone_mode=False, prog_name="pihim")
     except PihimInputError as exc:

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 from collections.abc import Iterable, Iterator, Sequence
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -14,6 +15,11 @@ from pihim.camera.layout import MosaicLayout
 from pihim.errors import PihimInputError
 
 T = TypeVar("T")
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from pihim.field import Field
 
 #: Console for human-oriented output; stdout is kept for JSON.
 stderr_console = Console(stderr=True)
@@ -71,3 +77,32 @@ def unique_stems(paths: Iterable[Any]) -> None:
         if p.stem in seen:
             raise PihimInputError(f"{p} and {seen[p.stem]} share the name {p.stem!r}; outputs would collide")
         seen[p.stem] = p
+
+
+def load_field_option(spec: str, facets: "Path | None", *, nsttf_tower: bool = True) -> "Field":
+    """``--field nsttf-like|HELIOSTATS.csv`` (and ``--facets``) to a :class:`pihim.field.Field`."""
+    from pathlib import Path
+
+    from pihim.field import NSTTF_TOWER, load_field, nsttf_like_field
+
+    key = spec.strip()
+    if key.lower() in ("nsttf-like", "nsttf"):
+        if facets is not None:
+            raise PihimInputError("--facets needs --field HELIOSTATS.csv (the nsttf-like field has its own facets)")
+        return nsttf_like_field()
+    path = Path(key)
+    if not path.is_file():
+        raise PihimInputError(f"--field {spec!r}: neither 'nsttf-like' nor an existing heliostat CSV file")
+    if facets is not None and not Path(facets).is_file():
+        raise PihimInputError(f"--facets {facets}: no such file")
+    return load_field(path, facets, tower=NSTTF_TOWER if nsttf_tower else None)
+
+
+def parse_point(text: str | None, *, name: str) -> "list[float] | None":
+    """``X,Y,Z`` in metres (finite) or None."""
+    if text is None:
+        return None
+    vals = parse_floats(text, name=name, count=3)
+    if not all(math.isfinite(v) for v in vals):
+        raise PihimInputError(f"{name}: coordinates must be finite")
+    return vals

@@ -1,0 +1,388 @@
+"""Speed and memory benchmark: UFACET flight planning, NSTTF case of the issue and a 10,000-heliostat field.
+
+Rows (each timed ``repeat`` times after ``warmup`` untimed calls, one process):
+
+``NSTTF sun + tracking + canting``
+    :func:`pihim.planning.ufacet.track_at`: NREL SPA sun position (pvlib),
+    tracking of the 218 NSTTF heliostats toward OpenCSP's UFACET aim point
+    (60, 8.8, 28.9) m at 2021-05-13 13:00 MDT, frames and design canting.
+    The real field from ``../shared/data/nsttf`` when present, else the
+    embedded NSTTF-like field (the report says which).
+``NSTTF planning``
+    :func:`pihim.planning.ufacet.plan_ufacet` on that pose: targets, lines,
+    camera positions on the altitude grid, every sight line, framing, flux,
+    pass order and WGS84 waypoints.
+``NSTTF full plan``
+    Both of the above plus the home point and the split into flights
+    (:func:`pihim.planning.endurance.split_flights`). Target: <= 1 s (the
+    polarimetric scoring comes on top); planning alone <= 300 ms.
+``radial N full plan``
+    A radial-staggered field of N heliostats around a 200 m tower aiming at
+    195 m (:func:`pihim.field.layout.radial_staggered_field`), same sun:
+    tracking, canting, planning and flights. Target for N = 10,000: <= 30 s.
+
+Figures: median, p10 and p90 wall time; the tracemalloc peak of one call
+(numpy allocations included); the share of CPU other processes took. The
+NSTTF case summary (passes, waypoints, first pass) is printed below the
+table next to OpenCSP's figures from the issue; ``--nsttf-table`` also prints
+the per-pass table used in ``docs/opencsp-comparison.md``.
+
+Run ``python benchmarks/run.py --only bench_plan`` or this file directly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import os
+import platform
+import time
+import tracemalloc
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pihim.field.kinematics import track_field
+from pihim.field.layout import (
+    NSTTF_TOWER,
+    UFACET_AIM_POINT,
+    Field,
+    Tower,
+    load_field,
+    nsttf_like_field,
+    radial_staggered_field,
+)
+from pihim.planning.endurance import DroneEndurance, split_flights, throughput
+from pihim.planning.ufacet import home_waypoint, plan_ufacet, track_at
+from pihim.sky.sun import NSTTF, sun_position
+
+DEFAULT_WARMUP = 2
+QUICK_REPEAT = 3
+QUICK_WARMUP = 1
+RESULTS_PATH = Path(__file__).resolve().parent / "results" / "plan.json"
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "nsttf"
+CASE_TIME = "2021-05-13T13:00:00-06:00"
+RADIAL_SIZES = (10_000,)
+BIG_TOWER = Tower(height_m=200.0, x_min_m=-10.0, x_max_m=10.0, y_min_m=-10.0, y_max_m=10.0, target=(0.0, 0.0, 195.0))
+#: OpenCSP's figures for this case, as quoted in the issue.
+OPENCSP = {"passes": 26, "waypoints": 53, "first_pass": "5W5 ... 12W14", "pitch_deg": -73.8, "altitude_m": 19.0,
+           "heading_deg": 313.6, "time_s": "38-52"}
+
+
+def nsttf_field() -> tuple[Field, str]:
+    """The real NSTTF field from ../shared when present, else the embedded NSTTF-like field."""
+    if (SHARED / "heliostats.csv").is_file():
+        return load_field(SHARED / "heliostats.csv", SHARED / "facet_centroids.csv", tower=NSTTF_TOWER), \
+            "NSTTF survey (../shared/data/nsttf)"
+    return nsttf_like_field(), "embedded NSTTF-like field"
+
+
+def nsttf_full(field: Field) -> tuple[Any, tuple[Any, ...]]:
+    """The issue's NSTTF case end to end: sun, tracking, canting, passes, flights."""
+    _, pose = track_at(field, CASE_TIME, aim_point=UFACET_AIM_POINT, site=NSTTF)
+    res = plan_ufacet(field, pose, aim_point=UFACET_AIM_POINT, origin=NSTTF)
+    home = home_waypoint(field, origin=NSTTF)
+    return res, split_flights(res.passes, home, origin=NSTTF, tower=field.tower)
+
+
+def radial_full(field: Field, sun: np.ndarray) -> tuple[Any, tuple[Any, ...]]:
+    """A large radial field end to end (sun given)."""
+    aim = field.default_aim_point
+    pose = track_field(field, sun, aim)
+    res = plan_ufacet(field, pose, aim_point=aim, origin=NSTTF)
+    home = home_waypoint(field, origin=NSTTF)
+    return res, split_flights(res.passes, home, origin=NSTTF, tower=field.tower)
+
+
+def _cpu_times() -> tuple[float, float, float] | None:
+    try:
+        with open("/proc/stat", encoding="ascii") as fh:
+            ticks = [int(v) for v in fh.readline().split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    user, nice, system, _idle, _iowait, irq, softirq, steal = ticks + [0] * (8 - len(ticks))
+    own = os.times()
+    busy = (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
+    return time.perf_counter(), busy, own.user + own.system
+
+
+def _other_load(a: tuple[float, float, float] | None, b: tuple[float, float, float] | None) -> float | None:
+    if a is None or b is None or b[0] <= a[0]:
+        return None
+    return max((b[1] - a[1]) - (b[2] - a[2]), 0.0) / ((b[0] - a[0]) * (os.cpu_count() or 1))
+
+
+def measure(fn: Callable[[], Any], repeat: int, warmup: int) -> dict[str, Any]:
+    """Median/p10/p90 ms over ``repeat`` calls after ``warmup``; tracemalloc peak of one extra call."""
+    for _ in range(warmup):
+        fn()
+    gc.collect()
+    times = []
+    t0 = _cpu_times()
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    t1 = _cpu_times()
+    tracemalloc.start()
+    fn()
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    ms = np.array(times) * 1e3
+    return {"median_ms": float(np.median(ms)), "p10_ms": float(np.percentile(ms, 10)),
+            "p90_ms": float(np.percentile(ms, 90)), "peak_mb": peak / 1e6, "other_cpu": _other_load(t0, t1),
+            "repeat": repeat}
+
+
+def case_summary(res: Any, flights: Sequence[Any]) -> dict[str, Any]:
+    """Figures of a plan comparable with OpenCSP's."""
+    passes = res.passes
+    line = next((p for p in passes if ("6W6", "5W5") in p.pairs), passes[0])
+    tp = throughput(flights, DroneEndurance())
+    return {
+        "passes": len(passes),
+        "feasible_passes": sum(p.feasible for p in passes),
+        "pass_waypoints": sum(len(p.waypoints) for p in passes),
+        "captures": res.n_captures,
+        "flight_waypoints": sum(len(f.waypoints) for f in flights),
+        "flights": len(flights),
+        "flight_minutes": [round(f.duration_s / 60.0, 1) for f in flights],
+        "heliostats_assessed": len(res.assessed),
+        "heliostats_unassessed": len(res.unassessed),
+        "min_altitude_m": res.min_altitude_m,
+        "altitudes_m": sorted({round(p.altitude_m, 2) for p in passes}),
+        "pitch_range_deg": [min(p.gimbal_pitch_deg for p in passes), max(p.gimbal_pitch_deg for p in passes)],
+        "line_5W5": {"huas": [h for h in dict.fromkeys(h for h, _ in line.pairs)], "azimuth_deg": line.azimuth_deg,
+                     "altitude_m": line.altitude_m, "pitch_deg": line.gimbal_pitch_deg, "index": line.index},
+        "first_pass": {"huas": [h for h in dict.fromkeys(h for h, _ in passes[0].pairs)],
+                       "azimuth_deg": passes[0].azimuth_deg, "altitude_m": passes[0].altitude_m,
+                       "pitch_deg": passes[0].gimbal_pitch_deg},
+        "heliostats_per_hour": tp.heliostats_per_hour,
+        "heliostats_per_flight_hour": tp.heliostats_per_flight_hour,
+    }
+
+
+def pass_table(res: Any, field: Field | None = None, pose: Any = None) -> str:
+    """Markdown table of every pass (for docs/opencsp-comparison.md).
+
+    With ``field`` and ``pose``, a column gives the azimuth of the vertical
+    plane of the HUAs' tracking normals (mean back direction of the mirrors),
+    folded to the travel sense of the pass.
+    """
+    plane = field is not None and pose is not None
+    head = "| # | HUAs (first ... last) | n HUAs | captures | travel az deg |"
+    head += " normals' plane az deg |" if plane else ""
+    lines = [head + " altitude m | pitch deg (median) | issues |",
+             "|---:|---|---:|---:|---:|" + ("---:|" if plane else "") + "---:|---:|---|"]
+    for p in res.passes:
+        huas = list(dict.fromkeys(h for h, _ in p.pairs))
+        span = f"{huas[0]} ... {huas[-1]}" if huas else "-"
+        blocked = sum("blocked" in i for i in p.issues)
+        notes = [f"{blocked} blocked pair(s)"] if blocked else []
+        notes += [i for i in p.issues if i.startswith("concentrated")]
+        cell = ""
+        if plane and huas:
+            n = pose.normals[field.indices(huas)]
+            back = -n[:, :2].sum(axis=0)
+            az = float(np.degrees(np.arctan2(back[0], back[1])) % 360.0)
+            if abs((az - p.azimuth_deg + 180.0) % 360.0 - 180.0) > 90.0:
+                az = (az + 180.0) % 360.0
+            cell = f" {az:.1f} |"
+        elif plane:
+            cell = " - |"
+        lines.append(f"| {p.index} | {span} | {len(huas)} | {len(p.pairs)} | {p.azimuth_deg:.1f} |{cell} "
+                     f"{p.altitude_m:.1f} | {p.gimbal_pitch_deg:.1f} | {'; '.join(notes)} |")
+    return "\n".join(lines)
+
+
+def run_benchmark(repeat: int, warmup: int, radial_sizes: Sequence[int] = RADIAL_SIZES) -> dict[str, Any]:
+    """Time every row; return the JSON-ready report."""
+    field, source = nsttf_field()
+    track_at(field, CASE_TIME, aim_point=UFACET_AIM_POINT, site=NSTTF)  # imports pvlib once, outside the timing
+    _, pose = track_at(field, CASE_TIME, aim_point=UFACET_AIM_POINT, site=NSTTF)
+    sun = sun_position(NSTTF, CASE_TIME).vector
+    rows: list[tuple[str, str, int, Callable[[], Any], int]] = [
+        ("nsttf_track", "NSTTF sun + tracking + canting", len(field),
+         lambda: track_at(field, CASE_TIME, aim_point=UFACET_AIM_POINT, site=NSTTF), repeat),
+        ("nsttf_plan", "NSTTF planning (plan_ufacet)", len(field),
+         lambda: plan_ufacet(field, pose, aim_point=UFACET_AIM_POINT, origin=NSTTF), repeat),
+        ("nsttf_full", "NSTTF full plan (sun, tracking, canting, passes, flights)", len(field),
+         lambda: nsttf_full(field), repeat),
+    ]
+    radial_fields = {}
+    for n in radial_sizes:
+        fld = radial_staggered_field(n, tower=BIG_TOWER)
+        radial_fields[n] = fld
+        rows.append((f"radial_{n}_full", f"radial {n:,} full plan (tracking, canting, passes, flights)", n,
+                     (lambda f=fld: radial_full(f, sun)), max(1, min(repeat, 3))))
+    results: dict[str, Any] = {}
+    for key, label, n, fn, reps in rows:
+        r = measure(fn, reps, min(warmup, reps if key.startswith("nsttf") else 1))
+        results[key] = {"label": label, "heliostats": n, **r}
+    res, flights = nsttf_full(field)
+    summary = case_summary(res, flights)
+    radial_summary = {}
+    for n, fld in radial_fields.items():
+        rres, rfl = radial_full(fld, sun)
+        radial_summary[str(n)] = {"passes": len(rres.passes), "assessed": len(rres.assessed),
+                                  "captures": rres.n_captures, "flights": len(rfl),
+                                  "heliostats_per_hour": throughput(rfl).heliostats_per_hour}
+    targets = [
+        {"target": "NSTTF full plan incl. tracking and canting", "required": "<= 1000 ms",
+         "measured": results["nsttf_full"]["median_ms"], "unit": "ms",
+         "passed": results["nsttf_full"]["median_ms"] <= 1000.0},
+        {"target": "NSTTF planning alone", "required": "<= 300 ms",
+         "measured": results["nsttf_plan"]["median_ms"], "unit": "ms",
+         "passed": results["nsttf_plan"]["median_ms"] <= 300.0},
+    ]
+    if 10_000 in radial_sizes:
+        m = results["radial_10000_full"]["median_ms"]
+        targets.append({"target": "10,000-heliostat radial field, full plan", "required": "<= 30000 ms",
+                        "measured": m, "unit": "ms", "passed": m <= 30_000.0})
+    return {
+        "benchmark": "bench_plan",
+        "settings": {"repeat": repeat, "warmup": warmup, "time": CASE_TIME, "aim_point": list(UFACET_AIM_POINT),
+                     "nsttf_source": source, "radial_sizes": list(radial_sizes),
+                     "radial_tower_height_m": BIG_TOWER.height_m},
+        "results": results,
+        "nsttf_case": summary,
+        "radial_case": radial_summary,
+        "opencsp": OPENCSP,
+        "targets": targets,
+        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+                    "python": platform.python_version(), "numpy": np.__version__},
+        "_plan": (res, field, pose),
+    }
+
+
+def markdown_report(report: dict[str, Any]) -> str:
+    """The timings, the targets and the NSTTF case next to OpenCSP's figures, as markdown."""
+    s = report["settings"]
+    lines = [
+        (f"Planning benchmark: {s['time']}, aim point {tuple(s['aim_point'])}; NSTTF source: {s['nsttf_source']}; "
+        f"{s['repeat']} timed calls after {s['warmup']} warm-ups (radial rows: at most 3); "
+        f"{report['machine']['cpu_count']} CPUs."),
+        "",
+        "| Row | Heliostats | Median ms | p10 ms | p90 ms | Peak MB (tracemalloc) | Other CPU % |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in report["results"].values():
+        other = "-" if r["other_cpu"] is None else f"{100 * r['other_cpu']:.0f}"
+        lines.append(f"| {r['label']} | {r['heliostats']:,} | {r['median_ms']:.1f} | {r['p10_ms']:.1f} "
+                     f"| {r['p90_ms']:.1f} | {r['peak_mb']:.1f} | {other} |")
+    lines += ["", "| Target | Required | Measured | Verdict |", "|---|---|---:|---|"]
+    for t in report["targets"]:
+        lines.append(f"| {t['target']} | {t['required']} | {t['measured']:.1f} {t['unit']} "
+                     f"| {'PASS' if t['passed'] else 'FAIL'} |")
+    c, o = report["nsttf_case"], report["opencsp"]
+    ln = c["line_5W5"]
+    lines += [
+        "",
+        "| NSTTF case | pihim | OpenCSP (issue) |",
+        "|---|---|---|",
+        f"| Scan passes | {c['passes']} ({c['feasible_passes']} feasible) | {o['passes']} |",
+        (f"| Waypoints | {c['pass_waypoints']} in passes ({c['captures']} captures); {c['flight_waypoints']} with "
+        f"take-off/transit/return in {c['flights']} flight(s) {c['flight_minutes']} min | {o['waypoints']} |"),
+        (f"| Line through 5W5 | HUAs {ln['huas'][0]} ... {ln['huas'][-1]} (5W5 is the target of 6W6), pass "
+        f"{ln['index']}, travel {ln['azimuth_deg']:.1f} deg | {o['first_pass']}, heading {o['heading_deg']} deg |"),
+        f"| Altitude | {ln['altitude_m']:.1f} m (min safe {c['min_altitude_m']:.1f} m) | about {o['altitude_m']:g} m |",
+        (f"| Gimbal pitch | {ln['pitch_deg']:.1f} deg (all passes {c['pitch_range_deg'][0]:.1f} to "
+        f"{c['pitch_range_deg'][1]:.1f}) | {o['pitch_deg']} deg |"),
+        f"| Heliostats assessed | {c['heliostats_assessed']} ({c['heliostats_unassessed']} without a target) | - |",
+        (f"| Heliostats per hour (one drone, swaps included) | {c['heliostats_per_hour']:.0f} | - "
+        "(paper: ~36 today, 50-100 hoped) |"),
+        f"| Planning time | {report['results']['nsttf_full']['median_ms']:.0f} ms | {o['time_s']} s |",
+    ]
+    for n, r in report["radial_case"].items():
+        lines.append(f"\nRadial {int(n):,}: {r['passes']} passes, {r['assessed']:,} HUAs assessed, "
+                     f"{r['captures']:,} captures, {r['flights']} flights, {r['heliostats_per_hour']:.0f} "
+                     "heliostats per hour for one drone.")
+    busy = [r for r in report["results"].values() if r["other_cpu"] is not None and r["other_cpu"] > 0.05]
+    if busy:
+        lines += ["", (f"Warning: other processes used more than 5 % of the CPUs during {len(busy)} row(s); "
+                      "those figures are inflated.")]
+    return "\n".join(lines)
+
+
+def main(
+    argv: Sequence[str] | None = None,
+    *,
+    repeat: int = 10,
+    quick: bool = False,
+    warmup: int | None = None,
+    radial_sizes: Sequence[int] = RADIAL_SIZES,
+    json_path: Path | None = RESULTS_PATH,
+    echo: bool = True,
+    nsttf_table: bool = False,
+) -> dict[str, Any]:
+    """Run the benchmark, print the markdown report and write the JSON report.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        Command-line arguments (``--repeat N``, ``--warmup N``, ``--quick``,
+        ``--json PATH``, ``--radial N [N ...]``, ``--nsttf-table``); ``None``
+        or empty reads nothing.
+    repeat : int
+        Timed calls per NSTTF row (radial rows: at most 3; at most
+        ``QUICK_REPEAT`` with ``quick``).
+    quick : bool
+        Fewer calls, for a fast look.
+    warmup : int, optional
+        Untimed calls before timing; default 2, or 1 with ``quick``.
+    radial_sizes : sequence of int
+        Sizes of the radial fields planned end to end.
+    json_path : pathlib.Path or None
+        Where to write the JSON report (``benchmarks/results/``, git-ignored);
+        ``None`` writes nothing.
+    echo : bool
+        Print the markdown report.
+    nsttf_table : bool
+        Also print the per-pass table of the NSTTF case.
+
+    Returns
+    -------
+    dict
+        The JSON-ready report (``targets`` summarised by ``run.py``).
+    """
+    if argv:
+        p = argparse.ArgumentParser(description="Speed of pihim's UFACET planner (NSTTF case and a large field).")
+        p.add_argument("--repeat", type=int)
+        p.add_argument("--warmup", type=int)
+        p.add_argument("--quick", action="store_true")
+        p.add_argument("--json", type=Path, default=json_path)
+        p.add_argument("--radial", type=int, nargs="*")
+        p.add_argument("--nsttf-table", action="store_true")
+        a = p.parse_args(list(argv))
+        repeat = a.repeat if a.repeat is not None else repeat
+        warmup = a.warmup if a.warmup is not None else warmup
+        quick = quick or a.quick
+        json_path = a.json
+        radial_sizes = radial_sizes if a.radial is None else tuple(a.radial)
+        nsttf_table = nsttf_table or a.nsttf_table
+    if quick:
+        repeat = min(repeat, QUICK_REPEAT)
+    warmup = warmup if warmup is not None else (QUICK_WARMUP if quick else DEFAULT_WARMUP)
+    if repeat < 1 or warmup < 0:
+        raise ValueError("repeat must be >= 1 and warmup >= 0")
+    report = run_benchmark(repeat, warmup, tuple(radial_sizes))
+    res, fld, pose = report.pop("_plan")
+    if echo:
+        print(markdown_report(report))
+        if nsttf_table:
+            print()
+            print(pass_table(res, fld, pose))
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+        report["json_path"] = str(json_path)
+    return report
+
+
+if __name__ == "__main__":
+    import sys
+
+    main(sys.argv[1:] or None)

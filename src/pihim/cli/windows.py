@@ -1,0 +1,93 @@
+"""``pihim windows``: when in a day can a heliostat field be inspected with usable polarimetric contrast?
+
+Sweeps one local calendar day (default every 10 minutes while the sun is
+more than 10 deg high): at each time the field is tracked, UFACET passes are
+planned and every planned image is scored for the paper's sky-vs-sky and
+ground-vs-ground contrast, with contrast-raising pass shifts
+(:func:`pihim.planning.windows.sweep_day`). Writes atomically into
+``--out``:
+
+``windows.csv``
+    ``time`` (ISO 8601 with the local offset), ``sun_zenith_deg``,
+    ``sun_azimuth_deg``, ``sun_elevation_deg`` and the fractions of the
+    field's heliostats with a usable image: ``fraction_planned`` (geometry
+    only), ``fraction_sky``, ``fraction_ground``, ``fraction_either``.
+``windows.png``
+    The fractions against local time, the favourable windows (``either`` at
+    or above ``--threshold``, or ``--threshold`` times the day's best with
+    ``--relative``) shaded, and at the NSTTF the paper's windows
+    (9:30-11:30, 14:00-16:00) hatched.
+
+With ``--json`` a one-line summary goes to stdout: the windows, the best
+time, mean fractions and, at the NSTTF, the agreement with the paper's
+windows.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+import typer
+
+from pihim.cli._common import emit_json, load_field_option, parse_floats
+from pihim.errors import PihimInputError
+
+SCHEMA_ID = "pihim.windows/1"
+
+
+def windows(
+    date: Annotated[str, typer.Option("--date", help="Local calendar day, YYYY-MM-DD.")],
+    out: Annotated[Path, typer.Option("--out", help="Output directory.")],
+    site: Annotated[str, typer.Option(help="nsttf (default) or LAT,LON,H (deg, deg, ellipsoidal m).")] = "nsttf",
+    field: Annotated[str, typer.Option("--field", help="nsttf-like (default) or an OpenCSP heliostat CSV.")] = "nsttf-like",
+    facets: Annotated[Path | None, typer.Option(help="OpenCSP facet-centroid CSV (with --field CSV).")] = None,
+    step_min: Annotated[float, typer.Option("--step-min", help="Sampling step, minutes.")] = 10.0,
+    min_elevation: Annotated[float, typer.Option(help="Only times with the sun above this, deg.")] = 10.0,
+    aim: Annotated[str | None, typer.Option(help="Aim point X,Y,Z (m, ENU); default the tower target.")] = None,
+    max_altitude: Annotated[float, typer.Option("--max-altitude", help="Highest flight altitude, m above the field origin.")] = 25.0,
+    threshold: Annotated[float, typer.Option(help="Favourable when this fraction of heliostats is usable, [0, 1].")] = 0.5,
+    relative: Annotated[bool, typer.Option("--relative", help="--threshold is a fraction of the day's best instead.")] = False,
+    no_shift: Annotated[bool, typer.Option("--no-shift", help="Score the plans without contrast-raising shifts.")] = False,
+    json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
+) -> int:
+    """Favourable times of day for polarimetric inspection (paper sec. 4.1 windows)."""
+    from pihim.planning.scoring import ShiftSearch
+    from pihim.planning.windows import (
+        is_nsttf,
+        parse_date,
+        sweep_day,
+        write_windows_csv,
+        write_windows_png,
+    )
+    from pihim.sky.sun import parse_site
+
+    day = parse_date(date)
+    site_obj = parse_site(site)
+    for label, v, lo, hi in (("--step-min", step_min, 0.5, 240.0), ("--min-elevation", min_elevation, 0.0, 89.0),
+                             ("--threshold", threshold, 0.0, 1.0)):
+        if not (math.isfinite(v) and lo <= v <= hi):
+            raise PihimInputError(f"{label} must be in [{lo:g}, {hi:g}], got {v:g}")
+    if not (math.isfinite(max_altitude) and max_altitude > 0):
+        raise PihimInputError(f"--max-altitude must be a positive number of metres, got {max_altitude:g}")
+    aim_point = None if aim is None else np.array(parse_floats(aim, name="--aim", count=3))
+    if aim_point is not None and not np.all(np.isfinite(aim_point)):
+        raise PihimInputError("--aim: coordinates must be finite")
+    if out.exists() and not out.is_dir():
+        raise PihimInputError(f"{out}: exists and is not a directory")
+    fld = load_field_option(field, facets, nsttf_tower=is_nsttf(site_obj))
+    sweep = sweep_day(day, site=site_obj, field=fld, aim_point=aim_point, step_min=step_min,
+                      min_elevation_deg=min_elevation, max_altitude_m=max_altitude,
+                      search=None if no_shift else ShiftSearch())
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path = write_windows_csv(sweep, out / "windows.csv")
+    png_path = write_windows_png(sweep, out / "windows.png", threshold=threshold, relative=relative)
+    if json_out:
+        emit_json({
+            "schema": SCHEMA_ID,
+            **sweep.summary(threshold, "either", relative=relative),
+            "files": {"csv": str(csv_path), "png": str(png_path)},
+        })
+    return 0

@@ -1,0 +1,482 @@
+"""Battery endurance: splitting scan passes into flights, flight times, throughput and fleet size.
+
+A drone flies a plan's scan passes (:func:`pihim.planning.ufacet.plan_passes`)
+in their (boustrophedon) order, as many per battery as fit: each flight
+takes off from the home point, climbs vertically to a transit altitude,
+flies the passes, returns and lands vertically. The flight time is estimated
+from the path:
+
+* horizontal legs at the waypoint speed (scan passes, e.g. 5 m/s) or at the
+  transit speed (take-off, inter-pass and return legs);
+* vertical legs at the climb or descent rate, added to the horizontal time
+  of the same leg (conservative: no simultaneous climb and cruise);
+* a hover/capture time per image and a turn time at the start of every
+  pass (decelerate, yaw, settle the gimbal, accelerate);
+* a fixed take-off plus landing overhead per flight.
+
+A flight must fit in the battery time minus a reserve fraction. Transit legs
+go around the tower (its footprint grown by a clearance) when they would
+pass through it below its top.
+
+Heliostats per hour: the paper reports about 36 per hour per drone today (a
+typical 20-minute flight imaged six pairs, ~12 heliostats) and hopes for
+50-100 per hour with faster acquisition, better planning and longer
+endurance; a 10,000-heliostat field would then take 100-200 drone-hours, a
+fleet of ~10 drones under a day (paper section 5) [1]_.
+
+References
+----------
+.. [1] M. Tian et al., "Heliostat Optical Error Inspection with Polarimetric
+   Imaging Drone" (pihim paper), section 5 (throughput and fleet estimate).
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pihim.errors import PihimInputError
+from pihim.field.geodesy import GeodeticOrigin, as_origin, enu_to_geodetic
+from pihim.planning.model import Flight, ScanPass, Waypoint
+
+__all__ = [
+    "PAPER_HELIOSTATS_PER_HOUR",
+    "PAPER_HOPED_HELIOSTATS_PER_HOUR",
+    "DroneEndurance",
+    "FleetEstimate",
+    "Throughput",
+    "fleet_estimate",
+    "flight_time_s",
+    "split_flights",
+    "throughput",
+]
+
+#: Heliostats per hour per drone reported by the paper's field tests (section 5).
+PAPER_HELIOSTATS_PER_HOUR = 36.0
+#: Range hoped for with faster acquisition, planning and endurance (paper section 5).
+PAPER_HOPED_HELIOSTATS_PER_HOUR = (50.0, 100.0)
+
+
+@dataclass(frozen=True)
+class DroneEndurance:
+    """Battery and flight-time model of an inspection drone.
+
+    Attributes
+    ----------
+    battery_min : float
+        Flight time of a full battery, minutes (paper: typical 20-minute
+        flights).
+    reserve_fraction : float
+        Fraction of the battery kept in reserve, in [0, 1).
+    transit_speed_m_s : float
+        Ground speed on take-off, inter-pass and return legs, m/s.
+    climb_rate_m_s, descent_rate_m_s : float
+        Vertical speeds, m/s.
+    capture_s : float
+        Hover and capture time per image, seconds.
+    turn_s : float
+        Time to stop, yaw, settle the gimbal and accelerate at the start of
+        each pass, seconds.
+    takeoff_landing_s : float
+        Arming, take-off and landing overhead per flight, seconds.
+    battery_swap_s : float
+        Ground time between flights (battery swap, checks), seconds; used for
+        throughput per working hour only.
+    tower_clearance_m : float
+        Horizontal clearance kept around the tower by transit legs, metres.
+    """
+
+    battery_min: float = 20.0
+    reserve_fraction: float = 0.2
+    transit_speed_m_s: float = 8.0
+    climb_rate_m_s: float = 3.0
+    descent_rate_m_s: float = 2.0
+    capture_s: float = 2.0
+    turn_s: float = 5.0
+    takeoff_landing_s: float = 30.0
+    battery_swap_s: float = 300.0
+    tower_clearance_m: float = 10.0
+
+    def __post_init__(self) -> None:
+        for label in ("battery_min", "transit_speed_m_s", "climb_rate_m_s", "descent_rate_m_s"):
+            v = getattr(self, label)
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise PihimInputError(f"DroneEndurance.{label} must be a positive number, got {v!r}")
+        for label in ("capture_s", "turn_s", "takeoff_landing_s", "battery_swap_s", "tower_clearance_m"):
+            v = getattr(self, label)
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise PihimInputError(f"DroneEndurance.{label} must be a number >= 0, got {v!r}")
+        if not (isinstance(self.reserve_fraction, (int, float)) and 0.0 <= self.reserve_fraction < 1.0):
+            raise PihimInputError(f"reserve_fraction must be in [0, 1), got {self.reserve_fraction!r}")
+
+    @property
+    def usable_s(self) -> float:
+        """Flight time available per battery after the reserve, seconds."""
+        return 60.0 * self.battery_min * (1.0 - self.reserve_fraction)
+
+
+@dataclass(frozen=True)
+class Throughput:
+    """Inspection rate of one drone flying a set of flights back to back.
+
+    Attributes
+    ----------
+    flights : int
+    heliostats_assessed : int
+        Distinct HUAs imaged.
+    flight_time_s : float
+        Sum of the flight durations, seconds.
+    elapsed_s : float
+        Flights plus a battery swap between consecutive flights, seconds.
+    """
+
+    flights: int
+    heliostats_assessed: int
+    flight_time_s: float
+    elapsed_s: float
+
+    @property
+    def heliostats_per_flight_hour(self) -> float:
+        """Heliostats per hour in the air."""
+        return 3600.0 * self.heliostats_assessed / self.flight_time_s if self.flight_time_s > 0 else 0.0
+
+    @property
+    def heliostats_per_hour(self) -> float:
+        """Heliostats per working hour (battery swaps included)."""
+        return 3600.0 * self.heliostats_assessed / self.elapsed_s if self.elapsed_s > 0 else 0.0
+
+
+@dataclass(frozen=True)
+class FleetEstimate:
+    """Drones needed to inspect a field within a number of working hours.
+
+    Attributes
+    ----------
+    n_heliostats : int
+    heliostats_per_hour_per_drone : float
+    working_hours : float
+    drone_hours : float
+        ``n_heliostats / heliostats_per_hour_per_drone``.
+    drones : int
+        ``ceil(drone_hours / working_hours)``.
+    """
+
+    n_heliostats: int
+    heliostats_per_hour_per_drone: float
+    working_hours: float
+    drone_hours: float
+    drones: int
+
+
+def fleet_estimate(n_heliostats: int, heliostats_per_hour_per_drone: float, working_hours: float) -> FleetEstimate:
+    """Drone-hours and drones to inspect ``n_heliostats`` in ``working_hours``.
+
+    Examples
+    --------
+    The paper's example (section 5): 10,000 heliostats at 50 per hour per
+    drone take 200 drone-hours; with 10 working hours, 20 drones.
+
+    >>> fleet_estimate(10_000, 50.0, 10.0).drones
+    20
+    """
+    if isinstance(n_heliostats, bool) or not isinstance(n_heliostats, (int, np.integer)) or n_heliostats < 0:
+        raise PihimInputError(f"n_heliostats must be an integer >= 0, got {n_heliostats!r}")
+    for label, v in (("heliostats_per_hour_per_drone", heliostats_per_hour_per_drone),
+                     ("working_hours", working_hours)):
+        if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise PihimInputError(f"{label} must be a positive number, got {v!r}")
+    hours = n_heliostats / heliostats_per_hour_per_drone
+    return FleetEstimate(int(n_heliostats), float(heliostats_per_hour_per_drone), float(working_hours), hours,
+                         math.ceil(hours / working_hours - 1e-12))
+
+
+# --------------------------------------------------------------------------- path helpers
+
+
+def _keepout(tower: Any, clearance: float) -> tuple[NDArray[np.float64], NDArray[np.float64], float] | None:
+    if tower is None:
+        return None
+    c = np.asarray(tower.box_corners(), float)
+    lo = c[:, :2].min(axis=0) - clearance
+    hi = c[:, :2].max(axis=0) + clearance
+    return lo, hi, float(c[:, 2].max()) + clearance
+
+
+def _crosses(a: NDArray[np.float64], b: NDArray[np.float64], lo: NDArray[np.float64],
+             hi: NDArray[np.float64]) -> bool:
+    """Whether the 2-D segment a-b passes through the open rectangle (lo, hi) (Liang-Barsky)."""
+    eps = 1e-6
+    lo, hi = lo + eps, hi - eps
+    d = b - a
+    t0, t1 = 0.0, 1.0
+    for k in range(2):
+        if abs(d[k]) < 1e-15:
+            if a[k] <= lo[k] or a[k] >= hi[k]:
+                return False
+            continue
+        ta, tb = (lo[k] - a[k]) / d[k], (hi[k] - a[k]) / d[k]
+        t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
+        if t0 >= t1:
+            return False
+    return True
+
+
+def _detour(a: NDArray[np.float64], b: NDArray[np.float64], keepout: Any) -> list[NDArray[np.float64]]:
+    """Intermediate 2-D points of the shortest path from a to b around the keep-out rectangle."""
+    if keepout is None:
+        return []
+    lo, hi, _ = keepout
+    if not _crosses(a[:2], b[:2], lo, hi):
+        return []
+    nodes = [a[:2], b[:2]] + [np.array(p) for p in ((lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1]))]
+    dist = [math.inf] * len(nodes)
+    prev = [-1] * len(nodes)
+    dist[0] = 0.0
+    heap = [(0.0, 0)]
+    while heap:
+        dcur, i = heapq.heappop(heap)
+        if dcur > dist[i]:
+            continue
+        for j in range(len(nodes)):
+            if j == i or _crosses(nodes[i], nodes[j], lo, hi):
+                continue
+            nd = dcur + float(np.linalg.norm(nodes[j] - nodes[i]))
+            if nd < dist[j] - 1e-12:
+                dist[j], prev[j] = nd, i
+                heapq.heappush(heap, (nd, j))
+    path: list[NDArray[np.float64]] = []
+    k = prev[1]
+    while k > 1:
+        path.append(nodes[k])
+        k = prev[k]
+    return path[::-1]
+
+
+@dataclass(frozen=True)
+class _Leg:
+    """A planned position before geodetic conversion (internal)."""
+
+    xyz: tuple[float, float, float]
+    heading_deg: float
+    pitch_deg: float
+    speed_m_s: float
+    kind: str
+    capture: bool = False
+    hua: str | None = None
+    waypoint: Waypoint | None = None  # already geodetic (pass waypoints)
+
+
+def _xyz(w: Waypoint) -> tuple[float, float, float]:
+    return (w.x_m, w.y_m, w.z_m)
+
+
+def _heading(a: Sequence[float], b: Sequence[float], default: float) -> float:
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    if math.hypot(dx, dy) < 1e-9:
+        return default
+    h = math.degrees(math.atan2(dx, dy)) % 360.0
+    return 0.0 if h >= 360.0 else h
+
+
+def _transit(a: tuple[float, float, float], b: tuple[float, float, float], z: float, keepout: Any,
+             model: DroneEndurance, kind: str = "transit") -> list[_Leg]:
+    """Transit legs from a to above b at altitude z (b itself is not included), around the tower if needed."""
+    legs: list[_Leg] = []
+    pa = np.array(a, float)
+    pb = np.array(b, float)
+    if abs(a[2] - z) > 1e-9:
+        legs.append(_Leg((a[0], a[1], z), 0.0, 0.0, model.transit_speed_m_s, kind))
+    route = _detour(pa, pb, keepout) if keepout is not None and z < keepout[2] else []
+    cur = (a[0], a[1], z)
+    for p in route:
+        nxt = (float(p[0]), float(p[1]), z)
+        legs.append(_Leg(nxt, _heading(cur, nxt, 0.0), 0.0, model.transit_speed_m_s, kind))
+        cur = nxt
+    if abs(b[2] - z) > 1e-9 or route or abs(a[2] - z) > 1e-9:
+        end = (b[0], b[1], z)
+        if math.dist(end, cur) > 1e-9:
+            legs.append(_Leg(end, _heading(cur, end, 0.0), 0.0, model.transit_speed_m_s, kind))
+    return legs
+
+
+def _build(passes: Sequence[ScanPass], home: Waypoint, keepout: Any, model: DroneEndurance,
+           transit_altitude_m: float | None) -> list[_Leg]:
+    """Legs of one flight: take-off, climb, passes with transits, return, landing."""
+    z_c = max(p.altitude_m for p in passes) if transit_altitude_m is None else transit_altitude_m
+    h = _xyz(home)
+    legs = [_Leg(h, home.heading_deg, 0.0, 0.0, "takeoff")]
+    cur = h
+    for k, p in enumerate(passes):
+        first = p.waypoints[0]
+        z = z_c if k == 0 else max(cur[2], first.z_m)
+        legs += _transit(cur, _xyz(first), z, keepout, model)
+        for i, w in enumerate(p.waypoints):
+            if i == 0:  # the pass is reached at the transit speed
+                w = replace(w, speed_m_s=model.transit_speed_m_s)
+            legs.append(_Leg(_xyz(w), w.heading_deg, w.gimbal_pitch_deg, w.speed_m_s, w.kind, w.capture, w.hua, w))
+        cur = _xyz(p.waypoints[-1])
+    back = _transit(cur, h, z_c, keepout, model)
+    if back:
+        back[-1] = replace(back[-1], kind="return")
+    else:  # already above home at the transit altitude
+        back = [_Leg((h[0], h[1], z_c), 0.0, 0.0, model.transit_speed_m_s, "return")]
+    legs += back
+    legs.append(_Leg(h, legs[-1].heading_deg, 0.0, 0.0, "land"))
+    return legs
+
+
+def _time_and_distance(legs: Sequence[_Leg], model: DroneEndurance) -> tuple[float, float]:
+    xyz = np.array([leg.xyz for leg in legs], float)
+    d = np.diff(xyz, axis=0)
+    horiz = np.hypot(d[:, 0], d[:, 1])
+    dz = d[:, 2]
+    speed = np.array([leg.speed_m_s if leg.speed_m_s > 0 else model.transit_speed_m_s for leg in legs[1:]])
+    t = horiz / speed + np.where(dz > 0, dz / model.climb_rate_m_s, -dz / model.descent_rate_m_s)
+    captures = sum(leg.capture for leg in legs)
+    turns = sum(leg.kind == "lead_in" for leg in legs)
+    total = float(t.sum()) + captures * model.capture_s + turns * model.turn_s + model.takeoff_landing_s
+    return total, float(np.linalg.norm(d, axis=1).sum())
+
+
+def flight_time_s(waypoints: Sequence[Waypoint], model: DroneEndurance = DroneEndurance()) -> float:
+    """Estimated duration of a flight through ``waypoints``, seconds (see the module notes).
+
+    Legs are flown at the destination waypoint's ``speed_m_s`` (the transit
+    speed where it is 0); captures, pass starts (``lead_in`` waypoints) and
+    the take-off/landing overhead add fixed times.
+    """
+    if len(waypoints) < 2:
+        raise PihimInputError("a flight needs at least two waypoints")
+    legs = [_Leg(_xyz(w), w.heading_deg, w.gimbal_pitch_deg, w.speed_m_s, w.kind, w.capture, w.hua, w)
+            for w in waypoints]
+    return _time_and_distance(legs, model)[0]
+
+
+def _finish(index: int, pass_indices: tuple[int, ...], legs: list[_Leg], passes: Sequence[ScanPass],
+            origin: GeodeticOrigin, model: DroneEndurance) -> Flight:
+    new = [k for k, leg in enumerate(legs) if leg.waypoint is None]
+    lat, lon, hgt = enu_to_geodetic(np.array([legs[k].xyz for k in new], float), origin)
+    wps: list[Waypoint] = []
+    it = iter(range(len(new)))
+    for leg in legs:
+        if leg.waypoint is not None:
+            wps.append(leg.waypoint)
+            continue
+        q = next(it)
+        wps.append(Waypoint(leg.xyz[0], leg.xyz[1], leg.xyz[2], float(lat[q]), float(lon[q]), float(hgt[q]),
+                            leg.heading_deg % 360.0, leg.pitch_deg, leg.speed_m_s, kind=leg.kind,  # type: ignore[arg-type]
+                            capture=leg.capture, hua=leg.hua))
+    duration, distance = _time_and_distance(legs, model)
+    huas = {h for p in passes for h, _ in p.pairs}
+    return Flight(index=index, pass_indices=pass_indices, waypoints=tuple(wps), duration_s=duration,
+                  distance_m=distance, heliostats_assessed=len(huas))
+
+
+def split_flights(
+    passes: Sequence[ScanPass],
+    home: Waypoint,
+    *,
+    origin: GeodeticOrigin | Any,
+    model: DroneEndurance = DroneEndurance(),
+    tower: Any = None,
+    transit_altitude_m: float | None = None,
+    include_infeasible: bool = False,
+    max_waypoints: int | None = None,
+) -> tuple[Flight, ...]:
+    """Split scan passes, in order, into flights that each fit one battery.
+
+    Parameters
+    ----------
+    passes : sequence of ScanPass
+        In flight order (e.g. :func:`pihim.planning.ufacet.plan_passes`).
+    home : Waypoint
+        Take-off and landing point (:func:`pihim.planning.ufacet.home_waypoint`).
+    origin : GeodeticOrigin or Site
+        Field origin on WGS84, for the transit waypoints.
+    model : DroneEndurance
+        Battery and speeds.
+    tower : Tower, optional
+        Transit legs below its top go around it (``field.tower``).
+    transit_altitude_m : float, optional
+        Altitude of the climb, the first transit and the return. Default: the
+        highest pass altitude of the flight (every pass altitude is above the
+        minimum safe altitude, so straight legs between passes are too).
+    include_infeasible : bool
+        Also fly passes marked infeasible (nothing to image). Default: skip.
+    max_waypoints : int, optional
+        Also close a flight before it exceeds this many waypoints (Litchi
+        missions hold at most 99).
+
+    Returns
+    -------
+    tuple of Flight
+        Each with its passes' indices (``ScanPass.index``), the full waypoint
+        list (``takeoff``, ``transit``, pass waypoints, ``return``, ``land``),
+        the estimated duration, the 3-D path length and the number of HUAs
+        imaged. Every flown pass appears in exactly one flight, in order.
+
+    Raises
+    ------
+    PihimInputError
+        A single pass does not fit in one battery (or in ``max_waypoints``),
+        or bad input.
+    """
+    org = as_origin(origin)
+    if not isinstance(home, Waypoint):
+        raise PihimInputError(f"home must be a Waypoint (see home_waypoint), got {type(home).__name__}")
+    todo = [p for p in passes if (p.feasible or include_infeasible) and p.waypoints]
+    keepout = _keepout(tower, model.tower_clearance_m)
+    if transit_altitude_m is not None and not (math.isfinite(transit_altitude_m) and transit_altitude_m > 0):
+        raise PihimInputError(f"transit_altitude_m must be a positive altitude, got {transit_altitude_m!r}")
+    if max_waypoints is not None and (isinstance(max_waypoints, bool) or not isinstance(max_waypoints, int)
+                                      or max_waypoints < 4):
+        raise PihimInputError(f"max_waypoints must be an integer >= 4, got {max_waypoints!r}")
+    cap = math.inf if max_waypoints is None else max_waypoints
+    flights: list[Flight] = []
+    current: list[ScanPass] = []
+    best_legs: list[_Leg] | None = None
+    limit = model.usable_s
+    for p in todo:
+        trial = current + [p]
+        legs = _build(trial, home, keepout, model, transit_altitude_m)
+        t, _ = _time_and_distance(legs, model)
+        if t <= limit and len(legs) <= cap:
+            current, best_legs = trial, legs
+            continue
+        if not current:
+            if len(legs) > cap:
+                raise PihimInputError(f"pass {p.index} alone needs {len(legs)} waypoints, more than {max_waypoints}")
+            raise PihimInputError(
+                f"pass {p.index} alone needs {t / 60:.1f} min with take-off and return, more than the "
+                f"{limit / 60:.1f} min a battery allows ({model.battery_min:g} min less "
+                f"{100 * model.reserve_fraction:g} % reserve)"
+            )
+        assert best_legs is not None
+        flights.append(_finish(len(flights), tuple(q.index for q in current), best_legs, current, org, model))
+        current = [p]
+        best_legs = _build(current, home, keepout, model, transit_altitude_m)
+        t, _ = _time_and_distance(best_legs, model)
+        if t > limit or len(best_legs) > cap:
+            raise PihimInputError(
+                f"pass {p.index} alone needs {t / 60:.1f} min and {len(best_legs)} waypoints with take-off and "
+                f"return, more than one flight allows ({limit / 60:.1f} min, {max_waypoints} waypoints)"
+            )
+    if current:
+        assert best_legs is not None
+        flights.append(_finish(len(flights), tuple(q.index for q in current), best_legs, current, org, model))
+    return tuple(flights)
+
+
+def throughput(flights: Sequence[Flight], model: DroneEndurance = DroneEndurance()) -> Throughput:
+    """Heliostats per hour of one drone flying ``flights`` back to back (a battery swap between flights)."""
+    n = len(flights)
+    huas_total = sum(f.heliostats_assessed for f in flights)
+    t = float(sum(f.duration_s for f in flights))
+    elapsed = t + max(0, n - 1) * model.battery_swap_s
+    return Throughput(n, huas_total, t, elapsed)

@@ -1,0 +1,52 @@
+"""End-to-end tests of ``pihim plan`` on the embedded NSTTF-like field."""
+
+import json
+from importlib import resources
+
+import jsonschema
+import pytest
+
+from pihim.cli import main
+
+PLAN_SCHEMA = json.loads(resources.files("pihim").joinpath("schemas/plan.schema.json").read_text())
+QGC_SCHEMA = json.loads(resources.files("pihim").joinpath("schemas/qgc-plan.schema.json").read_text())
+TIME = "2021-05-13T13:00-06:00"
+
+
+def test_plan_writes_every_format(tmp_path, capsys):
+    out = tmp_path / "plan"
+    rc = main(["plan", "--time", TIME, "--aim", "60,8.8,28.9", "--max-altitude", "25", "--out", str(out), "--json"])
+    assert rc == 0
+    summary = json.loads(capsys.readouterr().out)
+    names = {"plan.json", "mission.plan", "mission.waypoints", "plan.kml", "litchi.csv", "plan.png"}
+    assert names <= {p.name for p in out.iterdir()}
+    plan = json.loads((out / "plan.json").read_text())
+    jsonschema.validate(plan, PLAN_SCHEMA)
+    jsonschema.validate(json.loads((out / "mission.plan").read_text()), QGC_SCHEMA)
+    assert summary["passes"] == len(plan["passes"]) > 10
+    assert 0.0 <= summary["coverage"]["either"] <= 1.0
+    for p in plan["passes"]:
+        assert plan["min_altitude_m"] <= p["altitude_m"] <= 25.0 + 1e-9
+        for w in p["waypoints"]:
+            assert 0.0 <= w["heading_deg"] < 360.0 and -90.0 <= w["gimbal_pitch_deg"] <= 0.0
+    flights = plan["flights"]
+    covered = sorted(i for f in flights for i in f["pass_indices"])
+    assert covered == sorted(p["index"] for p in plan["passes"] if p["feasible"])
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--time", "2021-05-13T23:00-06:00"], "below the horizon"),
+        (["--time", "2021-05-13T13:00"], "utc offset"),
+        (["--time", TIME, "--aim", "0,0,-1"], "above the ground"),
+        (["--time", TIME, "--heliostats", "8E3,99W1"], "unknown heliostat"),
+        (["--time", TIME, "--max-altitude", "8"], "no feasible pass"),
+    ],
+)
+def test_impossible_requests(tmp_path, capsys, args, needle):
+    out = tmp_path / "p"
+    assert main(["plan", *args, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and needle in err.lower()
+    assert not out.exists()
