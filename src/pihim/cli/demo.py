@@ -1,9 +1,12 @@
 """``pihim demo``: the main job on the embedded default, no data needed.
 
-Synthesises a Triton-size raw frame of a heliostat-field-like scene with known
-ground truth (12-bit, shot and read noise), writes it as a TIFF, processes it
-with ``pihim polar`` along both demosaicing routes, and reports how close the
-recovered DoLP and AoP are to the truth.
+1. Plans a polarimetric inspection of the embedded NSTTF-like field for a
+   morning in May (UFACET passes scored for contrast, flights, all mission
+   export formats) into ``DIR/plan``.
+2. Synthesises a Triton-size raw frame of a heliostat-field-like scene with
+   known ground truth (12-bit, shot and read noise), writes it as a TIFF,
+   processes it with ``pihim polar`` along both demosaicing routes, and
+   reports how close the recovered DoLP and AoP are to the truth.
 """
 
 from __future__ import annotations
@@ -21,12 +24,17 @@ from pihim.camera.layout import IMX250MZR
 from pihim.cli._common import emit_json, stderr_console
 from pihim.cli.polar import process_one
 from pihim.errors import PihimInputError
+from pihim.field import nsttf_like_field
+from pihim.planning.export import export_all
+from pihim.planning.pipeline import build_plan
 from pihim.polarimetry import aop_deg, aop_difference_deg, dolp
 from pihim.render.mosaic import mosaic_from_stokes
 from pihim.render.scenes import edge_scene
+from pihim.sky.sun import NSTTF, parse_time
 
 SCHEMA_ID = "pihim.demo/1"
 TRITON_SHAPE = (2048, 2448)  # rows, columns
+DEMO_TIME = "2021-05-13T09:30:00-06:00"  # inside the paper's morning window at NSTTF
 
 
 def _accuracy(recovered_dolp: np.ndarray, recovered_aop: np.ndarray, truth: tuple[np.ndarray, ...]) -> dict[str, float]:
@@ -67,6 +75,14 @@ def demo(
     if w < 16 or h < 16 or w % 2 or h % 2:
         raise PihimInputError(f"--size must be even and at least 16x16, got {size}")
     out.mkdir(parents=True, exist_ok=True)
+    t_plan = time.perf_counter()
+    field = nsttf_like_field()
+    plan = build_plan(field, parse_time(DEMO_TIME), NSTTF)
+    plan_files = export_all(plan, out / "plan", field=field)
+    plan_record = {"time": DEMO_TIME, "seconds_with_export": round(time.perf_counter() - t_plan, 3),
+                   **{k: plan.summary[k] for k in ("passes", "feasible_passes", "waypoints", "images",
+                                                   "usable_images", "coverage", "flights")},
+                   "files": {k: str(v) for k, v in plan_files.items()}}
     t0 = time.perf_counter()
     truth = edge_scene((h, w), rng=seed)
     raw = mosaic_from_stokes(*truth, IMX250MZR, bit_depth=12, read_noise_dn=2.0, electrons_per_dn=4.0, rng=seed)
@@ -80,6 +96,7 @@ def demo(
         "size": {"width": w, "height": h},
         "seed": seed,
         "render_s": round(t_render, 3),
+        "plan": plan_record,
         "routes": {},
     }
     truth_sp = tuple(_block_mean(x) for x in truth)
@@ -99,6 +116,12 @@ def demo(
     if json_out:
         emit_json(summary)
     else:
+        cov = plan_record["coverage"]
+        stderr_console.print(
+            f"[bold]pihim demo[/bold]: NSTTF-like field at {DEMO_TIME}: {plan_record['passes']} passes, "
+            f"{plan_record['usable_images']}/{plan_record['images']} images predicted usable "
+            f"({100 * cov['either']:.0f} % of heliostats), {plan_record['flights']} flights -> {out / 'plan'}"
+        )
         stderr_console.print(f"[bold]pihim demo[/bold]: synthetic {w}x{h} 12-bit frame -> {raw_path}")
         for route, r in summary["routes"].items():
             stderr_console.print(

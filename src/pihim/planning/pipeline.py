@@ -1,0 +1,132 @@
+"""One call from a field and a time to a scored, flight-split inspection plan.
+
+:func:`build_plan` chains the stages the ``pihim plan`` command runs: sun
+position, tracking and canting, UFACET passes, polarimetric scoring with
+contrast-raising shifts, the flight split, throughput and a fleet estimate.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time as _time
+from collections.abc import Sequence
+from datetime import datetime
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from pihim.camera.model import CameraModel
+from pihim.errors import PihimInputError
+from pihim.planning.endurance import DroneEndurance, fleet_estimate, split_flights, throughput
+from pihim.planning.model import Plan
+from pihim.planning.scoring import ScoringModel, ShiftSearch, coverage, score_passes
+from pihim.planning.ufacet import home_waypoint, plan_passes, track_at
+from pihim.sky.sun import Site
+
+
+def _record(obj: Any) -> dict[str, Any]:
+    """Dataclass fields plus its properties, for JSON."""
+    d = dataclasses.asdict(obj)
+    for name in dir(type(obj)):
+        if isinstance(getattr(type(obj), name, None), property):
+            d[name] = getattr(obj, name)
+    return d
+
+
+def build_plan(
+    field: Any,
+    time: datetime,
+    site: Site,
+    *,
+    aim_point: ArrayLike | None = None,
+    max_altitude_m: float = 25.0,
+    heliostats: Sequence[str] | None = None,
+    scoring: ScoringModel | None = None,
+    shift: bool = True,
+    camera: CameraModel | None = None,
+    endurance: DroneEndurance | None = None,
+    fleet_hours: float = 8.0,
+) -> Plan:
+    """Plan, score and split an inspection of ``field`` at ``time``.
+
+    Parameters
+    ----------
+    field : pihim.field.Field
+    time : datetime
+        Timezone-aware instant.
+    site : Site
+        Where the field's origin is (sun position and WGS84 conversion).
+    aim_point : array_like, optional
+        ENU aim point of the tracking heliostats; the field's tower target if omitted.
+    max_altitude_m : float
+        Highest flight altitude above the field origin, metres.
+    heliostats : sequence of str, optional
+        HUAs to plan for (default: every heliostat).
+    scoring : ScoringModel, optional
+        Sky, mirror and ground physics (defaults: Rayleigh sky, second-surface mirror,
+        Torrance-Sparrow ground).
+    shift : bool
+        Shift passes (within the altitude limits) where that raises contrast.
+    camera, endurance : optional
+        Camera and drone models (Triton + 35 mm; 20 min battery with 20 % reserve).
+    fleet_hours : float
+        Working hours per day for the fleet estimate.
+
+    Returns
+    -------
+    Plan
+        With ``summary`` holding counts, coverage, throughput, the fleet estimate and timings.
+    """
+    t0 = _time.perf_counter()
+    if not (math.isfinite(max_altitude_m) and max_altitude_m > 0):
+        raise PihimInputError(f"maximum altitude must be a positive number of metres, got {max_altitude_m:g}")
+    aim = np.asarray(field.default_aim_point if aim_point is None else aim_point, dtype=float)
+    if aim.shape != (3,) or not np.all(np.isfinite(aim)):
+        raise PihimInputError("the aim point must be three finite coordinates X,Y,Z in metres")
+    if aim[2] <= 0:
+        raise PihimInputError(f"the aim point must be above the ground (z > 0), got z = {aim[2]:g}")
+    if heliostats is not None:
+        field.indices(heliostats)  # unknown names -> one-line error
+    camera = camera or CameraModel()
+    endurance = endurance or DroneEndurance()
+    scoring = scoring or ScoringModel()
+    sun, pose = track_at(field, time, aim_point=aim, site=site)
+    passes = plan_passes(field, pose, aim_point=aim, origin=site, camera=camera,
+                         max_altitude_m=max_altitude_m, heliostats=heliostats)
+    t_plan = _time.perf_counter()
+    scored = score_passes(passes, pose, sun.vector, model=scoring, camera=camera, aim_point=aim, origin=site,
+                          search=ShiftSearch(max_altitude_m=max_altitude_m) if shift else None)
+    t_score = _time.perf_counter()
+    home = home_waypoint(field, origin=site)
+    flights = split_flights(scored, home, origin=site, model=endurance, tower=field.tower)
+    rate = throughput(flights, endurance)
+    fleet = fleet_estimate(len(field.names), max(rate.heliostats_per_hour, 1e-9), fleet_hours)
+    summary: dict[str, Any] = {
+        "heliostats_in_field": len(field.names),
+        "passes": len(scored),
+        "feasible_passes": sum(p.feasible for p in scored),
+        "waypoints": sum(len(p.waypoints) for p in scored),
+        "images": sum(len(p.predictions) for p in scored),
+        "usable_images": sum(sum(q.usable for q in p.predictions) for p in scored),
+        "coverage": coverage(scored, len(field.names)),
+        "flights": len(flights),
+        "heliostats_per_hour": rate.heliostats_per_hour,
+        "heliostats_per_flight_hour": rate.heliostats_per_flight_hour,
+        "fleet": {"working_hours": fleet_hours, **_record(fleet)},
+        "seconds": {"track_and_plan": round(t_plan - t0, 4), "scoring": round(t_score - t_plan, 4)},
+    }
+    return Plan(
+        time_iso=time.isoformat(),
+        site=site.as_dict(),
+        sun=sun.as_dict(),
+        aim_point=(float(aim[0]), float(aim[1]), float(aim[2])),
+        min_altitude_m=float(min((p.altitude_m for p in scored), default=math.nan)),
+        max_altitude_m=float(max_altitude_m),
+        camera=_record(camera),
+        home=home,
+        passes=scored,
+        flights=flights,
+        summary=summary,
+    )
