@@ -356,7 +356,7 @@ def test_shifted_predictions_are_recomputed_at_the_new_positions(field, shifted)
             assert w.heading_deg == pytest.approx(math.degrees(math.atan2(d[0], d[1])) % 360.0, abs=1e-6)
             assert w.gimbal_pitch_deg == pytest.approx(math.degrees(math.atan2(d[2], math.hypot(d[0], d[1]))),
                                                        abs=1e-6)
-            lat, lon, hgt = enu_to_geodetic([w.x_m, w.y_m, w.z_m], NSTTF)
+            lat, lon, hgt = (float(v) for v in enu_to_geodetic([w.x_m, w.y_m, w.z_m], NSTTF))
             assert (w.latitude_deg, w.longitude_deg, w.height_m) == pytest.approx((lat, lon, hgt), abs=1e-9)
 
 
