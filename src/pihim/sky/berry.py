@@ -85,7 +85,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from pihim.errors import PihimInputError
-from pihim.sky.rayleigh import pack_stokes, prepare_frame
+from pihim.sky.rayleigh import pack_stokes, stokes_in_frame
 
 __all__ = ["NeutralPoints", "berry_components", "berry_core", "berry_stokes", "berry_w", "neutral_points"]
 
@@ -211,8 +211,7 @@ def berry_stokes(
     :class:`pihim.sky.model.SkyModel` zeroes everything below the horizon.
     """
     _check_separation(separation_deg)
-    v, s, e_arr, f = prepare_frame(view_dirs, sun_dir, e)
-    return berry_core(v, s, e_arr, f, separation_deg, dmax, s0), e_arr
+    return stokes_in_frame(berry_components, view_dirs, sun_dir, e, separation_deg, dmax, s0)
 
 
 def berry_components(

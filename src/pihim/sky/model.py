@@ -18,11 +18,10 @@ horizontal.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Literal, get_args
-
-import dataclasses
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -33,9 +32,8 @@ from pihim.sky.berry import MAX_SEPARATION_DEG, berry_components
 from pihim.sky.radiance import CLEAR_SKY_TYPE, cie_relative_radiance
 from pihim.sky.rayleigh import (
     meridian_frame,
-    pack_stokes,
-    prepare_frame,
     rayleigh_components,
+    stokes_in_frame,
 )
 from pihim.sky.sun import direction_from_angles, require_daylight
 
@@ -131,8 +129,7 @@ class SkyModel:
             Sun below the horizon, malformed or zero vectors, or ``e`` not
             perpendicular to the view directions.
         """
-        v, s, e_arr, f = prepare_frame(view_dirs, sun_dir, e)
-        return pack_stokes(*self._components(v, s, e_arr, f)), e_arr
+        return stokes_in_frame(self._components, view_dirs, sun_dir, e)
 
     def _components(
         self, v: NDArray[np.float64], s: NDArray[np.float64], e: NDArray[np.float64], f: NDArray[np.float64]

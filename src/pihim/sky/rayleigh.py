@@ -39,6 +39,9 @@ References
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -154,6 +157,39 @@ def prepare_frame(
     return v, s, e_arr, _cross(-v, e_arr)
 
 
+def stokes_in_frame(
+    components: Callable[..., tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]],
+    view_dirs: ArrayLike,
+    sun_dir: ArrayLike,
+    e: ArrayLike | None,
+    *params: Any,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Validate the inputs, build the Stokes frame and pack ``components`` into ``(..., 4)`` Stokes vectors.
+
+    The common body of :func:`rayleigh_stokes`,
+    :func:`pihim.sky.berry.berry_stokes` and
+    :meth:`pihim.sky.model.SkyModel.stokes`.
+
+    Parameters
+    ----------
+    components : callable
+        ``components(v, s, e, f, *params) -> (S0, S1, S2)`` on prepared unit
+        vectors (e.g. :func:`rayleigh_components`).
+    view_dirs, sun_dir, e : array_like
+        As for :func:`prepare_frame`.
+    *params
+        Passed to ``components`` after the four vectors.
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        :func:`pack_stokes` of the components, shape (..., 4), and the
+        reference axes ``e`` of its frame ``(d, e)``, shape (..., 3).
+    """
+    v, s, e_arr, f = prepare_frame(view_dirs, sun_dir, e)
+    return pack_stokes(*components(v, s, e_arr, f, *params)), e_arr
+
+
 def rayleigh_components(
     v: NDArray[np.float64],
     s: NDArray[np.float64],
@@ -234,5 +270,4 @@ def rayleigh_stokes(
     No horizon handling here: directions below the horizon are evaluated
     like any other (:class:`pihim.sky.model.SkyModel` zeroes them).
     """
-    v, s, e_arr, f = prepare_frame(view_dirs, sun_dir, e)
-    return rayleigh_core(v, s, e_arr, f, dmax, s0), e_arr
+    return stokes_in_frame(rayleigh_components, view_dirs, sun_dir, e, dmax, s0)

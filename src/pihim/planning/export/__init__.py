@@ -28,7 +28,7 @@ from typing import Any, Literal
 
 from pihim._atomic import atomic_path
 from pihim.errors import PihimInputError
-from pihim.planning.export._common import check_plan
+from pihim.planning.export._common import check_plan, write_data
 from pihim.planning.export.figure import plan_figure, plan_png_bytes, write_plan_figure
 from pihim.planning.export.kml import kml_text, write_kml
 from pihim.planning.export.litchi import (
@@ -181,9 +181,5 @@ def export_all(
     paths = {key: out / name for key, name in OUTPUT_NAMES.items()}
     with contextlib.ExitStack() as stack:
         for key, data in contents.items():
-            tmp = stack.enter_context(atomic_path(paths[key]))
-            if isinstance(data, bytes):
-                tmp.write_bytes(data)
-            else:
-                tmp.write_text(data, encoding="utf-8", newline="\n")
+            write_data(stack.enter_context(atomic_path(paths[key])), data, newline="\n")
     return paths

@@ -8,8 +8,11 @@ and leaves nothing behind.
 from __future__ import annotations
 
 import math
+import os
+from pathlib import Path
 from typing import Any
 
+from pihim._atomic import write_atomic
 from pihim.errors import PihimInputError
 from pihim.planning.model import Plan, Waypoint
 
@@ -220,3 +223,47 @@ def plan_counts(plan: Plan) -> dict[str, Any]:
         "usable_predictions": int(usable),
         "usable_fraction": (usable / len(predictions)) if predictions else 0.0,
     }
+
+
+def write_data(path: Path, data: str | bytes, *, newline: str | None = None) -> None:
+    """Write one rendered export file: bytes as they are, text as UTF-8.
+
+    Parameters
+    ----------
+    path : Path
+        Destination (usually the temporary sibling of :func:`pihim._atomic.atomic_path`).
+    data : str or bytes
+        The rendered file.
+    newline : str, optional
+        Passed to :meth:`pathlib.Path.write_text` for text (``"\\n"`` keeps
+        Unix line ends on every platform); ignored for bytes.
+    """
+    if isinstance(data, bytes):
+        path.write_bytes(data)
+    else:
+        path.write_text(data, encoding="utf-8", newline=newline)
+
+
+def write_export(path: str | os.PathLike[str], data: str | bytes, *, newline: str | None = None) -> Path:
+    """Write a rendered (hence already validated) export file atomically.
+
+    Every ``write_xxx(plan, path, ...)`` renders its file in memory first --
+    which runs :func:`check_plan` and the option checks -- and then calls
+    this, so invalid input never creates a file and a failed write never
+    leaves a partial one.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Output file.
+    data : str or bytes
+        The rendered file (see :func:`write_data`).
+    newline : str, optional
+        See :func:`write_data`.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    return write_atomic(path, lambda p: write_data(p, data, newline=newline))

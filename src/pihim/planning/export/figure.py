@@ -24,9 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from pihim._atomic import write_atomic
 from pihim.errors import PihimInputError
-from pihim.planning.export._common import check_plan, plan_counts
+from pihim.planning.export._common import check_plan, plan_counts, write_export
 from pihim.planning.model import Plan
 
 __all__ = ["plan_figure", "plan_png_bytes", "write_plan_figure"]
@@ -168,4 +167,4 @@ def write_plan_figure(
         Invalid plan, field or size; no file is written.
     """
     data = plan_png_bytes(plan, field=field, figsize=figsize, dpi=dpi)
-    return write_atomic(path, lambda p: p.write_bytes(data))
+    return write_export(path, data)

@@ -52,7 +52,6 @@ from typing import Any, Literal
 
 import numpy as np
 
-from pihim._atomic import write_atomic
 from pihim.errors import PihimInputError
 from pihim.planning.export._common import (
     check_plan,
@@ -60,6 +59,7 @@ from pihim.planning.export._common import (
     heading_0_360,
     plan_counts,
     site_origin,
+    write_export,
 )
 from pihim.planning.model import Plan, ScanPass, Waypoint
 
@@ -299,4 +299,4 @@ def write_kml(
         written.
     """
     text = kml_text(plan, field=field, altitude_mode=altitude_mode, geoid_undulation_m=geoid_undulation_m)
-    return write_atomic(path, lambda p: p.write_text(text, encoding="utf-8"))
+    return write_export(path, text)

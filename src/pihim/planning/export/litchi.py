@@ -48,9 +48,13 @@ import csv
 import io
 from pathlib import Path
 
-from pihim._atomic import write_atomic
 from pihim.errors import PihimInputError
-from pihim.planning.export._common import check_plan, heading_0_360, mission_waypoints
+from pihim.planning.export._common import (
+    check_plan,
+    heading_0_360,
+    mission_waypoints,
+    write_export,
+)
 from pihim.planning.model import Plan, Waypoint
 
 __all__ = [
@@ -197,4 +201,4 @@ def write_litchi_csv(
         Litchi's -200..500 m; no file is written.
     """
     text = litchi_csv_text(plan, flight=flight, hover_ms=hover_ms, max_waypoints=max_waypoints)
-    return write_atomic(path, lambda p: p.write_text(text, encoding="utf-8", newline="\n"))
+    return write_export(path, text, newline="\n")

@@ -21,8 +21,12 @@ from pathlib import Path
 from typing import Any
 
 import pihim
-from pihim._atomic import write_atomic
-from pihim.planning.export._common import check_plan, json_ready, plan_counts
+from pihim.planning.export._common import (
+    check_plan,
+    json_ready,
+    plan_counts,
+    write_export,
+)
 from pihim.planning.model import PLAN_SCHEMA_ID, Plan
 
 __all__ = ["CONVENTIONS", "load_plan_schema", "plan_document", "plan_json_text", "write_plan_json"]
@@ -105,4 +109,4 @@ def write_plan_json(plan: Plan, path: str | Path) -> Path:
     The file validates against :func:`load_plan_schema` (tested).
     """
     text = plan_json_text(plan)
-    return write_atomic(path, lambda p: p.write_text(text, encoding="utf-8"))
+    return write_export(path, text)

@@ -85,7 +85,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from pihim._atomic import write_atomic
 from pihim.errors import PihimInputError
 from pihim.planning.export._common import (
     check_plan,
@@ -93,6 +92,7 @@ from pihim.planning.export._common import (
     heading_0_360,
     json_ready,
     mission_waypoints,
+    write_export,
 )
 from pihim.planning.model import Plan, Waypoint
 
@@ -514,7 +514,7 @@ def write_qgc_plan(
     indented by four spaces as QGroundControl writes them.
     """
     text = qgc_plan_text(plan, geofence_margin_m=geofence_margin_m, **mission_options)
-    return write_atomic(path, lambda p: p.write_text(text, encoding="utf-8"))
+    return write_export(path, text)
 
 
 def qgc_plan_text(plan: Plan, *, geofence_margin_m: float | None = None, **mission_options: Any) -> str:

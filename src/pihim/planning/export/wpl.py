@@ -35,7 +35,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from pihim._atomic import write_atomic
+from pihim.planning.export._common import write_export
 from pihim.planning.export.qgc import (
     MAV_CMD_NAV_WAYPOINT,
     MAV_FRAME_GLOBAL,
@@ -99,4 +99,4 @@ def write_wpl(plan: Plan, path: str | Path, **mission_options: Any) -> Path:
         Invalid plan or option; no file is written.
     """
     text = wpl_text(plan, **mission_options)
-    return write_atomic(path, lambda p: p.write_text(text, encoding="utf-8", newline="\n"))
+    return write_export(path, text, newline="\n")
