@@ -32,14 +32,8 @@ Run ``python benchmarks/run.py --only bench_field`` or this file directly.
 
 from __future__ import annotations
 
-import argparse
-import gc
-import json
 import math
-import os
-import platform
-import time
-import tracemalloc
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -49,9 +43,10 @@ import numpy as np
 from pihim.field.kinematics import track_field, tracking_normals
 from pihim.field.layout import Tower, nsttf_like_field, radial_staggered_field
 
-DEFAULT_WARMUP = 3
-QUICK_REPEAT = 5
-QUICK_WARMUP = 1
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as harness
+
+COUNTS = harness.Counts(repeat=30, warmup=3, quick_repeat=5, quick_warmup=1, cap_quick=True)
 RESULTS_PATH = Path(__file__).resolve().parent / "results" / "field.json"
 SUN_ZENITH_DEG, SUN_AZIMUTH_DEG = 30.0, 235.0
 RADIAL_SIZES = (10_000, 100_000)
@@ -64,25 +59,6 @@ def _sun() -> np.ndarray:
     return np.array([math.sin(z) * math.sin(a), math.sin(z) * math.cos(a), math.cos(z)])
 
 
-def _cpu_times() -> tuple[float, float, float] | None:
-    """(wall, machine busy CPU seconds, own CPU seconds); None without /proc/stat."""
-    try:
-        with open("/proc/stat", encoding="ascii") as fh:
-            ticks = [int(v) for v in fh.readline().split()[1:9]]
-    except (OSError, ValueError):
-        return None
-    user, nice, system, _idle, _iowait, irq, softirq, steal = ticks + [0] * (8 - len(ticks))
-    own = os.times()
-    busy = (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
-    return time.perf_counter(), busy, own.user + own.system
-
-
-def _other_load(a: tuple[float, float, float] | None, b: tuple[float, float, float] | None) -> float | None:
-    if a is None or b is None or b[0] <= a[0]:
-        return None
-    return max((b[1] - a[1]) - (b[2] - a[2]), 0.0) / ((b[0] - a[0]) * (os.cpu_count() or 1))
-
-
 def _nbytes(obj: Any) -> int:
     if isinstance(obj, np.ndarray):
         return obj.nbytes
@@ -91,38 +67,6 @@ def _nbytes(obj: Any) -> int:
     if hasattr(obj, "__dataclass_fields__"):
         return sum(_nbytes(getattr(obj, k)) for k in obj.__dataclass_fields__ if k != "field")
     return 0
-
-
-def measure(fn: Callable[[], Any], repeat: int, warmup: int) -> dict[str, Any]:
-    """Median/p10/p90 ms over ``repeat`` calls after ``warmup``; tracemalloc peak of one extra call."""
-    for _ in range(warmup):
-        fn()
-    gc.collect()
-    gc.disable()
-    times = []
-    try:
-        t0 = _cpu_times()
-        for _ in range(repeat):
-            start = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - start)
-        t1 = _cpu_times()
-    finally:
-        gc.enable()
-    tracemalloc.start()
-    out = fn()
-    _, peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
-    ms = np.array(times) * 1e3
-    return {
-        "median_ms": float(np.median(ms)),
-        "p10_ms": float(np.percentile(ms, 10)),
-        "p90_ms": float(np.percentile(ms, 90)),
-        "peak_mb": peak / 1e6,
-        "output_mb": _nbytes(out) / 1e6,
-        "other_cpu": _other_load(t0, t1),
-        "repeat": repeat,
-    }
 
 
 def run_benchmark(repeat: int, warmup: int, radial_sizes: Sequence[int] = RADIAL_SIZES) -> dict[str, Any]:
@@ -150,25 +94,19 @@ def run_benchmark(repeat: int, warmup: int, radial_sizes: Sequence[int] = RADIAL
         n_big = max(radial_sizes)
         rows.append((f"radial_{n_big}_generate", f"radial {n_big:,} field generation", n_big,
                      lambda: radial_staggered_field(n_big, tower=BIG_TOWER), max(1, min(repeat, 5))))
-    results: dict[str, Any] = {}
-    for key, label, n, fn, reps in rows:
-        r = measure(fn, reps, min(warmup, reps))
-        results[key] = {"label": label, "heliostats": n, **r}
+    results = {
+        key: {"label": label, "heliostats": n, **harness.measure(fn, reps, min(warmup, reps), nbytes=_nbytes)}
+        for key, label, n, fn, reps in rows
+    }
     extent = {str(n): float(np.hypot(f.pivots[:, 0], f.pivots[:, 1]).max()) for n, f in fields.items()}
-    targets = []
-    for name, key, limit, unit in TARGETS:
-        measured = results[key]["median_ms"]
-        targets.append({"target": name, "required": f"<= {limit:g} {unit}", "measured": measured, "unit": unit,
-                        "passed": measured <= limit})
     return {
         "benchmark": "bench_field",
         "settings": {"repeat": repeat, "warmup": warmup, "sun_zenith_deg": SUN_ZENITH_DEG,
                      "sun_azimuth_deg": SUN_AZIMUTH_DEG, "radial_sizes": list(radial_sizes),
                      "radial_tower_height_m": BIG_TOWER.height_m, "radial_field_radius_m": extent},
         "results": results,
-        "targets": targets,
-        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
-                    "python": platform.python_version(), "numpy": np.__version__},
+        "targets": [harness.target(name, results[key]["median_ms"], lim, unit) for name, key, lim, unit in TARGETS],
+        "machine": harness.machine_info(),
     }
 
 
@@ -187,29 +125,19 @@ def markdown_report(report: dict[str, Any]) -> str:
         "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in report["results"].values():
-        other = "-" if r["other_cpu"] is None else f"{100 * r['other_cpu']:.0f}"
         lines.append(
-            f"| {r['label']} | {r['heliostats']:,} | {r['median_ms']:.3f} | {r['p10_ms']:.3f} | {r['p90_ms']:.3f} "
-            f"| {r['peak_mb']:.2f} | {r['output_mb']:.2f} | {other} |"
+            f"| {r['label']} | {r['heliostats']:,} | {harness.ms_cells(r, '.3f')} "
+            f"| {r['peak_mb']:.2f} | {r['output_mb']:.2f} | {harness.other_pct(r['other_cpu'])} |"
         )
-    lines += ["", "| Target | Required | Measured | Verdict |", "|---|---|---:|---|"]
-    for t in report["targets"]:
-        verdict = "PASS" if t["passed"] else "FAIL"
-        lines.append(f"| {t['target']} | {t['required']} | {t['measured']:.3f} {t['unit']} | {verdict} |")
-    busy = [r for r in report["results"].values() if r["other_cpu"] is not None and r["other_cpu"] > 0.05]
-    if busy:
-        warning = (
-            f"Warning: other processes used more than 5 % of the CPUs during {len(busy)} row(s); "
-            "those figures are inflated."
-        )
-        lines += ["", warning]
+    lines += harness.target_table(report["targets"], spec=".3f")
+    lines += harness.busy_warning(r["other_cpu"] for r in report["results"].values())
     return "\n".join(lines)
 
 
 def main(
     argv: Sequence[str] | None = None,
     *,
-    repeat: int = 30,
+    repeat: int | None = None,
     quick: bool = False,
     warmup: int | None = None,
     radial_sizes: Sequence[int] = RADIAL_SIZES,
@@ -223,8 +151,8 @@ def main(
     argv : sequence of str, optional
         Command-line arguments (``--repeat N``, ``--warmup N``, ``--quick``,
         ``--json PATH``); ``None`` or empty reads nothing.
-    repeat : int
-        Timed calls per row (at most 5 with ``quick``).
+    repeat : int, optional
+        Timed calls per row; default 30, at most 5 with ``quick``.
     quick : bool
         Fewer calls, for a fast look.
     warmup : int, optional
@@ -242,33 +170,14 @@ def main(
     dict
         The JSON-ready report (``targets`` summarised by ``run.py``).
     """
-    if argv:
-        p = argparse.ArgumentParser(description="Speed of pihim's heliostat field tracking and canting.")
-        p.add_argument("--repeat", type=int)
-        p.add_argument("--warmup", type=int)
-        p.add_argument("--quick", action="store_true")
-        p.add_argument("--json", type=Path, default=json_path)
-        a = p.parse_args(list(argv))
-        repeat = a.repeat if a.repeat is not None else repeat
-        warmup = a.warmup if a.warmup is not None else warmup
-        quick = quick or a.quick
-        json_path = a.json
-    if quick:
-        repeat = min(repeat, QUICK_REPEAT)
-    warmup = warmup if warmup is not None else (QUICK_WARMUP if quick else DEFAULT_WARMUP)
-    if repeat < 1 or warmup < 0:
-        raise ValueError("repeat must be >= 1 and warmup >= 0")
-    report = run_benchmark(repeat, warmup, tuple(radial_sizes))
+    o = harness.options(argv, description="Speed of pihim's heliostat field tracking and canting.", counts=COUNTS,
+                        repeat=repeat, warmup=warmup, quick=quick, json_path=json_path)
+    report = run_benchmark(o.repeat, o.warmup, tuple(radial_sizes))
     if echo:
         print(markdown_report(report))
-    if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-        report["json_path"] = str(json_path)
+    harness.write_json(report, o.json_path)
     return report
 
 
 if __name__ == "__main__":
-    import sys
-
     main(sys.argv[1:] or None)

@@ -55,12 +55,11 @@ Run ``python benchmarks/run.py --only bench_ground`` or this file directly.
 
 from __future__ import annotations
 
-import argparse
 import gc
-import json
 import math
 import os
 import platform
+import sys
 import time
 from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
@@ -85,10 +84,10 @@ from pihim.surfaces.ground import (
     hemisphere_grid,
 )
 
-DEFAULT_REPEAT = 10
-DEFAULT_WARMUP = 1
-QUICK_REPEAT = 3
-QUICK_WARMUP = 1
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as harness
+
+COUNTS = harness.Counts(repeat=10, warmup=1, quick_repeat=3, quick_warmup=1)
 SUN_ZEN_DEG, SUN_AZ_DEG = 30.0, 235.0
 SKY_SCALE = 30.0  # W m^-2 sr^-1 at the zenith, order of a clear sky's broadband radiance
 TARGET_MAP_S = 0.5
@@ -145,49 +144,26 @@ def skies() -> tuple[dict[str, Any], list[str]]:
 # ---------------------------------------------------------------------------
 # Timing
 # ---------------------------------------------------------------------------
-def _cpu_snapshot() -> tuple[float, float, float]:
-    """(busy jiffies, total jiffies, own CPU seconds) from /proc/stat and os.times."""
-    try:
-        with open("/proc/stat", encoding="ascii") as fh:
-            vals = [float(x) for x in fh.readline().split()[1:]]
-        idle = vals[3] + (vals[4] if len(vals) > 4 else 0.0)
-        total = sum(vals[:8])
-        busy = total - idle
-    except OSError:  # pragma: no cover - not Linux
-        busy = total = float("nan")
-    t = os.times()
-    return busy, total, t.user + t.system
-
-
 def time_call(fn: Callable[[], Any], repeat: int, warmup: int) -> dict[str, Any]:
-    """Median, p10, p90 and first-call wall time (s) of ``fn``, and the CPU share of other processes."""
+    """Median, p10, p90 and first-call wall time (s) of ``fn``, and the CPU share of other processes.
+
+    The first call counts as the first of the ``warmup`` untimed calls.
+    """
     gc.collect()
     t0 = time.perf_counter()
     fn()
     first = time.perf_counter() - t0
     for _ in range(max(0, warmup - 1)):
         fn()
-    hz = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
-    b0, tot0, own0 = _cpu_snapshot()
-    times = []
-    gc.disable()
-    try:
-        for _ in range(repeat):
-            t0 = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t0)
-    finally:
-        gc.enable()
-    b1, tot1, own1 = _cpu_snapshot()
-    span = (tot1 - tot0) / hz
-    other = ((b1 - b0) / hz - (own1 - own0)) / span if span > 0 else float("nan")
+    samples, load = harness.time_calls(fn, repeat)
+    median, p10, p90 = (float(v) / 1e3 for v in np.percentile(samples, [50, 10, 90]))
     return {
-        "median_s": float(np.median(times)),
-        "p10_s": float(np.percentile(times, 10)),
-        "p90_s": float(np.percentile(times, 90)),
+        "median_s": median,
+        "p10_s": p10,
+        "p90_s": p90,
         "first_call_s": first,
         "repeat": repeat,
-        "other_cpu_load": max(0.0, float(other)) if math.isfinite(other) else None,
+        "other_cpu_load": load,
     }
 
 
@@ -366,13 +342,7 @@ def run_benchmark(repeat: int, warmup: int, quick: bool) -> dict[str, Any]:
 
     kernel_gain = numpy_row["median_s"] / kernel_row["median_s"]
     targets = [
-        {
-            "target": f"det map 1 deg sun+sky ({name}) median",
-            "required": f"<= {TARGET_MAP_S} s",
-            "measured": row["median_s"],
-            "unit": "s",
-            "passed": row["median_s"] <= TARGET_MAP_S,
-        }
+        harness.target(f"det map 1 deg sun+sky ({name}) median", row["median_s"], TARGET_MAP_S, "s")
         for name, row in map_rows.items()
     ]
     return {
@@ -418,14 +388,9 @@ def _kernel_only(model, v, sun, table, nodes, weights):
 
 
 def machine_info() -> dict[str, Any]:
-    model = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            model = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), model)
-    except OSError:  # pragma: no cover
-        pass
+    """CPU, numba threads and library versions."""
     return {
-        "cpu_model": model,
+        "cpu_model": harness.cpu_model(),
         "cpu_count": os.cpu_count(),
         "numba_threads": numba.get_num_threads(),
         "python": platform.python_version(),
@@ -516,11 +481,7 @@ def markdown_report(rep: dict[str, Any]) -> str:
             f"| {a['equal_accuracy_mc_time_s']:.2e} | {a['deterministic_time_s']:.3f} "
             f"| {a['speedup_equal_accuracy']:.2e}x | {a['speedup_equal_grid']:.2f}x |"
         )
-    lines += ["", "| Target | Required | Measured | Result |", "|---|---|--:|---|"]
-    for t in rep["targets"]:
-        lines.append(
-            f"| {t['target']} | {t['required']} | {t['measured']:.3f} {t['unit']} | {'PASS' if t['passed'] else 'FAIL'} |"
-        )
+    lines += harness.target_table(rep["targets"], spec=".3f", column="Result", align="--:")
     m = rep["machine"]
     lines += [
         "",
@@ -565,34 +526,14 @@ def main(
     dict
         The report; ``targets`` carry ``passed`` flags.
     """
-    if argv:
-        p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-        p.add_argument("--repeat", type=int)
-        p.add_argument("--warmup", type=int)
-        p.add_argument("--quick", action="store_true")
-        p.add_argument("--json", type=Path, default=json_path)
-        a = p.parse_args(list(argv))
-        repeat = a.repeat if a.repeat is not None else repeat
-        warmup = a.warmup if a.warmup is not None else warmup
-        quick = quick or a.quick
-        json_path = a.json
-    repeat = repeat if repeat is not None else (QUICK_REPEAT if quick else DEFAULT_REPEAT)
-    warmup = warmup if warmup is not None else (QUICK_WARMUP if quick else DEFAULT_WARMUP)
-    if repeat < 1 or warmup < 0:
-        raise ValueError("repeat must be >= 1 and warmup >= 0")
-    report = run_benchmark(repeat, warmup, quick)
+    o = harness.options(argv, description=__doc__.split("\n\n")[0], counts=COUNTS, repeat=repeat, warmup=warmup,
+                        quick=quick, json_path=json_path)
+    report = run_benchmark(o.repeat, o.warmup, o.quick)
     if echo:
         print(markdown_report(report))
-    if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-        report["json_path"] = str(json_path)
-        if echo:
-            print(f"\nJSON written to {json_path}")
+    harness.write_json(report, o.json_path, announce=echo)
     return report
 
 
 if __name__ == "__main__":
-    import sys
-
     main(sys.argv[1:])

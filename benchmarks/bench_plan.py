@@ -33,12 +33,7 @@ Run ``python benchmarks/run.py --only bench_plan`` or this file directly.
 from __future__ import annotations
 
 import argparse
-import gc
-import json
-import os
-import platform
-import time
-import tracemalloc
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -60,9 +55,10 @@ from pihim.planning.scoring import score_passes
 from pihim.planning.ufacet import home_waypoint, plan_ufacet, track_at
 from pihim.sky.sun import NSTTF, sun_position
 
-DEFAULT_WARMUP = 2
-QUICK_REPEAT = 3
-QUICK_WARMUP = 1
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as harness
+
+COUNTS = harness.Counts(repeat=10, warmup=2, quick_repeat=3, quick_warmup=1, cap_quick=True)
 RESULTS_PATH = Path(__file__).resolve().parent / "results" / "plan.json"
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "nsttf"
 CASE_TIME = "2021-05-13T13:00:00-06:00"
@@ -108,46 +104,6 @@ def nsttf_full_scored(field: Field) -> tuple[Any, ...]:
     passes = score_passes(res.passes, pose, sun.vector, aim_point=UFACET_AIM_POINT, origin=NSTTF)
     home = home_waypoint(field, origin=NSTTF)
     return split_flights(passes, home, origin=NSTTF, tower=field.tower)
-
-
-def _cpu_times() -> tuple[float, float, float] | None:
-    try:
-        with open("/proc/stat", encoding="ascii") as fh:
-            ticks = [int(v) for v in fh.readline().split()[1:9]]
-    except (OSError, ValueError):
-        return None
-    user, nice, system, _idle, _iowait, irq, softirq, steal = ticks + [0] * (8 - len(ticks))
-    own = os.times()
-    busy = (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
-    return time.perf_counter(), busy, own.user + own.system
-
-
-def _other_load(a: tuple[float, float, float] | None, b: tuple[float, float, float] | None) -> float | None:
-    if a is None or b is None or b[0] <= a[0]:
-        return None
-    return max((b[1] - a[1]) - (b[2] - a[2]), 0.0) / ((b[0] - a[0]) * (os.cpu_count() or 1))
-
-
-def measure(fn: Callable[[], Any], repeat: int, warmup: int) -> dict[str, Any]:
-    """Median/p10/p90 ms over ``repeat`` calls after ``warmup``; tracemalloc peak of one extra call."""
-    for _ in range(warmup):
-        fn()
-    gc.collect()
-    times = []
-    t0 = _cpu_times()
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    t1 = _cpu_times()
-    tracemalloc.start()
-    fn()
-    _, peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
-    ms = np.array(times) * 1e3
-    return {"median_ms": float(np.median(ms)), "p10_ms": float(np.percentile(ms, 10)),
-            "p90_ms": float(np.percentile(ms, 90)), "peak_mb": peak / 1e6, "other_cpu": _other_load(t0, t1),
-            "repeat": repeat}
 
 
 def case_summary(res: Any, flights: Sequence[Any]) -> dict[str, Any]:
@@ -235,10 +191,11 @@ def run_benchmark(repeat: int, warmup: int, radial_sizes: Sequence[int] = RADIAL
                      (lambda f=fld: radial_full(f, sun)), max(1, min(repeat, 3))))
         rows.append((f"radial_{n}_scored", f"radial {n:,} full plan + polarimetric scoring and shifts", n,
                      (lambda f=fld: radial_full(f, sun, scored=True)), max(1, min(repeat, 3))))
-    results: dict[str, Any] = {}
-    for key, label, n, fn, reps in rows:
-        r = measure(fn, reps, min(warmup, reps if key.startswith("nsttf") else 1))
-        results[key] = {"label": label, "heliostats": n, **r}
+    results = {
+        key: {"label": label, "heliostats": n,
+              **harness.measure(fn, reps, min(warmup, reps if key.startswith("nsttf") else 1), pause_gc=False)}
+        for key, label, n, fn, reps in rows
+    }
     res, flights = nsttf_full(field)
     summary = case_summary(res, flights)
     radial_summary = {}
@@ -248,17 +205,13 @@ def run_benchmark(repeat: int, warmup: int, radial_sizes: Sequence[int] = RADIAL
                                   "captures": rres.n_captures, "flights": len(rfl),
                                   "heliostats_per_hour": throughput(rfl).heliostats_per_hour}
     targets = [
-        {"target": "NSTTF full plan incl. tracking, canting and polarimetric scoring", "required": "<= 1000 ms",
-         "measured": results["nsttf_full_scored"]["median_ms"], "unit": "ms",
-         "passed": results["nsttf_full_scored"]["median_ms"] <= 1000.0},
-        {"target": "NSTTF planning alone", "required": "<= 300 ms",
-         "measured": results["nsttf_plan"]["median_ms"], "unit": "ms",
-         "passed": results["nsttf_plan"]["median_ms"] <= 300.0},
+        harness.target("NSTTF full plan incl. tracking, canting and polarimetric scoring",
+                       results["nsttf_full_scored"]["median_ms"], 1000.0, "ms"),
+        harness.target("NSTTF planning alone", results["nsttf_plan"]["median_ms"], 300.0, "ms"),
     ]
     if 10_000 in radial_sizes:
-        m = results["radial_10000_scored"]["median_ms"]
-        targets.append({"target": "10,000-heliostat radial field, full plan incl. scoring", "required": "<= 30000 ms",
-                        "measured": m, "unit": "ms", "passed": m <= 30_000.0})
+        targets.append(harness.target("10,000-heliostat radial field, full plan incl. scoring",
+                                      results["radial_10000_scored"]["median_ms"], 30_000.0, "ms"))
     return {
         "benchmark": "bench_plan",
         "settings": {"repeat": repeat, "warmup": warmup, "time": CASE_TIME, "aim_point": list(UFACET_AIM_POINT),
@@ -269,8 +222,7 @@ def run_benchmark(repeat: int, warmup: int, radial_sizes: Sequence[int] = RADIAL
         "radial_case": radial_summary,
         "opencsp": OPENCSP,
         "targets": targets,
-        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
-                    "python": platform.python_version(), "numpy": np.__version__},
+        "machine": harness.machine_info(),
         "_plan": (res, field, pose),
     }
 
@@ -287,13 +239,9 @@ def markdown_report(report: dict[str, Any]) -> str:
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
     for r in report["results"].values():
-        other = "-" if r["other_cpu"] is None else f"{100 * r['other_cpu']:.0f}"
-        lines.append(f"| {r['label']} | {r['heliostats']:,} | {r['median_ms']:.1f} | {r['p10_ms']:.1f} "
-                     f"| {r['p90_ms']:.1f} | {r['peak_mb']:.1f} | {other} |")
-    lines += ["", "| Target | Required | Measured | Verdict |", "|---|---|---:|---|"]
-    for t in report["targets"]:
-        lines.append(f"| {t['target']} | {t['required']} | {t['measured']:.1f} {t['unit']} "
-                     f"| {'PASS' if t['passed'] else 'FAIL'} |")
+        lines.append(f"| {r['label']} | {r['heliostats']:,} | {harness.ms_cells(r, '.1f')} | {r['peak_mb']:.1f} "
+                     f"| {harness.other_pct(r['other_cpu'])} |")
+    lines += harness.target_table(report["targets"], spec=".1f")
     c, o = report["nsttf_case"], report["opencsp"]
     ln = c["line_5W5"]
     lines += [
@@ -317,17 +265,14 @@ def markdown_report(report: dict[str, Any]) -> str:
         lines.append(f"\nRadial {int(n):,}: {r['passes']} passes, {r['assessed']:,} HUAs assessed, "
                      f"{r['captures']:,} captures, {r['flights']} flights, {r['heliostats_per_hour']:.0f} "
                      "heliostats per hour for one drone.")
-    busy = [r for r in report["results"].values() if r["other_cpu"] is not None and r["other_cpu"] > 0.05]
-    if busy:
-        lines += ["", (f"Warning: other processes used more than 5 % of the CPUs during {len(busy)} row(s); "
-                      "those figures are inflated.")]
+    lines += harness.busy_warning(r["other_cpu"] for r in report["results"].values())
     return "\n".join(lines)
 
 
 def main(
     argv: Sequence[str] | None = None,
     *,
-    repeat: int = 10,
+    repeat: int | None = None,
     quick: bool = False,
     warmup: int | None = None,
     radial_sizes: Sequence[int] = RADIAL_SIZES,
@@ -343,9 +288,9 @@ def main(
         Command-line arguments (``--repeat N``, ``--warmup N``, ``--quick``,
         ``--json PATH``, ``--radial N [N ...]``, ``--nsttf-table``); ``None``
         or empty reads nothing.
-    repeat : int
-        Timed calls per NSTTF row (radial rows: at most 3; at most
-        ``QUICK_REPEAT`` with ``quick``).
+    repeat : int, optional
+        Timed calls per NSTTF row; default 10, at most 3 with ``quick``
+        (radial rows: at most 3).
     quick : bool
         Fewer calls, for a fast look.
     warmup : int, optional
@@ -365,41 +310,26 @@ def main(
     dict
         The JSON-ready report (``targets`` summarised by ``run.py``).
     """
-    if argv:
-        p = argparse.ArgumentParser(description="Speed of pihim's UFACET planner (NSTTF case and a large field).")
-        p.add_argument("--repeat", type=int)
-        p.add_argument("--warmup", type=int)
-        p.add_argument("--quick", action="store_true")
-        p.add_argument("--json", type=Path, default=json_path)
-        p.add_argument("--radial", type=int, nargs="*")
-        p.add_argument("--nsttf-table", action="store_true")
-        a = p.parse_args(list(argv))
-        repeat = a.repeat if a.repeat is not None else repeat
-        warmup = a.warmup if a.warmup is not None else warmup
-        quick = quick or a.quick
-        json_path = a.json
-        radial_sizes = radial_sizes if a.radial is None else tuple(a.radial)
-        nsttf_table = nsttf_table or a.nsttf_table
-    if quick:
-        repeat = min(repeat, QUICK_REPEAT)
-    warmup = warmup if warmup is not None else (QUICK_WARMUP if quick else DEFAULT_WARMUP)
-    if repeat < 1 or warmup < 0:
-        raise ValueError("repeat must be >= 1 and warmup >= 0")
-    report = run_benchmark(repeat, warmup, tuple(radial_sizes))
+    def configure(parser: argparse.ArgumentParser) -> None:
+        parser.add_argument("--radial", type=int, nargs="*", metavar="N", help="sizes of the radial fields")
+        parser.add_argument("--nsttf-table", action="store_true", help="also print the per-pass NSTTF table")
+
+    o = harness.options(argv, description="Speed of pihim's UFACET planner (NSTTF case and a large field).",
+                        counts=COUNTS, repeat=repeat, warmup=warmup, quick=quick, json_path=json_path,
+                        configure=configure)
+    if o.args is not None:
+        radial_sizes = radial_sizes if o.args.radial is None else tuple(o.args.radial)
+        nsttf_table = nsttf_table or o.args.nsttf_table
+    report = run_benchmark(o.repeat, o.warmup, tuple(radial_sizes))
     res, fld, pose = report.pop("_plan")
     if echo:
         print(markdown_report(report))
         if nsttf_table:
             print()
             print(pass_table(res, fld, pose))
-    if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-        report["json_path"] = str(json_path)
+    harness.write_json(report, o.json_path)
     return report
 
 
 if __name__ == "__main__":
-    import sys
-
     main(sys.argv[1:] or None)

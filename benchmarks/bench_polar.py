@@ -36,12 +36,11 @@ from __future__ import annotations
 import argparse
 import gc
 import importlib.metadata
-import json
 import math
 import os
 import platform
+import sys
 import time
-import tracemalloc
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -60,6 +59,9 @@ from pihim.camera.pipeline import PolarImage, polar_image
 from pihim.polarimetry.stokes import aop_difference_deg, stokes_from_dolp_aop
 from pihim.render.mosaic import mosaic_from_stokes
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as harness
+
 try:  # optional dependency of the benchmark only (extra "bench")
     import polanalyser as pa
 except ImportError:  # pragma: no cover - depends on the environment
@@ -69,10 +71,7 @@ except ImportError:  # pragma: no cover - depends on the environment
 FRAME_SHAPE: tuple[int, int] = (2048, 2448)
 BIT_DEPTH = 12
 DEFAULT_SEED = 20261122
-DEFAULT_REPEAT = 30
-DEFAULT_WARMUP = 3
-QUICK_REPEAT = 5
-QUICK_WARMUP = 1
+COUNTS = harness.Counts(repeat=30, warmup=3, quick_repeat=5, quick_warmup=1)
 RESULTS_PATH = Path(__file__).resolve().parent / "results" / "polar.json"
 
 ANCHOR = "numpy"
@@ -89,7 +88,7 @@ UNIFORM_FIELD = {"s0": 4000.0, "dolp": 0.4, "aop_deg": (30.0, 120.0)}
 UNIFORM_TOLERANCE = {"dolp": 2e-3, "aop_deg": 0.2}
 #: Share of the CPUs used by other processes above which a timing counts as
 #: disturbed: the report warns, and ``wait_quiet`` retries it.
-BUSY_WARNING = 0.05
+BUSY_WARNING = harness.BUSY_WARNING
 
 Outputs = tuple[NDArray[Any], NDArray[Any], NDArray[Any]]
 
@@ -454,51 +453,6 @@ class Measurement:
     checks: dict[str, Any] = field(default_factory=dict)
 
 
-def cpu_times() -> tuple[float, float, float] | None:
-    """``(wall, busy CPU seconds of the machine, CPU seconds of this process)``.
-
-    Busy time is read from ``/proc/stat`` (user, nice, system, irq, softirq
-    and hypervisor steal, summed over CPUs); ``None`` where that is missing.
-    """
-    try:
-        with open("/proc/stat", encoding="ascii") as fh:
-            ticks = [int(v) for v in fh.readline().split()[1:9]]
-    except (OSError, ValueError):
-        return None
-    user, nice, system, _idle, _iowait, irq, softirq, steal = ticks + [0] * (8 - len(ticks))
-    own = os.times()
-    busy = (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
-    return time.perf_counter(), busy, own.user + own.system
-
-
-def other_cpu_load(start: tuple[float, float, float] | None, end: tuple[float, float, float] | None) -> float | None:
-    """Fraction of the machine's CPU capacity used by *other* processes between two :func:`cpu_times`.
-
-    Anything well above zero means the timings were taken on a busy machine
-    and are inflated (parallel kernels suffer most: a thread that loses its
-    core stalls the whole ``prange``). Resolution is one clock tick (10 ms).
-    """
-    if start is None or end is None or end[0] <= start[0]:
-        return None
-    others = (end[1] - start[1]) - (end[2] - start[2])
-    return max(others, 0.0) / ((end[0] - start[0]) * (os.cpu_count() or 1))
-
-
-def wait_for_quiet(timeout_s: float, threshold: float = 0.05, window_s: float = 2.0) -> float | None:
-    """Wait until other processes use less than ``threshold`` of the CPUs over ``window_s``.
-
-    Returns the last measured load (``None`` where it cannot be measured);
-    gives up after ``timeout_s`` seconds.
-    """
-    deadline = time.monotonic() + timeout_s
-    while True:
-        start = cpu_times()
-        time.sleep(window_s)
-        load = other_cpu_load(start, cpu_times())
-        if load is None or load < threshold or time.monotonic() >= deadline:
-            return load
-
-
 def output_nbytes(result: Any) -> int:
     """Bytes of memory held by the arrays of ``result`` (views count their base once)."""
     found: dict[int, int] = {}
@@ -583,34 +537,12 @@ def measure(
 
     for _ in range(warmup):
         candidate.run(mosaic)
-    samples = np.empty(repeat)
-    gc_was_enabled = gc.isenabled()
-    gc.disable()
-    load_start = cpu_times()
-    try:
-        for k in range(repeat):
-            start = time.perf_counter_ns()
-            out = candidate.run(mosaic)
-            samples[k] = (time.perf_counter_ns() - start) / 1e6
-            del out
-    finally:
-        if gc_was_enabled:
-            gc.enable()
-    result.other_cpu_load = other_cpu_load(load_start, cpu_times())
+    samples, result.other_cpu_load = harness.time_calls(lambda: candidate.run(mosaic), repeat)
     result.samples_ms = [round(float(s), 4) for s in samples]
     result.median_ms, result.p10_ms, result.p90_ms = (float(v) for v in np.percentile(samples, [50, 10, 90]))
     result.mean_ms, result.min_ms = float(samples.mean()), float(samples.min())
 
-    gc.collect()
-    tracemalloc.start()
-    try:
-        tracemalloc.reset_peak()
-        baseline = tracemalloc.get_traced_memory()[0]
-        out = candidate.run(mosaic)
-        result.peak_traced_bytes = tracemalloc.get_traced_memory()[1] - baseline
-        del out
-    finally:
-        tracemalloc.stop()
+    result.peak_traced_bytes, _ = harness.traced_peak(lambda: candidate.run(mosaic))
     return result
 
 
@@ -635,7 +567,7 @@ def measure_when_quiet(
 
     def attempt(with_compile: bool) -> Measurement:
         if wait_quiet_s > 0:
-            wait_for_quiet(max(deadline - time.monotonic(), 0.0), threshold=BUSY_WARNING)
+            harness.wait_for_quiet(max(deadline - time.monotonic(), 0.0), threshold=BUSY_WARNING)
         return measure(candidate, mosaic, repeat, warmup, with_compile)
 
     first = best = attempt(compile_time)
@@ -729,27 +661,18 @@ def evaluate_targets(by_key: dict[str, Measurement]) -> list[dict[str, Any]]:
     verdicts = []
     for name, key, figure, limit, unit, at_most in TARGETS:
         m = by_key.get(key)
-        measured = None if m is None else getattr(m, figure)
-        passed = None if measured is None else (measured <= limit if at_most else measured >= limit)
-        required = f"{'<=' if at_most else '>='} {limit:g} {unit}"
-        verdicts.append({"target": name, "required": required, "measured": measured, "unit": unit, "passed": passed})
+        verdicts.append(harness.target(name, None if m is None else getattr(m, figure), limit, unit, at_most=at_most))
     return verdicts
 
 
 def machine_info() -> dict[str, Any]:
     """What the figures depend on: CPU, threads and library versions."""
-    model = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            model = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), model)
-    except OSError:
-        pass
     try:
         layer = numba.threading_layer()
     except ValueError:  # no parallel kernel has run yet
         layer = None
     return {
-        "cpu_model": model,
+        "cpu_model": harness.cpu_model(),
         "cpu_count": os.cpu_count(),
         "cpus_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         "platform": platform.platform(),
@@ -808,11 +731,7 @@ def markdown_report(report: dict[str, Any]) -> str:
             "the figures are inflated (rerun on an idle machine, e.g. with --wait-quiet 300).",
         ]
 
-    lines += ["", "| Target | Required | Measured | Result |", "|---|---|--:|---|"]
-    for t in report["targets"]:
-        measured = _fmt(t["measured"], ".1f" if t["unit"] == "ms" else ".2f", " " + t["unit"])
-        verdict = {True: "PASS", False: "FAIL", None: "n/a"}[t["passed"]]
-        lines.append(f"| {t['target']} | {t['required']} | {measured} | {verdict} |")
+    lines += harness.target_table(report["targets"], spec=".2f", unit_spec={"ms": ".1f"}, column="Result", align="--:")
 
     lines += [
         "",
@@ -873,8 +792,8 @@ NOTES = (
 
 
 def run_benchmark(
-    repeat: int = DEFAULT_REPEAT,
-    warmup: int = DEFAULT_WARMUP,
+    repeat: int = COUNTS.repeat,
+    warmup: int = COUNTS.warmup,
     seed: int = DEFAULT_SEED,
     compile_time: bool = True,
     wait_quiet_s: float = 0.0,
@@ -930,6 +849,7 @@ def run_benchmark(
 
 
 def main(
+    argv: Sequence[str] | None = None,
     *,
     repeat: int | None = None,
     warmup: int | None = None,
@@ -943,6 +863,10 @@ def main(
 
     Parameters
     ----------
+    argv : sequence of str, optional
+        Command-line arguments (``--repeat N``, ``--warmup N``, ``--quick``,
+        ``--json PATH``, ``--seed N``, ``--wait-quiet S``); ``None`` or empty
+        reads nothing.
     repeat, warmup : int, optional
         Timed and untimed calls per implementation; default 30 and 3, or 5
         and 1 with ``quick``.
@@ -965,47 +889,25 @@ def main(
         The report (also written to ``json_path``); its ``targets`` entries
         carry ``passed`` flags.
     """
-    repeat = repeat if repeat is not None else (QUICK_REPEAT if quick else DEFAULT_REPEAT)
-    warmup = warmup if warmup is not None else (QUICK_WARMUP if quick else DEFAULT_WARMUP)
-    if repeat < 1 or warmup < 0:
-        raise ValueError("repeat must be >= 1 and warmup >= 0")
-    report = run_benchmark(repeat=repeat, warmup=warmup, seed=seed, compile_time=not quick, wait_quiet_s=wait_quiet)
-    report["settings"]["quick"] = quick
+
+    def configure(parser: argparse.ArgumentParser) -> None:
+        parser.add_argument("--seed", type=int, help=f"seed of the synthetic frame (default {DEFAULT_SEED})")
+        parser.add_argument("--wait-quiet", type=float, metavar="S",
+                            help="wait and retry up to S s per implementation for idle CPUs")
+
+    o = harness.options(argv, description=__doc__.split("\n\n")[0], counts=COUNTS, repeat=repeat, warmup=warmup,
+                        quick=quick, json_path=json_path, configure=configure)
+    if o.args is not None:
+        seed = o.args.seed if o.args.seed is not None else seed
+        wait_quiet = o.args.wait_quiet if o.args.wait_quiet is not None else wait_quiet
+    report = run_benchmark(repeat=o.repeat, warmup=o.warmup, seed=seed, compile_time=not o.quick,
+                           wait_quiet_s=wait_quiet)
+    report["settings"]["quick"] = o.quick
     if echo:
         print(markdown_report(report))
-    if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-        report["json_path"] = str(json_path)
-        if echo:
-            print(f"\nJSON written to {json_path}")
+    harness.write_json(report, o.json_path, announce=echo)
     return report
 
 
-def _cli(argv: Sequence[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--repeat", type=int, help=f"timed calls per implementation (default {DEFAULT_REPEAT})")
-    parser.add_argument("--warmup", type=int, help=f"untimed calls before timing (default {DEFAULT_WARMUP})")
-    parser.add_argument("--quick", action="store_true", help="5 timed calls, 1 warm-up, no cold-compile timing")
-    parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of the synthetic frame")
-    parser.add_argument("--json", type=Path, default=RESULTS_PATH, help="JSON output path")
-    parser.add_argument(
-        "--wait-quiet",
-        type=float,
-        default=0.0,
-        metavar="S",
-        help="wait and retry up to S s per implementation for idle CPUs",
-    )
-    args = parser.parse_args(argv)
-    main(
-        repeat=args.repeat,
-        warmup=args.warmup,
-        quick=args.quick,
-        seed=args.seed,
-        json_path=args.json,
-        wait_quiet=args.wait_quiet,
-    )
-
-
 if __name__ == "__main__":
-    _cli()
+    main(sys.argv[1:] or None)

@@ -29,13 +29,7 @@ Run ``python benchmarks/run.py --only bench_sky`` or this file directly.
 
 from __future__ import annotations
 
-import argparse
-import gc
-import json
-import os
-import platform
-import time
-import tracemalloc
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -47,60 +41,13 @@ from pihim.sky import model as sky_model_mod
 from pihim.sky.model import SkyModel, sky_map
 from pihim.sky.sun import NSTTF, direction_from_angles, sun_position
 
-DEFAULT_REPEAT = 30
-DEFAULT_WARMUP = 3
-QUICK_REPEAT = 5
-QUICK_WARMUP = 1
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as harness
+
+COUNTS = harness.Counts(repeat=30, warmup=3, quick_repeat=5, quick_warmup=1)
 RESULTS_PATH = Path(__file__).resolve().parent / "results" / "sky.json"
 SUN = direction_from_angles(30.0, 235.0)  # the paper's Fig. 2c-d
 TARGETS = (("Rayleigh all-sky map at 0.5 deg (S0+DoLP+AoP)", "rayleigh_map", 20.0, "ms"),)
-
-
-def _cpu_times() -> tuple[float, float, float] | None:
-    """(wall, machine busy CPU seconds, own CPU seconds); None without /proc/stat."""
-    try:
-        with open("/proc/stat", encoding="ascii") as fh:
-            ticks = [int(v) for v in fh.readline().split()[1:9]]
-    except (OSError, ValueError):
-        return None
-    user, nice, system, _idle, _iowait, irq, softirq, steal = ticks + [0] * (8 - len(ticks))
-    own = os.times()
-    busy = (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
-    return time.perf_counter(), busy, own.user + own.system
-
-
-def _other_load(a: tuple[float, float, float] | None, b: tuple[float, float, float] | None) -> float | None:
-    if a is None or b is None or b[0] <= a[0]:
-        return None
-    return max((b[1] - a[1]) - (b[2] - a[2]), 0.0) / ((b[0] - a[0]) * (os.cpu_count() or 1))
-
-
-def measure(fn: Callable[[], Any], repeat: int, warmup: int) -> dict[str, Any]:
-    """Median/p10/p90 ms over ``repeat`` calls after ``warmup``; tracemalloc peak of one extra call."""
-    for _ in range(warmup):
-        fn()
-    gc.collect()
-    times = []
-    t0 = _cpu_times()
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    t1 = _cpu_times()
-    tracemalloc.start()
-    fn()
-    _, peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
-    ms = np.array(times) * 1e3
-    load = _other_load(t0, t1)
-    return {
-        "median_ms": float(np.median(ms)),
-        "p10_ms": float(np.percentile(ms, 10)),
-        "p90_ms": float(np.percentile(ms, 90)),
-        "peak_mb": peak / 1e6,
-        "other_cpu": load,
-        "repeat": repeat,
-    }
 
 
 def _directions(n_zen: int = 180, n_az: int = 720) -> np.ndarray:
@@ -127,22 +74,16 @@ def run_benchmark(repeat: int, warmup: int) -> dict[str, Any]:
         ("sun_1", "sun_position, 1 time", "1", lambda: sun_position(NSTTF, "2024-06-21T10:00:00-06:00")),
         ("sun_1000", "sun_position, 1000 times", "1,000", lambda: sun_position(NSTTF, times_1000)),
     ]
-    results = {}
-    for key, label, n, fn in rows:
-        r = measure(fn, repeat, warmup)
-        results[key] = {"label": label, "items": n, **r}
-    targets = []
-    for name, key, limit, unit in TARGETS:
-        measured = results[key]["median_ms"]
-        targets.append({"target": name, "required": f"<= {limit:g} {unit}", "measured": measured, "unit": unit,
-                        "passed": measured <= limit})
+    results = {
+        key: {"label": label, "items": n, **harness.measure(fn, repeat, warmup, pause_gc=False)}
+        for key, label, n, fn in rows
+    }
     return {
         "benchmark": "bench_sky",
         "settings": {"repeat": repeat, "warmup": warmup, "sun_zenith_deg": 30.0, "sun_azimuth_deg": 235.0},
         "results": results,
-        "targets": targets,
-        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
-                    "python": platform.python_version(), "numpy": np.__version__},
+        "targets": [harness.target(name, results[key]["median_ms"], lim, unit) for name, key, lim, unit in TARGETS],
+        "machine": harness.machine_info(),
     }
 
 
@@ -159,22 +100,12 @@ def markdown_report(report: dict[str, Any]) -> str:
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
     for r in report["results"].values():
-        other = "-" if r["other_cpu"] is None else f"{100 * r['other_cpu']:.0f}"
         lines.append(
-            f"| {r['label']} | {r['items']} | {r['median_ms']:.2f} | {r['p10_ms']:.2f} | {r['p90_ms']:.2f} "
-            f"| {r['peak_mb']:.1f} | {other} |"
+            f"| {r['label']} | {r['items']} | {harness.ms_cells(r, '.2f')} | {r['peak_mb']:.1f} "
+            f"| {harness.other_pct(r['other_cpu'])} |"
         )
-    lines += ["", "| Target | Required | Measured | Verdict |", "|---|---|---:|---|"]
-    for t in report["targets"]:
-        verdict = "PASS" if t["passed"] else "FAIL"
-        lines.append(f"| {t['target']} | {t['required']} | {t['measured']:.2f} {t['unit']} | {verdict} |")
-    busy = [r for r in report["results"].values() if r["other_cpu"] is not None and r["other_cpu"] > 0.05]
-    if busy:
-        warning = (
-            f"Warning: other processes used more than 5 % of the CPUs during {len(busy)} row(s); "
-            "those figures are inflated."
-        )
-        lines += ["", warning]
+    lines += harness.target_table(report["targets"], spec=".2f")
+    lines += harness.busy_warning(r["other_cpu"] for r in report["results"].values())
     return "\n".join(lines)
 
 
@@ -196,32 +127,14 @@ def main(argv: Sequence[str] | None = None, *, repeat: int | None = None, quick:
     echo : bool
         Print the markdown report.
     """
-    if argv:
-        p = argparse.ArgumentParser(description="Speed of pihim's sky maps and sun positions.")
-        p.add_argument("--repeat", type=int)
-        p.add_argument("--warmup", type=int)
-        p.add_argument("--quick", action="store_true")
-        p.add_argument("--json", type=Path, default=json_path)
-        a = p.parse_args(list(argv))
-        repeat = a.repeat if a.repeat is not None else repeat
-        warmup = a.warmup if a.warmup is not None else warmup
-        quick = quick or a.quick
-        json_path = a.json
-    repeat = repeat if repeat is not None else (QUICK_REPEAT if quick else DEFAULT_REPEAT)
-    warmup = warmup if warmup is not None else (QUICK_WARMUP if quick else DEFAULT_WARMUP)
-    if repeat < 1 or warmup < 0:
-        raise ValueError("repeat must be >= 1 and warmup >= 0")
-    report = run_benchmark(repeat, warmup)
+    o = harness.options(argv, description="Speed of pihim's sky maps and sun positions.", counts=COUNTS,
+                        repeat=repeat, warmup=warmup, quick=quick, json_path=json_path)
+    report = run_benchmark(o.repeat, o.warmup)
     if echo:
         print(markdown_report(report))
-    if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-        report["json_path"] = str(json_path)
+    harness.write_json(report, o.json_path)
     return report
 
 
 if __name__ == "__main__":
-    import sys
-
     main(sys.argv[1:] or None)

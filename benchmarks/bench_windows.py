@@ -33,18 +33,10 @@ Run ``python benchmarks/run.py --only bench_windows`` or this file directly.
 
 from __future__ import annotations
 
-import argparse
-import gc
-import json
-import os
-import platform
-import time
-import tracemalloc
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from pihim.field import nsttf_like_field, track_field
 from pihim.planning.scoring import ShiftSearch, build_scene, score_passes
@@ -52,9 +44,10 @@ from pihim.planning.ufacet import plan_passes
 from pihim.planning.windows import DEFAULT_MAX_ALTITUDE_M, sweep_day
 from pihim.sky.sun import NSTTF, sun_position
 
-DEFAULT_WARMUP = 2
-QUICK_REPEAT = 3
-QUICK_WARMUP = 1
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as harness
+
+COUNTS = harness.Counts(repeat=10, warmup=2, quick_repeat=3, quick_warmup=1, cap_quick=True)
 SWEEP_REPEAT = 3
 RESULTS_PATH = Path(__file__).resolve().parent / "results" / "windows.json"
 TIME = "2021-05-13T10:30:00-06:00"
@@ -63,58 +56,6 @@ TARGETS = (
     ("NSTTF full plan incl. tracking, canting and scoring, one instant", "full_plan", 1000.0, "ms"),
     ("NSTTF day sweep, 10-min steps", "day_sweep", 10000.0, "ms"),
 )
-
-
-def _cpu_times() -> tuple[float, float, float] | None:
-    """(wall, machine busy CPU seconds, own CPU seconds); None without /proc/stat."""
-    try:
-        with open("/proc/stat", encoding="ascii") as fh:
-            ticks = [int(v) for v in fh.readline().split()[1:9]]
-    except (OSError, ValueError):
-        return None
-    user, nice, system, _idle, _iowait, irq, softirq, steal = ticks + [0] * (8 - len(ticks))
-    own = os.times()
-    busy = (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
-    return time.perf_counter(), busy, own.user + own.system
-
-
-def _other_load(a: tuple[float, float, float] | None, b: tuple[float, float, float] | None) -> float | None:
-    if a is None or b is None or b[0] <= a[0]:
-        return None
-    return max((b[1] - a[1]) - (b[2] - a[2]), 0.0) / ((b[0] - a[0]) * (os.cpu_count() or 1))
-
-
-def measure(fn: Callable[[], Any], repeat: int, warmup: int, *, trace: bool = True) -> dict[str, Any]:
-    """Median/p10/p90 ms over ``repeat`` calls after ``warmup``; tracemalloc peak of one extra call."""
-    for _ in range(warmup):
-        fn()
-    gc.collect()
-    gc.disable()
-    times = []
-    try:
-        t0 = _cpu_times()
-        for _ in range(repeat):
-            start = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - start)
-        t1 = _cpu_times()
-    finally:
-        gc.enable()
-    peak = None
-    if trace:
-        tracemalloc.start()
-        fn()
-        _, peak = tracemalloc.get_traced_memory()
-        tracemalloc.stop()
-    ms = np.array(times) * 1e3
-    return {
-        "median_ms": float(np.median(ms)),
-        "p10_ms": float(np.percentile(ms, 10)),
-        "p90_ms": float(np.percentile(ms, 90)),
-        "peak_mb": None if peak is None else peak / 1e6,
-        "other_cpu": _other_load(t0, t1),
-        "repeat": repeat,
-    }
 
 
 def run_benchmark(repeat: int, warmup: int, sweep_repeat: int) -> dict[str, Any]:
@@ -148,26 +89,20 @@ def run_benchmark(repeat: int, warmup: int, sweep_repeat: int) -> dict[str, Any]
         ("full_plan", "full plan: tracking, canting, planning, scoring, shifts", full, repeat, True),
         ("day_sweep", f"day sweep {DATE}, 10-min steps, sun > 10 deg", lambda: sweep_day(DATE), sweep_repeat, False),
     ]
-    results: dict[str, Any] = {}
-    for key, label, fn, reps, trace in rows:
-        results[key] = {"label": label, **measure(fn, reps, min(warmup, reps) if key != "day_sweep" else 0,
-                                                  trace=trace)}
+    results = {
+        key: {"label": label, **harness.measure(fn, reps, min(warmup, reps) if key != "day_sweep" else 0, trace=trace)}
+        for key, label, fn, reps, trace in rows
+    }
     n_times = len(sweep_day(DATE, step_min=10.0, search=None, planner=lambda *a, **k: ()))
     results["day_sweep"]["instants"] = n_times
-    targets = []
-    for name, key, limit, unit in TARGETS:
-        measured = results[key]["median_ms"]
-        targets.append({"target": name, "required": f"<= {limit:g} {unit}", "measured": measured, "unit": unit,
-                        "passed": measured <= limit})
     return {
         "benchmark": "bench_windows",
         "settings": {"repeat": repeat, "warmup": warmup, "sweep_repeat": sweep_repeat, "time": TIME, "date": DATE,
                      "aim_point_m": aim.tolist(), "heliostats": len(fld), "passes": len(passes),
                      "images": n_images, "sweep_instants": n_times},
         "results": results,
-        "targets": targets,
-        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
-                    "python": platform.python_version(), "numpy": np.__version__},
+        "targets": [harness.target(name, results[key]["median_ms"], lim, unit) for name, key, lim, unit in TARGETS],
+        "machine": harness.machine_info(),
     }
 
 
@@ -183,25 +118,17 @@ def markdown_report(report: dict[str, Any]) -> str:
         "|---|---:|---:|---:|---:|---:|",
     ]
     for r in report["results"].values():
-        other = "-" if r["other_cpu"] is None else f"{100 * r['other_cpu']:.0f}"
         peak = "-" if r["peak_mb"] is None else f"{r['peak_mb']:.1f}"
-        lines.append(f"| {r['label']} | {r['median_ms']:.1f} | {r['p10_ms']:.1f} | {r['p90_ms']:.1f} | {peak} "
-                     f"| {other} |")
-    lines += ["", "| Target | Required | Measured | Verdict |", "|---|---|---:|---|"]
-    for t in report["targets"]:
-        verdict = "PASS" if t["passed"] else "FAIL"
-        lines.append(f"| {t['target']} | {t['required']} | {t['measured']:.1f} {t['unit']} | {verdict} |")
-    busy = [r for r in report["results"].values() if r["other_cpu"] is not None and r["other_cpu"] > 0.05]
-    if busy:
-        lines += ["", (f"Warning: other processes used more than 5 % of the CPUs during {len(busy)} row(s); "
-                       "those figures are inflated.")]
+        lines.append(f"| {r['label']} | {harness.ms_cells(r, '.1f')} | {peak} | {harness.other_pct(r['other_cpu'])} |")
+    lines += harness.target_table(report["targets"], spec=".1f")
+    lines += harness.busy_warning(r["other_cpu"] for r in report["results"].values())
     return "\n".join(lines)
 
 
 def main(
     argv: Sequence[str] | None = None,
     *,
-    repeat: int = 10,
+    repeat: int | None = None,
     quick: bool = False,
     warmup: int | None = None,
     json_path: Path | None = RESULTS_PATH,
@@ -214,8 +141,8 @@ def main(
     argv : sequence of str, optional
         Command-line arguments (``--repeat N``, ``--warmup N``, ``--quick``,
         ``--json PATH``); ``None`` or empty reads nothing.
-    repeat : int
-        Timed calls per row (at most 3 with ``quick``); the day sweep is
+    repeat : int, optional
+        Timed calls per row; default 10, at most 3 with ``quick``. The day sweep is
         timed ``min(repeat, 3)`` times (once with ``quick``).
     quick : bool
         Fewer calls, for a fast look.
@@ -233,34 +160,15 @@ def main(
     dict
         The JSON-ready report (``targets`` summarised by ``run.py``).
     """
-    if argv:
-        p = argparse.ArgumentParser(description="Speed of pihim's plan scoring and day sweep.")
-        p.add_argument("--repeat", type=int)
-        p.add_argument("--warmup", type=int)
-        p.add_argument("--quick", action="store_true")
-        p.add_argument("--json", type=Path, default=json_path)
-        a = p.parse_args(list(argv))
-        repeat = a.repeat if a.repeat is not None else repeat
-        warmup = a.warmup if a.warmup is not None else warmup
-        quick = quick or a.quick
-        json_path = a.json
-    if quick:
-        repeat = min(repeat, QUICK_REPEAT)
-    warmup = warmup if warmup is not None else (QUICK_WARMUP if quick else DEFAULT_WARMUP)
-    if repeat < 1 or warmup < 0:
-        raise ValueError("repeat must be >= 1 and warmup >= 0")
-    sweep_repeat = 1 if quick else min(repeat, SWEEP_REPEAT)
-    report = run_benchmark(repeat, warmup, sweep_repeat)
+    o = harness.options(argv, description="Speed of pihim's plan scoring and day sweep.", counts=COUNTS,
+                        repeat=repeat, warmup=warmup, quick=quick, json_path=json_path)
+    sweep_repeat = 1 if o.quick else min(o.repeat, SWEEP_REPEAT)
+    report = run_benchmark(o.repeat, o.warmup, sweep_repeat)
     if echo:
         print(markdown_report(report))
-    if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-        report["json_path"] = str(json_path)
+    harness.write_json(report, o.json_path)
     return report
 
 
 if __name__ == "__main__":
-    import sys
-
     main(sys.argv[1:] or None)

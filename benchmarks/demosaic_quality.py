@@ -36,8 +36,8 @@ Prints a markdown table (mean over the scenes) and writes every number to
 from __future__ import annotations
 
 import argparse
-import json
 import platform
+import sys
 import time
 from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
@@ -54,6 +54,9 @@ from pihim.polarimetry.analyser import AnalyserMatrix
 from pihim.polarimetry.stokes import aop_deg, aop_difference_deg, dolp
 from pihim.render.mosaic import mosaic_from_stokes
 from pihim.render.scenes import edge_scene
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as harness
 
 FRAME_SHAPE: tuple[int, int] = (2048, 2448)  # rows, columns of the IMX250MZR
 QUICK_SHAPE: tuple[int, int] = (512, 640)
@@ -334,9 +337,7 @@ def main(argv: Sequence[str] | None = None, *, quick: bool | None = None) -> dic
             {"target": "pihim full beats bilinear in S0 PSNR, DoLP PSNR and AoP RMSE on every scene", "passed": beats}
         ],
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2), encoding="utf-8")
-    report["json_path"] = str(args.out)
+    harness.write_json(report, args.out)
     print(f"\nfull beats bilinear on every scene and metric: {beats}; JSON: {args.out} ({elapsed:.0f} s)")
     return report
 
