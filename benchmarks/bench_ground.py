@@ -27,9 +27,8 @@ defaults, sigma 15 deg):
     (not with ``--quick``) to fit the time as ``a + b N`` and to follow the
     error's decay.
 
-Skies: a local analytic single-scattering stand-in (``standin``: DoLP
-``0.8 sin^2 g / (1 + cos^2 g)``, field normal to the sun-view plane) and, if
-it can be imported, :class:`pihim.sky.model.SkyModel` (``pihim``).
+Sky: :class:`pihim.sky.model.SkyModel` (Rayleigh, dmax 0.8, CIE clear-sky
+radiance scaled to ``SKY_SCALE`` at the zenith).
 
 Accuracy and "equal accuracy"
 -----------------------------
@@ -76,6 +75,7 @@ from pihim.polarimetry.frames import (
     normalize,
     perpendicular_reference,
 )
+from pihim.sky.model import SkyModel
 from pihim.surfaces.ground import (
     GroundModel,
     HemisphereGrid,
@@ -105,40 +105,9 @@ def direction(zen_deg: float, az_deg: float) -> np.ndarray:
     return np.array([math.sin(z) * math.sin(a), math.sin(z) * math.cos(a), math.cos(z)])
 
 
-class StandInSky:
-    """Analytic single-scattering sky (the SkyRadiance protocol), S0 brighter toward the zenith."""
-
-    def __init__(self, radiance: float = SKY_SCALE, p_max: float = 0.8) -> None:
-        self.radiance = radiance
-        self.p_max = p_max
-
-    def stokes(self, view_dirs, sun_dir, e=None):
-        v = np.asarray(view_dirs, float)
-        sun = np.asarray(sun_dir, float)
-        d = -v
-        e = perpendicular_reference(d) if e is None else np.broadcast_to(np.asarray(e, float), v.shape)
-        cg = dot(v, sun)
-        s0 = self.radiance * (1.0 + cg**2) * (0.5 + 0.5 * v[..., 2])
-        p = self.p_max * (1.0 - cg**2) / (1.0 + cg**2)
-        f = np.cross(v, sun)
-        nf = np.linalg.norm(f, axis=-1, keepdims=True)
-        f = np.where(nf > 1e-12, f / np.maximum(nf, 1e-300), e)
-        psi = np.arctan2(dot(f, np.cross(d, e)), dot(f, e))
-        s = np.stack([s0, s0 * p * np.cos(2 * psi), s0 * p * np.sin(2 * psi), np.zeros_like(s0)], axis=-1)
-        return np.where((v[..., 2] > 0)[..., None], s, 0.0), e
-
-
 def skies() -> tuple[dict[str, Any], list[str]]:
-    """The skies to run: the stand-in always, pihim's SkyModel when importable."""
-    out: dict[str, Any] = {"standin": StandInSky()}
-    notes = []
-    try:
-        from pihim.sky.model import SkyModel
-
-        out["pihim"] = SkyModel(scale=SKY_SCALE)
-    except Exception as exc:  # noqa: BLE001 - optional, the module is developed in parallel
-        notes.append(f"pihim.sky.model.SkyModel not used ({type(exc).__name__}: {exc}).")
-    return out, notes
+    """The sky used: pihim's Rayleigh :class:`~pihim.sky.model.SkyModel` with CIE clear-sky radiance."""
+    return {"pihim": SkyModel(scale=SKY_SCALE)}, []
 
 
 # ---------------------------------------------------------------------------
@@ -248,13 +217,13 @@ def run_benchmark(repeat: int, warmup: int, quick: bool) -> dict[str, Any]:
         )
     add("det map 1 deg, sun only", lambda: model.stokes(v1, sun), directions=32_400)
 
-    sky = sky_models["standin"]
+    sky = sky_models["pihim"]
     table = _SkyTable(sky, sun, 257)
     nodes, weights = model.quadrature_nodes()
     vs = v1.reshape(-1, 3)[::subset]
     es = perpendicular_reference(vs)
     kernel_row = add(
-        "sky term only, numba kernel (standin)",
+        "sky term only, numba kernel (pihim sky)",
         lambda: _kernel_only(model, v1, sun, table, nodes, weights),
         directions=32_400,
     )
@@ -274,7 +243,7 @@ def run_benchmark(repeat: int, warmup: int, quick: bool) -> dict[str, Any]:
     )
     det05_sun = add("det map 0.5 deg, sun only", lambda: model.stokes(grid05.directions, sun), directions=129_600)
     det05_sky = add(
-        "det map 0.5 deg, sun+sky (standin)", lambda: model.stokes(grid05.directions, sun, sky), directions=129_600
+        "det map 0.5 deg, sun+sky (pihim sky)", lambda: model.stokes(grid05.directions, sun, sky), directions=129_600
     )
 
     # -- Monte Carlo -----------------------------------------------------------
