@@ -52,6 +52,7 @@ from pihim.field.layout import (
 )
 from pihim.planning.endurance import DroneEndurance, split_flights, throughput
 from pihim.planning.scoring import score_passes
+from pihim.planning.lines import alignment_summary, pass_alignment
 from pihim.planning.ufacet import home_waypoint, plan_ufacet, track_at
 from pihim.sky.sun import NSTTF, sun_position
 
@@ -137,15 +138,18 @@ def case_summary(res: Any, flights: Sequence[Any]) -> dict[str, Any]:
 def pass_table(res: Any, field: Field | None = None, pose: Any = None) -> str:
     """Markdown table of every pass (for docs/opencsp-comparison.md).
 
-    With ``field`` and ``pose``, a column gives the azimuth of the vertical
-    plane of the HUAs' tracking normals (mean back direction of the mirrors),
-    folded to the travel sense of the pass.
+    With ``field`` and ``pose``, columns give the azimuth of the vertical
+    plane of the HUAs' tracking normals (folded to the travel sense), the
+    largest angle between the pass and a HUA's plane and the largest
+    distance of a capture from its HUA's plane
+    (:func:`pihim.planning.lines.pass_alignment`).
     """
     plane = field is not None and pose is not None
+    align = {a.index: a for a in pass_alignment(res.passes, field, pose)} if plane else {}
     head = "| # | HUAs (first ... last) | n HUAs | captures | travel az deg |"
-    head += " normals' plane az deg |" if plane else ""
+    head += " normals' plane az deg | max dev deg | max camera offset m |" if plane else ""
     lines = [head + " altitude m | pitch deg (median) | issues |",
-             "|---:|---|---:|---:|---:|" + ("---:|" if plane else "") + "---:|---:|---|"]
+             "|---:|---|---:|---:|---:|" + ("---:|---:|---:|" if plane else "") + "---:|---:|---|"]
     for p in res.passes:
         huas = list(dict.fromkeys(h for h, _ in p.pairs))
         span = f"{huas[0]} ... {huas[-1]}" if huas else "-"
@@ -153,15 +157,10 @@ def pass_table(res: Any, field: Field | None = None, pose: Any = None) -> str:
         notes = [f"{blocked} blocked pair(s)"] if blocked else []
         notes += [i for i in p.issues if i.startswith("concentrated")]
         cell = ""
-        if plane and huas:
-            n = pose.normals[field.indices(huas)]
-            back = -n[:, :2].sum(axis=0)
-            az = float(np.degrees(np.arctan2(back[0], back[1])) % 360.0)
-            if abs((az - p.azimuth_deg + 180.0) % 360.0 - 180.0) > 90.0:
-                az = (az + 180.0) % 360.0
-            cell = f" {az:.1f} |"
-        elif plane:
-            cell = " - |"
+        if plane:
+            a = align.get(p.index)
+            cell = (f" {a.plane_azimuth_deg:.1f} | {a.max_deviation_deg:.1f} | {a.max_camera_offset_m:.1f} |"
+                    if a is not None else " - | - | - |")
         lines.append(f"| {p.index} | {span} | {len(huas)} | {len(p.pairs)} | {p.azimuth_deg:.1f} |{cell} "
                      f"{p.altitude_m:.1f} | {p.gimbal_pitch_deg:.1f} | {'; '.join(notes)} |")
     return "\n".join(lines)
@@ -198,6 +197,7 @@ def run_benchmark(repeat: int, warmup: int, radial_sizes: Sequence[int] = RADIAL
     }
     res, flights = nsttf_full(field)
     summary = case_summary(res, flights)
+    summary["alignment"] = alignment_summary(res.passes, field, pose)
     radial_summary = {}
     for n, fld in radial_fields.items():
         rres, rfl = radial_full(fld, sun)
@@ -257,6 +257,11 @@ def markdown_report(report: dict[str, Any]) -> str:
         (f"| Gimbal pitch | {ln['pitch_deg']:.1f} deg (all passes {c['pitch_range_deg'][0]:.1f} to "
         f"{c['pitch_range_deg'][1]:.1f}) | {o['pitch_deg']} deg |"),
         f"| Heliostats assessed | {c['heliostats_assessed']} ({c['heliostats_unassessed']} without a target) | - |",
+        (f"| Passes vs the HUAs' normals' planes | {c['alignment']['median_deviation_deg']:.1f} deg median, "
+         f"{c['alignment']['max_deviation_deg']:.1f} max; captures {c['alignment']['median_camera_offset_m']:.1f} m "
+         f"median, {c['alignment']['max_camera_offset_m']:.1f} m max from the plane; waypoints "
+         f"{c['alignment']['max_off_line_m']:.1e} m off each pass's straight line | straight sections along "
+         "the normals' planes |"),
         (f"| Heliostats per hour (one drone, swaps included) | {c['heliostats_per_hour']:.0f} | - "
         "(paper: ~36 today, 50-100 hoped) |"),
         f"| Planning time | {report['results']['nsttf_full']['median_ms']:.0f} ms | {o['time_s']} s |",

@@ -66,8 +66,9 @@ def captures(p: ScanPass):
 # ----------------------------------------------------------------------------- geometry of every capture
 
 
-def test_every_capture_sees_the_target_reflected_in_the_hua(plan) -> None:
-    n_checked = 0
+def test_every_capture_sees_the_target_reflected_in_the_hua(plan, first_mirror) -> None:
+    rng = np.random.default_rng(3)
+    checked = 0
     for p in plan.passes:
         caps = captures(p)
         assert len(caps) == len(p.pairs) > 0
@@ -77,13 +78,37 @@ def test_every_capture_sees_the_target_reflected_in_the_hua(plan) -> None:
             cam = np.array([w.x_m, w.y_m, w.z_m])
             centre, normal = POSE.mirror_centres[h], POSE.normals[h]
             d = unit(centre - cam)  # ray camera -> HUA mirror centre
-            r = d - 2.0 * (d @ normal) * normal  # reflected about the HUA normal (independent formula)
-            to_target = unit(POSE.mirror_centres[t] - centre)
-            assert r @ to_target > math.cos(1e-6)
             assert d @ normal < 0  # the camera is in front of the HUA mirror
-            assert to_target @ POSE.normals[t] > 0  # the ray reaches the target's back
-            n_checked += 1
-    assert n_checked >= 150
+            r = d - 2.0 * (d @ normal) * normal  # reflected about the HUA normal (independent formula)
+            assert r @ POSE.normals[t] > 0  # travelling the way the target faces: it meets the target's back
+            if rng.random() < 0.35 or checked < 40:  # brute force over every mirror of the field (slow oracle)
+                first, _ = first_mirror(POSE, centre, r, h)
+                assert first == t, (hua, tgt, first)
+                # and nothing between the camera and the HUA centre
+                hit, s_hit = first_mirror(POSE, cam, d, h)
+                assert hit == -1 or s_hit > np.linalg.norm(centre - cam)
+                checked += 1
+    assert checked >= 60
+
+
+def test_passes_are_straight_and_in_the_normals_planes(plan) -> None:
+    devs, offsets = [], []
+    for p in plan.passes:
+        first, last = p.waypoints[0], p.waypoints[-1]
+        a = np.array([first.x_m, first.y_m])
+        e = unit(np.array([last.x_m, last.y_m]) - a)
+        across = np.array([e[1], -e[0]])
+        for w in p.waypoints:  # every waypoint on the straight line lead-in -> run-past
+            assert abs((np.array([w.x_m, w.y_m]) - a) @ across) < 1e-6
+        for w in captures(p):
+            k = FIELD.index(w.hua)
+            b = unit(POSE.normals[k, :2])
+            devs.append(math.degrees(math.acos(min(1.0, abs(b @ e)))))  # pass vs the HUA's normals' plane
+            bx = np.array([b[1], -b[0]])
+            offsets.append(abs((np.array([w.x_m, w.y_m]) - POSE.mirror_centres[k, :2]) @ bx))
+    # the pass direction follows the tracking normals' vertical planes; the camera stays near each plane
+    assert np.median(devs) < 2.0 and max(devs) < 8.0
+    assert max(offsets) <= FIELD.spec.mirror_width_m + 1e-9
 
 
 def test_camera_between_minimum_safe_and_maximum_altitude(plan) -> None:
@@ -263,9 +288,14 @@ def test_heliostat_subset_and_wide_camera() -> None:
     assert {h for p in passes for h, _ in p.pairs} == {"8E3", "8W3"}
     wide = CameraModel(width_px=6000, height_px=4000, pixel_size_um=5.98, focal_length_mm=20.0)
     res = plan_ufacet(FIELD, POSE, aim_point=AIM, origin=ORIGIN, camera=wide)
-    # a wide lens frames whole heliostats low down: the lowest altitude wins
-    assert all(p.altitude_m == pytest.approx(res.min_altitude_m) for p in res.passes)
+    narrow = plan_ufacet(FIELD, POSE, aim_point=AIM, origin=ORIGIN)
+    # the 35 mm lens frames more of each HUA from higher up: its passes fly at the maximum altitude; a wide lens
+    # frames whole heliostats at any altitude, so only the HUAs imaged from the line decide and ties go low
+    assert np.median([p.altitude_m for p in narrow.passes]) == pytest.approx(25.0)
+    assert np.mean([p.altitude_m for p in res.passes]) < np.mean([p.altitude_m for p in narrow.passes]) - 3.0
+    assert sum(p.altitude_m == pytest.approx(res.min_altitude_m) for p in res.passes) >= len(res.passes) // 3
     assert not any("not framed" in i for p in res.passes for i in p.issues)
+    assert any("not framed" in i for p in narrow.passes for i in p.issues)
 
 
 def test_sun_recovered_from_the_pose() -> None:
@@ -345,15 +375,20 @@ def test_nsttf_issue_case(real_field: Field) -> None:
     res = plan_ufacet(real_field, pose, aim_point=UFACET_AIM_POINT, origin=NSTTF)
     elapsed = time.perf_counter() - start
     assert elapsed < 5.0  # generous here; benchmarks/bench_plan.py measures (target <= 1 s)
-    assert 20 <= len(res.passes) <= 35  # OpenCSP: 26
+    # OpenCSP: 26 passes without sight-line checks; ours are straight in the normals' planes, plus short extra
+    # passes for the HUAs no long line images (docs/opencsp-comparison.md)
+    assert 25 <= len(res.passes) <= 45
     assert all(p.feasible for p in res.passes)
     assert res.max_altitude_m == 25.0 and res.min_altitude_m < 25.0
-    # OpenCSP's first pass runs from 5W5 out to 12W14 at heading 313.6 deg; ours along nearly the same line
-    # (one column per row: about 325 deg; docs/opencsp-comparison.md)
+    # OpenCSP's first pass runs from 5W5 out to 12W14 at heading 313.6 deg; ours along the same planes
+    for hua, tgt in (("6W6", "5W5"), ("12W14", "11W12")):
+        line = next(p for p in res.passes if (hua, tgt) in p.pairs)
+        assert abs(((line.azimuth_deg - 313.6) + 90.0) % 180.0 - 90.0) < 3.0
     line = next(p for p in res.passes if ("6W6", "5W5") in p.pairs)
-    assert abs(((line.azimuth_deg - 313.6) + 90.0) % 180.0 - 90.0) < 15.0
-    assert {"7W7", "8W8", "9W9"} <= {h for h, _ in line.pairs}
-    assert len(res.assessed) >= 190
+    assert {"7W7", "8W8", "9W9", "10W10"} <= {h for h, _ in line.pairs}
+    # every heliostat with a heliostat in front of it is assessed; row 5 and 11E14 have none
+    assert len(res.assessed) >= 195
+    assert {h for h, _ in res.unassessed} >= {f"5W{k}" for k in range(1, 10)}
 
 
 def test_bench_plan_runs(capsys: pytest.CaptureFixture[str]) -> None:

@@ -19,7 +19,13 @@ from numpy.typing import ArrayLike
 
 from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
-from pihim.planning.endurance import DroneEndurance, fleet_estimate, split_flights, throughput
+from pihim.planning.endurance import (
+    DroneEndurance,
+    fleet_estimate,
+    split_flights,
+    throughput,
+)
+from pihim.planning.lines import alignment_summary
 from pihim.planning.model import Plan
 from pihim.planning.scoring import ScoringModel, ShiftSearch, coverage, score_passes
 from pihim.planning.ufacet import home_waypoint, plan_passes, track_at
@@ -111,6 +117,8 @@ def build_plan(
         "images": sum(len(p.predictions) for p in scored),
         "usable_images": sum(sum(q.usable for q in p.predictions) for p in scored),
         "coverage": coverage(scored, len(field.names)),
+        "alignment": {"planned": alignment_summary(passes, field, pose),
+                      "flown": alignment_summary(scored, field, pose)},
         "flights": len(flights),
         "heliostats_per_hour": rate.heliostats_per_hour,
         "heliostats_per_flight_hour": rate.heliostats_per_flight_hour,

@@ -12,32 +12,39 @@ roughly radially from the tower, and one straight pass at constant altitude
 images them one after the other.
 
 What this module computes, for a field tracked at one instant
-(:class:`pihim.field.kinematics.FieldPose`):
+(:class:`pihim.field.kinematics.FieldPose`); steps 1-3 are in
+:mod:`pihim.planning.lines`:
 
-1. **Targets.** For each heliostat ``H`` the candidate targets are the
-   heliostats ``T`` in front of its mirror (``u . n_H > 0`` with ``u`` the
-   unit vector from the HUA mirror centre to the target mirror centre) that
-   turn their back to it (``u . n_T > 0``), within
-   :attr:`UfacetSettings.max_off_axis_deg` of the horizontal direction of
-   ``n_H``, ``max_lateral_m`` of its vertical plane and
-   :attr:`UfacetSettings.max_target_distance_m`; of candidates abreast
-   (forward distances within ``abreast_m``) only the nearest is kept; then
-   the nearest :attr:`UfacetSettings.max_targets` (3, OpenCSP's look-back)
-   in order of distance.
-2. **Lines.** Each heliostat points to its nearest target; where several
-   heliostats point to the same one, the link that continues the target's
-   own link most straightly is kept. The kept links form disjoint chains of
-   heliostats, one scan pass each (no seed points, no manual section
-   margins, every heliostat in exactly one chain); chains of at most
-   ``merge_max_huas`` HUAs join a nearby parallel pass.
-3. **Camera positions.** The camera ``C`` sees the target's mirror-centre
+1. **Lines in the normals' planes.** Each heliostat links to the heliostat
+   of the next row in front of its mirror that lies nearest the vertical
+   plane of its tracking normal; the links form disjoint chains (discrete
+   streamlines of the normals' horizontal directions, crossing the columns
+   of a rectangular field as OpenCSP's 5W5 ... 12W14 line does). Each chain
+   gives a straight line along the mean direction of its heliostats'
+   normals, through their centroid.
+2. **Captures on the line.** The camera ``C`` sees a target's mirror centre
    reflected at the HUA mirror centre when ``C`` lies on the ray
-   ``C = H + t w`` with ``w = 2 (u . n_H) n_H - u`` (the mirror image of
-   ``u``; equivalently ``C`` is on the line through ``H`` and the target's
-   mirror image ``T'`` = ``T`` reflected through the HUA mirror plane, on the
-   side opposite ``T'``). At the pass altitude ``z``, ``t = (z - H_z) / w_z``.
-   By construction the ray from ``C`` to ``H`` reflected about ``n_H``
-   points exactly at ``T``.
+   ``C = H + t w`` with ``w = 2 (u . n_H) n_H - u`` (``u`` the unit vector
+   from the HUA to the target mirror centre). At the pass altitude that
+   point is projected onto the pass line, and the ray from the projected
+   camera through the HUA centre, reflected about ``n_H``, must reach the
+   target's mirror rectangle from behind (candidate targets: the
+   heliostats in front of the HUA mirror that turn their back to it, within
+   :attr:`UfacetSettings.max_off_axis_deg`, ``max_lateral_m`` and
+   :attr:`UfacetSettings.max_target_distance_m`). Every capture is on its
+   pass's straight line, and within ``max_camera_offset_m`` (default one
+   mirror width) of its HUA's normals' plane; each HUA is imaged with up to
+   :attr:`UfacetSettings.max_targets` targets, nearest first.
+3. **Offset and altitude; moves and extra passes.** Each line is shifted
+   sideways (up to ``line_offset_max_m``) and flown at the altitude (1 m
+   grid between the minimum safe altitude and ``max_altitude_m``) that
+   images the most HUAs, then frames the most of their facet centres, then
+   needs the smaller shift and the lower altitude. HUAs not imaged from
+   their own line, and the HUAs of lines imaging at most
+   ``merge_max_huas``, move to a nearby parallel line that images them;
+   HUAs still not imaged get extra lines built the same way among them
+   (:attr:`UfacetSettings.extra_passes`), down to a short pass along a
+   single HUA's own normals' plane.
 4. **Gaze.** Heading and gimbal pitch point the optical axis at the HUA
    mirror centre (heading clockwise from North in [0, 360), pitch negative
    below the horizon). The fraction of the HUA's facet centres inside the
@@ -46,16 +53,14 @@ What this module computes, for a field tracked at one instant
 5. **Visibility (not in OpenCSP).** The sight line camera -> HUA (centre
    and four corners) and the reflected ray HUA -> target are tested against
    the tower box and against the tracked mirror rectangles of every other
-   heliostat (vectorised ray / rectangle intersection). Blocked pairs are
-   reported per pass in :attr:`ScanPass.issues`; a pass with nothing
-   imageable is marked ``feasible=False``.
+   heliostat (vectorised ray / rectangle intersection). For every HUA not
+   assessed, the pass's :attr:`ScanPass.issues` says why, for the candidate
+   target that came nearest (missed reflection, blocked reflection or
+   sight line, range, gimbal); a pass with nothing imageable is marked
+   ``feasible=False``.
 6. **Altitude.** Minimum safe altitude = highest point of any tracked
    mirror + ``safety_margin_m`` (>= 5 m: the paper's field safety rule,
-   section 2). Each pass is flown at the altitude, on a 1 m grid between
-   that and ``max_altitude_m``, that images the most HUAs, then shows the
-   most of their facet centres in the field of view, then is lowest. The
-   gimbal pitch at a capture does not depend on the altitude (``C - H`` is
-   parallel to ``w``); the range and the framing do.
+   section 2); see step 3 for the choice of each pass's altitude.
 7. **Flux (not in OpenCSP).** The sunlight the tracked heliostats
    concentrate toward the aim point is estimated along each pass
    (:func:`beam_concentration`); points above
@@ -81,14 +86,15 @@ References
    ``contrib/app/ufacet-s/flight_planner_ufacet/U_Code/lib/``
    (``plan_scan_ufacet_xy_analysis.py``, ``plan_scan_ufacet_section_*.py``,
    ``plan_scan_parameters.py``) and ``opencsp/common/lib/uas/ScanPass.py``:
-   ideal-gaze curves along the tracking normals, sections, look-back of 3
-   targets, lead-in 18 m and run-past 9 m, 5 m/s, boustrophedon order.
+   ideal-gaze curves along the tracking normals, straight sections,
+   look-back of 3 targets, lead-in 18 m and run-past 9 m, 5 m/s,
+   boustrophedon order.
    See ``docs/opencsp-comparison.md``.
 """
 
 from __future__ import annotations
 
-import itertools
+import dataclasses
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -96,13 +102,47 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import cKDTree
 
 from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
 from pihim.field.geodesy import GeodeticOrigin, as_origin, enu_to_geodetic
 from pihim.field.kinematics import FieldPose, track_field
+from pihim.planning.flux import beam_concentration
+from pihim.planning.lines import (
+    VIEW_BEHIND,
+    VIEW_CAMERA_BLOCKED,
+    VIEW_LOW,
+    VIEW_MISS,
+    VIEW_OFF_PLANE,
+    VIEW_REFLECTION_BLOCKED,
+    Candidates,
+    PairGeometry,
+    ScanLines,
+    ViewLimits,
+    Views,
+    candidate_targets,
+    chain_lines,
+    horizontal_normals,
+    line_offsets,
+    link_chains,
+    pair_geometry,
+    plane_links,
+    views_of_pairs,
+)
 from pihim.planning.model import ScanPass, Waypoint
+from pihim.planning.sightlines import (
+    TOWER_HIT,
+    MirrorIndex,
+    azimuth_deg,
+    dot,
+    first_mirror_hits,
+    gaze_angles,
+    in_fov,
+    optical_axis,
+    segments_hit_box,
+    tower_box,
+    unit,
+)
 
 __all__ = [
     "DEFAULT_CAMERA",
@@ -135,8 +175,6 @@ PAPER_MIN_CLEARANCE_M = 5.0
 #: The paper's camera: Lucid Triton TRI050S-PC with a 35 mm lens (13.8 x 11.5 deg).
 DEFAULT_CAMERA = CameraModel()
 
-_TOWER_HIT = -2  # blocker code for the tower in the hit arrays
-_EPS_T = 1e-6
 
 
 # --------------------------------------------------------------------------- settings and result
@@ -149,7 +187,7 @@ class UfacetSettings:
     Attributes
     ----------
     max_targets : int
-        Targets looked for in front of each HUA (OpenCSP's look-back, 3).
+        Targets imaged per HUA at most, nearest first (OpenCSP's look-back, 3).
     max_target_distance_m : float
         Horizontal search radius for targets, metres.
     max_off_axis_deg : float
@@ -157,19 +195,33 @@ class UfacetSettings:
         to a target, degrees.
     max_lateral_m : float or None
         Largest horizontal distance of a target's mirror centre from the
-        vertical plane of the HUA's normal, metres. Default: the mirror
-        width (a target farther aside shifts the camera off the pass line by
-        about as much).
-    merge_max_huas : int
-        Lines of at most this many HUAs join a nearby parallel pass (0: never).
-    merge_lateral_m : float or None
-        Largest lateral distance of a merged line's camera points from the
-        host pass's line, metres. Default: 1.5 mirror widths.
+        vertical plane of the HUA's normal, metres. Default: the mirror width.
     abreast_m : float or None
-        Candidates whose forward distances differ by less than this are
-        abreast (the same row); only the nearest is kept. Default: 1.5
-        mirror heights (9.1 m for NSTTF heliostats, close to OpenCSP's 9 m
-        ``discard_threshold_p``).
+        Candidates whose forward distances are within this of the nearest
+        one are in the next row; the line links to the one of them nearest
+        the normals' plane. Default: 1.5 mirror heights (9.1 m for NSTTF
+        heliostats, close to OpenCSP's 9 m ``discard_threshold_p``).
+    line_offset_max_m, line_offset_step_m : float
+        Sideways shifts of each line tried (0, +-step, ... up to the maximum),
+        metres; the shift and the altitude imaging the most HUAs win.
+    merge_max_huas : int
+        Lines imaging at most this many HUAs are dissolved when every one of
+        them is imaged from another line (0: never).
+    merge_lateral_m : float or None
+        Largest distance of a HUA's mirror centre from another line it moves
+        to (not imaged from its own line, or from a dissolved short line),
+        metres. Default: 1.5 mirror widths.
+    max_plane_deviation_deg : float
+        Largest angle between a line and the normals' plane of a HUA moved
+        to it, degrees.
+    extra_passes : bool
+        HUAs imaged from no line get extra lines, built the same way among
+        them only (a HUA alone gets its own normals' plane), when those
+        image them.
+    max_camera_offset_m : float or None
+        Largest horizontal distance of a capture point from the vertical
+        plane of its HUA's tracking normal, metres. Default: the mirror
+        width.
     altitude_step_m : float
         Altitude grid of the per-pass altitude search, metres.
     max_range_m : float
@@ -199,9 +251,14 @@ class UfacetSettings:
     max_target_distance_m: float = 50.0
     max_off_axis_deg: float = 20.0
     max_lateral_m: float | None = None
+    abreast_m: float | None = None
+    line_offset_max_m: float = 3.0
+    line_offset_step_m: float = 1.0
     merge_max_huas: int = 2
     merge_lateral_m: float | None = None
-    abreast_m: float | None = None
+    max_plane_deviation_deg: float = 10.0
+    extra_passes: bool = True
+    max_camera_offset_m: float | None = None
     altitude_step_m: float = 1.0
     max_range_m: float = 60.0
     min_reflection_elevation_deg: float = 5.0
@@ -223,12 +280,18 @@ class UfacetSettings:
             v = getattr(self, label)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise PihimInputError(f"UfacetSettings.{label} must be a positive number, got {v!r}")
+        if not (isinstance(self.line_offset_max_m, (int, float)) and math.isfinite(self.line_offset_max_m)
+                and self.line_offset_max_m >= 0 and isinstance(self.line_offset_step_m, (int, float))
+                and math.isfinite(self.line_offset_step_m) and self.line_offset_step_m > 0):
+            raise PihimInputError("line_offset_max_m must be >= 0 and line_offset_step_m > 0 (finite numbers)")
+        if not 0 <= self.max_plane_deviation_deg < 90:
+            raise PihimInputError(f"max_plane_deviation_deg must be in [0, 90), got {self.max_plane_deviation_deg!r}")
         if not 0 < self.max_off_axis_deg < 90:
             raise PihimInputError(f"max_off_axis_deg must be in (0, 90), got {self.max_off_axis_deg!r}")
         if isinstance(self.merge_max_huas, bool) or not isinstance(self.merge_max_huas, int) \
                 or self.merge_max_huas < 0:
             raise PihimInputError(f"merge_max_huas must be an integer >= 0, got {self.merge_max_huas!r}")
-        for label in ("abreast_m", "max_lateral_m", "merge_lateral_m"):
+        for label in ("abreast_m", "max_lateral_m", "merge_lateral_m", "max_camera_offset_m"):
             v = getattr(self, label)
             if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise PihimInputError(f"UfacetSettings.{label} must be None or a number >= 0, got {v!r}")
@@ -273,68 +336,6 @@ class UfacetPlan:
 
 
 # --------------------------------------------------------------------------- small geometry helpers
-
-
-def _unit(v: NDArray[np.float64]) -> NDArray[np.float64]:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _dot(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    return np.einsum("...i,...i->...", a, b)
-
-
-def _azimuth_deg(dx: ArrayLike, dy: ArrayLike) -> NDArray[np.float64]:
-    """Azimuth clockwise from North in [0, 360)."""
-    a = np.mod(np.degrees(np.arctan2(dx, dy)), 360.0)
-    return np.where(a >= 360.0, 0.0, a)
-
-
-def gaze_angles(camera_enu: ArrayLike, look_at_enu: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Heading and gimbal pitch pointing the optical axis from ``camera_enu`` at ``look_at_enu``.
-
-    Parameters
-    ----------
-    camera_enu, look_at_enu : array_like, shape (..., 3)
-        ENU metres.
-
-    Returns
-    -------
-    heading_deg : ndarray
-        Clockwise from North, [0, 360). For a point straight below it is 0.
-    pitch_deg : ndarray
-        Above the horizon positive, [-90, 90] (-90 = straight down).
-    """
-    d = np.asarray(look_at_enu, float) - np.asarray(camera_enu, float)
-    horiz = np.hypot(d[..., 0], d[..., 1])
-    return _azimuth_deg(d[..., 0], d[..., 1]), np.degrees(np.arctan2(d[..., 2], horiz))
-
-
-def optical_axis(heading_deg: ArrayLike, pitch_deg: ArrayLike) -> NDArray[np.float64]:
-    """Unit ENU optical axis for a heading (clockwise from North) and a pitch (negative down), degrees."""
-    h = np.radians(np.asarray(heading_deg, float))
-    p = np.radians(np.asarray(pitch_deg, float))
-    h, p = np.broadcast_arrays(h, p)
-    return np.stack([np.cos(p) * np.sin(h), np.cos(p) * np.cos(h), np.sin(p)], axis=-1)
-
-
-def _camera_frame(heading_deg: NDArray[np.float64], pitch_deg: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
-    """OpenCV camera axes in ENU (x right, y down, z forward) for zero roll."""
-    f = optical_axis(heading_deg, pitch_deg)
-    h = np.radians(heading_deg)
-    r = np.stack([np.cos(h), -np.sin(h), np.zeros_like(h)], axis=-1)
-    return r, np.cross(f, r), f
-
-
-def _in_fov(points: NDArray[np.float64], cam: NDArray[np.float64], heading: NDArray[np.float64],
-            pitch: NDArray[np.float64], camera: CameraModel) -> NDArray[np.bool_]:
-    """Whether ``points`` (..., K, 3) fall in the camera's field of view; cam/heading/pitch shape (...)."""
-    r, dn, f = _camera_frame(heading, pitch)
-    v = points - cam[..., None, :]
-    zc = _dot(v, f[..., None, :])
-    tx = 0.5 * camera.width_px / camera.focal_length_px
-    ty = 0.5 * camera.height_px / camera.focal_length_px
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return (zc > 0) & (np.abs(_dot(v, r[..., None, :])) <= tx * zc) & (np.abs(_dot(v, dn[..., None, :])) <= ty * zc)
 
 
 # --------------------------------------------------------------------------- public helpers
@@ -389,10 +390,10 @@ def sun_from_pose(pose: FieldPose, aim_point: ArrayLike, *, tol_mrad: float = 0.
         tracked toward another aim point).
     """
     a = np.asarray(aim_point, float)
-    t = _unit(a - pose.mirror_centres)
+    t = unit(a - pose.mirror_centres)
     n = pose.normals
-    s = 2.0 * _dot(n, t)[:, None] * n - t
-    mean = _unit(s.mean(axis=0))
+    s = 2.0 * dot(n, t)[:, None] * n - t
+    mean = unit(s.mean(axis=0))
     spread = float(np.max(np.linalg.norm(s - mean, axis=1))) if len(s) else 0.0
     if spread > tol_mrad * 1e-3:
         raise PihimInputError(
@@ -448,190 +449,6 @@ def _check_aim(aim_point: ArrayLike) -> NDArray[np.float64]:
     return a
 
 
-def _tower_box(tower: Any, clearance: float = 0.0) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
-    if tower is None:
-        return None
-    c = np.asarray(tower.box_corners(), float)
-    return c.min(axis=0) - [clearance, clearance, 0.0], c.max(axis=0) + clearance
-
-
-def _segments_hit_box(p0: NDArray[np.float64], p1: NDArray[np.float64], lo: NDArray[np.float64],
-                      hi: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """Segments p0->p1 (N, 3) crossing the axis-aligned box [lo, hi] (slab method)."""
-    d = p1 - p0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        t1 = (lo - p0) * inv
-        t2 = (hi - p0) * inv
-    tmin = np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2))
-    tmax = np.where(np.isnan(t2), np.inf, np.maximum(t1, t2))
-    # parallel components: inside the slab or not
-    par = d == 0
-    inside_slab = (p0 >= lo) & (p0 <= hi)
-    tmin = np.where(par, np.where(inside_slab, -np.inf, np.inf), tmin)
-    tmax = np.where(par, np.where(inside_slab, np.inf, -np.inf), tmax)
-    enter = tmin.max(axis=1)
-    leave = tmax.min(axis=1)
-    return (enter <= leave) & (leave >= 0.0) & (enter <= 1.0)
-
-
-class _Mirrors:
-    """Tracked mirror rectangles of a field with a spatial index (internal)."""
-
-    def __init__(self, pose: FieldPose) -> None:
-        spec = pose.field.spec  # type: ignore[attr-defined]
-        self.centres = np.ascontiguousarray(pose.mirror_centres, dtype=float)
-        self.x = np.ascontiguousarray(pose.rotations[:, :, 0])
-        self.y = np.ascontiguousarray(pose.rotations[:, :, 1])
-        self.n = np.ascontiguousarray(pose.normals)
-        self.hw = float(spec.mirror_half_width_m)
-        self.hh = float(spec.mirror_half_height_m)
-        self.radius = math.hypot(self.hw, self.hh)
-        self.tree = cKDTree(self.centres)
-
-    def first_hits(self, p0: NDArray[np.float64], p1: NDArray[np.float64], exclude: NDArray[np.int64],
-                   chunk: int = 50_000) -> NDArray[np.int64]:
-        """Index of the first mirror each segment p0->p1 crosses (-1 for none), skipping ``exclude`` (N, E)."""
-        n = len(p0)
-        out = np.full(n, -1, dtype=np.int64)
-        for a in range(0, n, chunk):
-            b = min(n, a + chunk)
-            out[a:b] = self._first_hits(p0[a:b], p1[a:b], exclude[a:b])
-        return out
-
-    def _first_hits(self, p0: NDArray[np.float64], p1: NDArray[np.float64],
-                    exclude: NDArray[np.int64]) -> NDArray[np.int64]:
-        n = len(p0)
-        out = np.full(n, -1, dtype=np.int64)
-        if n == 0:
-            return out
-        mid = 0.5 * (p0 + p1)
-        r = 0.5 * np.linalg.norm(p1 - p0, axis=1) + self.radius
-        lists = self.tree.query_ball_point(mid, r, return_sorted=False)
-        lens = np.fromiter((len(x) for x in lists), dtype=np.int64, count=n)
-        if lens.sum() == 0:
-            return out
-        ray = np.repeat(np.arange(n), lens)
-        rect = np.fromiter((k for x in lists for k in x), dtype=np.int64, count=int(lens.sum()))
-        keep = np.all(rect[:, None] != exclude[ray], axis=1)
-        ray, rect = ray[keep], rect[keep]
-        d = p1[ray] - p0[ray]
-        nn = self.n[rect]
-        denom = _dot(d, nn)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = _dot(self.centres[rect] - p0[ray], nn) / denom
-        ok = np.isfinite(t) & (t > _EPS_T) & (t < 1.0 - _EPS_T)
-        ray, rect, t, d = ray[ok], rect[ok], t[ok], d[ok]
-        q = p0[ray] + t[:, None] * d - self.centres[rect]
-        inside = (np.abs(_dot(q, self.x[rect])) <= self.hw) & (np.abs(_dot(q, self.y[rect])) <= self.hh)
-        ray, rect, t = ray[inside], rect[inside], t[inside]
-        if len(ray):
-            order = np.lexsort((t, ray))
-            ray, rect = ray[order], rect[order]
-            first = np.r_[True, ray[1:] != ray[:-1]]
-            out[ray[first]] = rect[first]
-        return out
-
-
-def first_mirror_hits(pose: FieldPose, p0: ArrayLike, p1: ArrayLike, *,
-                      exclude: ArrayLike | None = None) -> NDArray[np.int64]:
-    """First tracked mirror rectangle crossed by each segment ``p0 -> p1``, vectorised.
-
-    Parameters
-    ----------
-    pose : FieldPose
-        Tracked field; mirrors are its flat outlines (``mirror_half_width_m``
-        x ``mirror_half_height_m`` around each mirror centre, in the mirror
-        plane).
-    p0, p1 : array_like, shape (N, 3)
-        Segment ends, ENU metres.
-    exclude : array_like of int, shape (N,) or (N, E), optional
-        Heliostat indices ignored per segment (e.g. the HUA and the target);
-        -1 entries ignore nothing.
-
-    Returns
-    -------
-    ndarray of int, shape (N,)
-        Index of the first heliostat hit along the segment, -1 if none.
-    """
-    a = np.atleast_2d(np.asarray(p0, float))
-    b = np.atleast_2d(np.asarray(p1, float))
-    if a.shape != b.shape or a.shape[-1] != 3:
-        raise PihimInputError(f"p0 and p1 must both be (N, 3), got {a.shape} and {b.shape}")
-    ex = np.full((len(a), 1), -1, dtype=np.int64) if exclude is None else np.asarray(exclude, dtype=np.int64)
-    if ex.ndim == 1:
-        ex = ex[:, None]
-    return _Mirrors(pose).first_hits(a, b, ex)
-
-
-def beam_concentration(points: ArrayLike, pose: FieldPose, aim_point: ArrayLike, *,
-                       divergence_mrad: float = 7.0) -> NDArray[np.float64]:
-    """Rough concentration of reflected sunlight at points, in suns.
-
-    Each tracked heliostat sends a beam from its mirror centre to the aim
-    point. Modelled as a cone of circular cross-section, its radius shrinks
-    linearly from ``r0 = sqrt(A / pi)`` (``A`` the mirror area) at the mirror
-    to ``L * divergence`` at the aim point (``L`` the slant range; the
-    design canting focuses it there); beyond the focus it is ignored (the
-    flights stay below the aim points of interest). A beam contributes
-    ``(r0 / r)^2`` suns inside its cone. Cosine losses, shading, blocking and
-    astigmatism are ignored: this flags the focusing region (paper section
-    3 lists it as a flight safety factor); it is not a flux map.
-
-    Parameters
-    ----------
-    points : array_like, shape (M, 3)
-        ENU metres.
-    pose : FieldPose
-        Tracked field.
-    aim_point : array_like, shape (3,)
-        Aim point of the tracking, ENU metres.
-    divergence_mrad : float
-        Beam half-angle at the focus, mrad.
-
-    Returns
-    -------
-    ndarray, shape (M,)
-        Suns (1 is direct sunlight; 0 outside every beam).
-    """
-    pts = np.atleast_2d(np.asarray(points, float))
-    a = np.asarray(aim_point, float)
-    spec = pose.field.spec  # type: ignore[attr-defined]
-    r0 = math.sqrt(4.0 * spec.mirror_half_width_m * spec.mirror_half_height_m / math.pi)
-    theta = divergence_mrad * 1e-3
-    c = pose.mirror_centres
-    axis = a - c
-    length = np.linalg.norm(axis, axis=1)
-    dirs = -axis / length[:, None]  # unit vectors from the aim point toward the mirrors
-    tree = cKDTree(dirs)
-    out = np.zeros(len(pts))
-    rmax = max(r0, float(length.max()) * theta)  # no beam is wider between its mirror and its focus
-    for s0 in range(0, len(pts), 20_000):
-        p = pts[s0:s0 + 20_000]
-        v = p - a
-        dist = np.linalg.norm(v, axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            q = v / dist[:, None]
-            half = np.where(dist > rmax, np.arcsin(np.minimum(1.0, rmax / dist)), np.pi)
-        q = np.where(np.isfinite(q), q, 0.0)
-        lists = tree.query_ball_point(q, np.minimum(2.0, 2.0 * np.sin(np.minimum(half, np.pi / 2)) + 1e-12),
-                                      return_sorted=False)
-        lens = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(p))
-        if lens.sum() == 0:
-            continue
-        pi = np.repeat(np.arange(len(p)), lens)
-        hi = np.fromiter((k for x in lists for k in x), dtype=np.int64, count=int(lens.sum()))
-        w = p[pi] - c[hi]
-        e = axis[hi] / length[hi, None]
-        along = _dot(w, e)
-        f = along / length[hi]
-        perp = np.linalg.norm(w - along[:, None] * e, axis=1)
-        radius = (1.0 - f) * r0 + f * length[hi] * theta
-        inside = (f > 0) & (f <= 1.0) & (perp <= radius)
-        np.add.at(out, s0 + pi[inside], (r0 / np.maximum(radius[inside], 1e-9)) ** 2)
-    return out
-
-
 def home_waypoint(field: Any, *, origin: GeodeticOrigin | Any, point: ArrayLike | None = None,
                   south_of_tower_m: float = 30.0, heading_deg: float = 0.0) -> Waypoint:
     """Take-off and landing point, on the ground.
@@ -676,171 +493,205 @@ def home_waypoint(field: Any, *, origin: GeodeticOrigin | Any, point: ArrayLike 
 # --------------------------------------------------------------------------- the planner
 
 
-@dataclass
-class _Pairs:
-    """Candidate HUA/target pairs (internal, arrays of length P)."""
-
-    hua: NDArray[np.int64]
-    tgt: NDArray[np.int64]
-    rank: NDArray[np.int64]
-
-
-def _candidate_targets(pose: FieldPose, st: UfacetSettings, abreast_m: float,
-                       max_lateral_m: float) -> tuple[_Pairs, NDArray[np.float64]]:
-    """Up to ``max_targets`` targets per heliostat, nearest first; and the horizontal normal directions."""
-    c = pose.mirror_centres
-    n = pose.normals
-    nb = np.hypot(n[:, 0], n[:, 1])
-    b = np.where(nb[:, None] > 1e-9, n[:, :2] / np.maximum(nb, 1e-12)[:, None], 0.0)
-    tree = cKDTree(c[:, :2])
-    pr = tree.query_pairs(st.max_target_distance_m, output_type="ndarray")
-    if len(pr) == 0:
-        e = np.zeros(0, dtype=np.int64)
-        return _Pairs(e, e, e), b
-    i = np.concatenate([pr[:, 0], pr[:, 1]])
-    j = np.concatenate([pr[:, 1], pr[:, 0]])
-    dxy = c[j, :2] - c[i, :2]
-    s = _dot(dxy, b[i])
-    lat = dxy[:, 0] * b[i, 1] - dxy[:, 1] * b[i, 0]
-    u = _unit(c[j] - c[i])
-    off = np.degrees(np.arctan2(np.abs(lat), s))
-    ok = (s > 0) & (off <= st.max_off_axis_deg) & (_dot(u, n[i]) > 0) & (_dot(u, n[j]) > 0) & (nb[i] > 1e-9)
-    ok &= np.abs(lat) <= max_lateral_m
-    i, j, s, lat = i[ok], j[ok], s[ok], np.abs(lat[ok])
-    # abreast rejection: within each HUA, walk candidates nearest first (then nearest the normal's vertical
-    # plane); drop those abreast of a kept one
-    order = np.lexsort((lat, s, i))
-    i, j, s = i[order], j[order], s[order]
-    starts = np.r_[0, np.flatnonzero(np.diff(i)) + 1, len(i)]
-    keep = np.zeros(len(i), dtype=bool)
-    for a, z in itertools.pairwise(starts):
-        kept: list[float] = []
-        for k in range(a, z):
-            if all(abs(s[k] - q) >= abreast_m for q in kept):
-                kept.append(s[k])
-                keep[k] = True
-    i, j, s = i[keep], j[keep], s[keep]
-    order = np.lexsort((s, i))
-    i, j = i[order], j[order]
-    first = np.r_[0, np.flatnonzero(np.diff(i)) + 1]
-    rank = np.arange(len(i)) - np.repeat(first, np.diff(np.r_[first, len(i)]))
-    sel = rank < st.max_targets
-    return _Pairs(i[sel].astype(np.int64), j[sel].astype(np.int64), rank[sel].astype(np.int64)), b
-
-
-def _chains(n_helio: int, pairs: _Pairs, centres: NDArray[np.float64]) -> NDArray[np.int64]:
-    """Chain id of every heliostat; the links are each heliostat's nearest target, straightest kept."""
-    nxt = np.full(n_helio, -1, dtype=np.int64)
-    r0 = pairs.rank == 0
-    nxt[pairs.hua[r0]] = pairs.tgt[r0]
-    src = np.flatnonzero(nxt >= 0)
-    dst = nxt[src]
-    # straightness: angle between the link src->dst and dst's own link (dst->nxt[dst]); no onward link: 0
-    v1 = _unit(centres[dst, :2] - centres[src, :2])
-    onward = nxt[dst]
-    has = onward >= 0
-    v2 = np.zeros_like(v1)
-    v2[has] = _unit(centres[onward[has], :2] - centres[dst[has], :2])
-    bend = np.where(has, 1.0 - _dot(v1, v2), 0.0)
-    length = np.linalg.norm(centres[dst, :2] - centres[src, :2], axis=1)
-    order = np.lexsort((length, bend, dst))
-    src, dst = src[order], dst[order]
-    first = np.r_[True, dst[1:] != dst[:-1]] if len(dst) else np.zeros(0, bool)
-    pred = np.full(n_helio, -1, dtype=np.int64)
-    pred[dst[first]] = src[first]
-    succ = np.full(n_helio, -1, dtype=np.int64)
-    succ[pred[pred >= 0]] = np.flatnonzero(pred >= 0)
-    chain = np.full(n_helio, -1, dtype=np.int64)
-    cid = 0
-    for start in np.flatnonzero(succ < 0):  # innermost node of every chain
-        k = int(start)
-        while k >= 0 and chain[k] < 0:
-            chain[k] = cid
-            k = int(pred[k])
-        cid += 1
-    # cycles cannot occur (links go strictly forward along each normal) but be safe
-    rest = np.flatnonzero(chain < 0)
-    chain[rest] = cid + np.arange(len(rest))
-    return chain
-
-
-def _merge_fragments(chain: NDArray[np.int64], hua: NDArray[np.int64], rank: NDArray[np.int64],
-                     cam_xy: NDArray[np.float64], back: NDArray[np.float64], st: UfacetSettings,
-                     mirror_width_m: float) -> NDArray[np.int64]:
-    """Group id per chain id: chains of at most ``merge_max_huas`` HUAs join a nearby, parallel, longer line.
-
-    A short chain (typically a leftover where two lines compete for the same
-    target) joins the longer pass whose straight line (least squares through
-    its nearest-target camera points) passes within ``merge_lateral_m`` of
-    all its camera points, within ``max_target_distance_m`` of that pass's
-    ends and with mirrors facing within 20 deg of the same way. A separate
-    pass would cost a lead-in, a run-past and a transit; the merged pass
-    bends by at most the lateral limit.
-    """
-    n_chain = int(chain.max()) + 1 if len(chain) else 0
-    group = np.arange(n_chain)
-    if st.merge_max_huas <= 0 or len(hua) == 0:
-        return group
-    lateral = 1.5 * mirror_width_m if st.merge_lateral_m is None else st.merge_lateral_m
-    r0 = rank == 0
-    h0 = hua[r0]
-    ch0 = chain[h0]
-    xy0 = cam_xy[r0]
-    ok = np.all(np.isfinite(xy0), axis=1)
-    h0, ch0, xy0 = h0[ok], ch0[ok], xy0[ok]
-    size = np.bincount(ch0, minlength=n_chain)
-    small = np.flatnonzero((size > 0) & (size <= st.merge_max_huas))
-    big = size > st.merge_max_huas
-    if len(small) == 0 or not np.any(big):
-        return group
-    # least-squares line of every long chain: centroid, direction (principal axis), extent along it
-    order = np.argsort(ch0, kind="stable")
-    h0, ch0, xy0 = h0[order], ch0[order], xy0[order]
-    starts = np.r_[0, np.flatnonzero(np.diff(ch0)) + 1, len(ch0)]
-    lines: dict[int, tuple[NDArray, NDArray, float, float, NDArray]] = {}
-    members: dict[int, NDArray] = {}
-    for a, z in itertools.pairwise(starts):
-        k = int(ch0[a])
-        members[k] = np.arange(a, z)
-        if not big[k]:
-            continue
-        p = xy0[a:z]
-        m = p.mean(axis=0)
-        _, _, vt = np.linalg.svd(p - m, full_matrices=False)
-        d = vt[0]
-        t = (p - m) @ d
-        facing = back[h0[a:z]].sum(axis=0)
-        lines[k] = (m, d, float(t.min()), float(t.max()), facing / max(np.linalg.norm(facing), 1e-12))
-    tree = cKDTree(xy0)
-    cos_lim = math.cos(math.radians(20.0))
-    for k in small.tolist():
-        idx = members[int(k)]
-        p = xy0[idx]
-        facing = back[h0[idx]].sum(axis=0)
-        facing = facing / max(np.linalg.norm(facing), 1e-12)
-        near = tree.query_ball_point(p, lateral + st.max_target_distance_m)
-        hosts = {int(ch0[q]) for lst in near for q in lst} & set(lines)
-        best, best_lat = -1, math.inf
-        for g in hosts:
-            m, d, t0, t1, f = lines[g]
-            if float(facing @ f) < cos_lim:
-                continue
-            q = p - m
-            t = q @ d
-            lat = float(np.max(np.abs(q[:, 0] * d[1] - q[:, 1] * d[0])))
-            if lat <= lateral and t.min() >= t0 - st.max_target_distance_m \
-                    and t.max() <= t1 + st.max_target_distance_m and lat < best_lat:
-                best, best_lat = g, lat
-        if best >= 0:
-            group[k] = group[best]
-    return group
-
-
 def _altitude_grid(lo: float, hi: float, step: float) -> NDArray[np.float64]:
     z = np.arange(lo, hi + 1e-9, step)
     if len(z) == 0 or z[-1] < hi - 1e-9:
         z = np.r_[z, hi]
     return z
+
+
+@dataclass(frozen=True)
+class _Context:
+    """What every view test of one planning run shares (internal): pairs, lines, grids, limits."""
+
+    pose: FieldPose
+    mirrors: MirrorIndex
+    limits: ViewLimits
+    camera: CameraModel
+    cand: Candidates
+    geom: PairGeometry
+    lines: ScanLines
+    offsets: NDArray[np.float64]
+    altitudes: NDArray[np.float64]
+
+    def views(self, pair: NDArray[np.int64], line: NDArray[np.int64], offset: NDArray[np.float64],
+              altitude: NDArray[np.float64], *, trace: bool = True) -> Views:
+        """Views of candidate pairs ``pair`` from lines ``line`` shifted by ``offset`` at ``altitude``."""
+        origin = self.lines.origin[line] + offset[:, None] * self.lines.across[line]
+        return views_of_pairs(self.geom, pair, self.mirrors, self.limits, origin, self.lines.direction[line],
+                              altitude, trace=trace)
+
+    def facets_in_view(self, hua: NDArray[np.int64], cam: NDArray[np.float64]) -> NDArray[np.int64]:
+        """Facet centres of each HUA inside the field of view with the HUA centred (chunked)."""
+        fc = self.pose.facet_centres
+        out = np.zeros(len(hua), dtype=np.int64)
+        step = max(1, 400_000 // max(1, fc.shape[1]))
+        for a in range(0, len(hua), step):
+            h, p = hua[a:a + step], cam[a:a + step]
+            head, pitch = gaze_angles(p, self.pose.mirror_centres[h])
+            out[a:a + step] = in_fov(fc[h], p, head, pitch, self.camera).sum(axis=-1)
+        return out
+
+
+def _config_scores(ctx: _Context, pairs: NDArray[np.int64], line_of: NDArray[np.int64], n_h: int, *, trace: bool,
+                   allowed: NDArray[np.bool_] | None = None,
+                   chunk: int = 400_000) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """HUAs imaged and facet centres framed per (line, offset, altitude) configuration, flattened.
+
+    Configuration ``g = (line * n_offsets + offset) * n_altitudes + altitude``.
+    With ``trace=False`` the blocking tests are skipped (an upper bound on
+    the HUAs imaged); ``allowed`` restricts the evaluation to some
+    configurations; ``pairs`` indexes the context's candidate pairs.
+    """
+    cand = ctx.cand
+    m, nz = len(ctx.offsets), len(ctx.altitudes)
+    n_cfg = len(ctx.lines) * m * nz
+    combos = len(pairs) * m * nz
+    keys, frames = [], []
+    for a in range(0, combos, chunk):
+        k = np.arange(a, min(combos, a + chunk))
+        p, mi, zi = pairs[k // (m * nz)], (k // nz) % m, k % nz
+        ln = line_of[cand.hua[p]]
+        if allowed is not None:
+            sel = allowed[(ln * m + mi) * nz + zi]
+            p, mi, zi, ln = p[sel], mi[sel], zi[sel], ln[sel]
+        h = cand.hua[p]
+        v = ctx.views(p, ln, ctx.offsets[mi], ctx.altitudes[zi], trace=False)
+        s = np.flatnonzero(v.ok)  # cheap geometry first, then (optionally) the ray tests on the survivors
+        cam = v.camera[s]
+        if trace and len(s):
+            v2 = ctx.views(p[s], ln[s], ctx.offsets[mi[s]], ctx.altitudes[zi[s]])
+            s, cam = s[v2.ok], v2.camera[v2.ok]
+        keys.append(((ln[s] * m + mi[s]) * nz + zi[s]) * n_h + h[s])
+        frames.append(ctx.facets_in_view(h[s], cam))
+    key = np.concatenate(keys) if keys else np.zeros(0, np.int64)
+    frm = np.concatenate(frames) if frames else np.zeros(0, np.int64)
+    n_img = np.zeros(n_cfg)
+    n_frm = np.zeros(n_cfg)
+    if len(key):
+        order = np.lexsort((-frm, key))
+        key, frm = key[order], frm[order]
+        first = np.r_[True, key[1:] != key[:-1]]  # best-framed target per (configuration, HUA)
+        cfg = key[first] // n_h
+        np.add.at(n_img, cfg, 1.0)
+        np.add.at(n_frm, cfg, frm[first].astype(float))
+    return n_img, n_frm
+
+
+def _choose_line_settings(ctx: _Context, pairs: NDArray[np.int64], line_of: NDArray[np.int64], n_h: int,
+                          shortlist: int = 4) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Per line, the sideways offset and the altitude (indices) imaging the most HUAs.
+
+    Ties: more facet centres framed (summed over the HUAs, best target each),
+    then the smaller offset, then the lower altitude. The ray tests (the
+    expensive part) run only on each line's ``shortlist`` best
+    configurations by geometry alone; blocking can only lower a count.
+    """
+    n_lines = len(ctx.lines)
+    m, nz = len(ctx.offsets), len(ctx.altitudes)
+    cfg_line = np.repeat(np.arange(n_lines), m * nz)
+    cfg_off = np.tile(np.repeat(np.abs(ctx.offsets), nz), n_lines)
+    cfg_z = np.tile(ctx.altitudes, n_lines * m)
+
+    def ranked(n_img: NDArray, n_frm: NDArray) -> NDArray[np.int64]:
+        return np.lexsort((cfg_z, cfg_off, -n_frm, -n_img, cfg_line))
+
+    order = ranked(*_config_scores(ctx, pairs, line_of, n_h, trace=False))
+    first = np.r_[True, cfg_line[order][1:] != cfg_line[order][:-1]]
+    pos = np.arange(len(order)) - np.flatnonzero(first)[np.cumsum(first) - 1]  # rank within its line
+    allowed = np.zeros(len(order), dtype=bool)
+    allowed[order[pos < shortlist]] = True
+    n_img, n_frm = _config_scores(ctx, pairs, line_of, n_h, trace=True, allowed=allowed)
+    n_img = np.where(allowed, n_img, -1.0)
+    order = ranked(n_img, n_frm)
+    best = order[np.r_[True, cfg_line[order][1:] != cfg_line[order][:-1]]]
+    return (best // nz) % m, best % nz
+
+
+def _move_huas(ctx: _Context, cand: Candidates, line_of: NDArray[np.int64], line_off: NDArray[np.float64],
+               line_z: NDArray[np.float64], imaged: NDArray[np.bool_], normals_xy: NDArray[np.float64],
+               st: UfacetSettings, lateral_limit: float, wanted: NDArray[np.bool_]) -> NDArray[np.int64]:
+    """Move HUAs not imaged from their own line, and the HUAs of short lines, to a nearby line that images them.
+
+    A host line must run within ``max_plane_deviation_deg`` of the HUA's
+    normals' plane, pass within ``lateral_limit`` of its mirror centre and
+    reach within ``max_target_distance_m`` of it along the line; among hosts
+    that image it, the nearest line wins. A short line (at most
+    ``merge_max_huas`` imaged HUAs) is emptied only if all its imaged HUAs
+    find a host (a separate pass would cost a lead-in, a run-past and a
+    transit).
+    """
+    n_lines = len(ctx.lines)
+    c_xy = ctx.pose.mirror_centres[:, :2]
+    has = np.zeros(len(line_of), bool)
+    has[cand.hua] = True
+    per_line = np.bincount(line_of[imaged & wanted], minlength=n_lines)
+    short = (per_line > 0) & (per_line <= st.merge_max_huas) if st.merge_max_huas > 0 else np.zeros(n_lines, bool)
+    movers = np.flatnonzero(has & wanted & (~imaged | short[line_of]))
+    hosts = np.flatnonzero((per_line > 0) & ~short)
+    if len(movers) == 0 or len(hosts) == 0:
+        return line_of
+    # extent of each host line along itself (its imaged HUAs)
+    mem = np.flatnonzero(imaged & wanted & ~short[line_of])
+    s_mem = ctx.lines.along(line_of[mem], c_xy[mem])
+    lo = np.full(n_lines, np.inf)
+    hi = np.full(n_lines, -np.inf)
+    np.minimum.at(lo, line_of[mem], s_mem)
+    np.maximum.at(hi, line_of[mem], s_mem)
+    # (mover, host) combinations passing the plane, lateral and extent limits
+    mv = np.repeat(movers, len(hosts))
+    hs = np.tile(hosts, len(movers))
+    keep = hs != line_of[mv]
+    keep &= dot(normals_xy[mv], ctx.lines.direction[hs]) >= math.cos(math.radians(st.max_plane_deviation_deg))
+    lat = np.abs(ctx.lines.lateral(hs, c_xy[mv]) - line_off[hs])
+    keep &= lat <= lateral_limit
+    s = ctx.lines.along(hs, c_xy[mv])
+    keep &= (s >= lo[hs] - st.max_target_distance_m) & (s <= hi[hs] + st.max_target_distance_m)
+    mv, hs, lat = mv[keep], hs[keep], lat[keep]
+    if len(mv) == 0:
+        return line_of
+    # every candidate pair of the mover against the host's chosen offset and altitude
+    starts = np.searchsorted(cand.hua, mv)
+    counts = np.searchsorted(cand.hua, mv, side="right") - starts
+    rows = np.repeat(np.arange(len(mv)), counts)
+    p = np.repeat(starts, counts) + (np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts))
+    v = ctx.views(p, hs[rows], line_off[hs[rows]], line_z[hs[rows]])
+    good_rows = np.unique(rows[v.ok])
+    if len(good_rows) == 0:
+        return line_of
+    order = good_rows[np.lexsort((lat[good_rows], mv[good_rows]))]
+    first = order[np.r_[True, mv[order][1:] != mv[order][:-1]]]
+    dest = dict(zip(mv[first].tolist(), hs[first].tolist()))
+    out = line_of.copy()
+    for k in np.flatnonzero(short).tolist():  # all or nothing for the imaged HUAs of a short line
+        members = np.flatnonzero((line_of == k) & imaged & wanted)
+        if not all(int(h) in dest for h in members):
+            for h in members.tolist():
+                dest.pop(int(h), None)
+    for h, k in dest.items():
+        out[h] = k
+    return out
+
+
+def _pair_issue(code: int, label: str, hua: str, target: str, v: Views, i: int, nm: Any,
+                st: UfacetSettings, limit_m: float) -> str:
+    if code == VIEW_REFLECTION_BLOCKED:
+        return f"{label}: reflected ray HUA->target blocked by {nm(int(v.blocker[i]))}"
+    if code == VIEW_CAMERA_BLOCKED:
+        return f"{label}: camera view of {hua} blocked by {nm(int(v.blocker[i]))}"
+    if code == VIEW_MISS:
+        return (f"{label}: seen from the pass line, the reflection at the centre of {hua} misses {target} "
+                f"by {float(v.miss_m[i]):.1f} m")
+    if code == VIEW_OFF_PLANE:
+        return (f"{label}: camera {float(v.plane_offset_m[i]):.1f} m aside of the normals' plane of {hua} "
+                f"(> {limit_m:.1f} m)")
+    if code == VIEW_LOW:
+        return f"{label}: camera direction only {float(v.elevation_deg[i]):.1f} deg above the horizon"
+    if code == VIEW_BEHIND:
+        if np.isfinite(v.range_m[i]) and v.range_m[i] > st.max_range_m:
+            return f"{label}: camera {float(v.range_m[i]):.0f} m from the HUA (> {st.max_range_m:g} m)"
+        return f"{label}: camera behind the HUA mirror at the pass altitude"
+    return f"{label}: camera position outside the gimbal range or in the tower keep-out"
 
 
 def plan_ufacet(
@@ -866,11 +717,11 @@ def plan_ufacet(
         )
     aim = _check_aim(aim_point)
     org = as_origin(origin)
-    for label, v, strict in (("max_altitude_m", max_altitude_m, True), ("lead_in_m", lead_in_m, False),
-                             ("run_past_m", run_past_m, False), ("speed_m_s", speed_m_s, True)):
-        if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v)) \
-                or (v <= 0 if strict else v < 0):
-            raise PihimInputError(f"{label} must be a finite number {'>' if strict else '>='} 0, got {v!r}")
+    for label, val, strict in (("max_altitude_m", max_altitude_m, True), ("lead_in_m", lead_in_m, False),
+                               ("run_past_m", run_past_m, False), ("speed_m_s", speed_m_s, True)):
+        if isinstance(val, bool) or not (isinstance(val, (int, float)) and math.isfinite(val)) \
+                or (val <= 0 if strict else val < 0):
+            raise PihimInputError(f"{label} must be a finite number {'>' if strict else '>='} 0, got {val!r}")
     if not isinstance(camera, CameraModel):
         raise PihimInputError(f"camera must be a CameraModel, got {type(camera).__name__}")
     sun = sun_from_pose(pose, aim)
@@ -896,198 +747,158 @@ def plan_ufacet(
         wanted = np.zeros(n_h, dtype=bool)
         wanted[field.indices(req)] = True
     spec = field.spec
-    abreast = 1.5 * spec.mirror_height_m if settings.abreast_m is None else settings.abreast_m
-    mirrors = _Mirrors(pose)
-    tower_box = _tower_box(getattr(field, "tower", None))
-    keepout = _tower_box(getattr(field, "tower", None), settings.tower_clearance_m)
-
-    # ---------------------------------------------------------------- targets and lines
-    lateral = spec.mirror_width_m if settings.max_lateral_m is None else settings.max_lateral_m
-    cand, b = _candidate_targets(pose, settings, abreast, lateral)
-    chain = _chains(n_h, cand, pose.mirror_centres)
-    sel = wanted[cand.hua]
-    pairs = _Pairs(cand.hua[sel], cand.tgt[sel], cand.rank[sel])
-    has_cand = np.zeros(n_h, dtype=bool)
-    has_cand[cand.hua] = True
-
+    st = settings
+    tower = getattr(field, "tower", None)
     c = pose.mirror_centres
-    n = pose.normals
-    hu, tg = pairs.hua, pairs.tgt
-    u = _unit(c[tg] - c[hu])
-    w = 2.0 * _dot(u, n[hu])[:, None] * n[hu] - u
-    w_elev = np.degrees(np.arcsin(np.clip(w[:, 2], -1.0, 1.0)))
-    steep_ok = w_elev >= settings.min_reflection_elevation_deg
 
-    # reflected ray HUA -> target
-    refl_hit = mirrors.first_hits(c[hu] + 1e-6 * u, c[tg], np.stack([hu, tg], axis=1))
-    if tower_box is not None:
-        refl_hit = np.where((refl_hit < 0) & _segments_hit_box(c[hu], c[tg], *tower_box), _TOWER_HIT, refl_hit)
-    refl_ok = refl_hit == -1
+    # ---------------------------------------------------------------- lines in the normals' planes
+    abreast = 1.5 * spec.mirror_height_m if st.abreast_m is None else st.abreast_m
+    max_lateral = spec.mirror_width_m if st.max_lateral_m is None else st.max_lateral_m
+    all_cand = candidate_targets(pose, max_distance_m=st.max_target_distance_m,
+                                 max_off_axis_deg=st.max_off_axis_deg, max_lateral_m=max_lateral)
+    b, _ = horizontal_normals(pose)
+    chain = link_chains(plane_links(all_cand, n_h, abreast), c)
+    lines = chain_lines(chain, b, c[:, :2])
+    cand = all_cand.take(wanted[all_cand.hua])
+    has_cand = np.zeros(n_h, dtype=bool)
+    has_cand[all_cand.hua] = True
+    limits = ViewLimits(st.max_range_m, st.min_reflection_elevation_deg, st.gimbal_pitch_min_deg,
+                        st.gimbal_pitch_max_deg, tower_box(tower), tower_box(tower, st.tower_clearance_m),
+                        spec.mirror_width_m if st.max_camera_offset_m is None else st.max_camera_offset_m)
+    ctx = _Context(pose, MirrorIndex(pose), limits, camera, cand, pair_geometry(pose, cand.hua, cand.target), lines,
+                   line_offsets(st.line_offset_max_m, st.line_offset_step_m),
+                   _altitude_grid(min_alt, max_altitude_m, st.altitude_step_m))
 
-    # ---------------------------------------------------------------- camera positions on the altitude grid
-    zs = _altitude_grid(min_alt, max_altitude_m, settings.altitude_step_m)
-    nz = len(zs)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rng = (zs[None, :] - c[hu, 2][:, None]) / w[:, 2][:, None]  # (P, Z) range t = |C - H|
-    cam = c[hu][:, None, :] + rng[..., None] * w[:, None, :]
-    head, pitch = gaze_angles(cam, c[hu][:, None, :])
-    geo_ok = (steep_ok[:, None] & (rng > 0) & (rng <= settings.max_range_m)
-              & (pitch >= settings.gimbal_pitch_min_deg - 1e-9) & (pitch <= settings.gimbal_pitch_max_deg + 1e-9))
-    if keepout is not None:
-        lo, hi = keepout
-        in_tower = np.all((cam >= lo) & (cam <= hi), axis=-1)
-        geo_ok &= ~in_tower
-    test = refl_ok[:, None] & geo_ok
-    cam_hit = np.full((len(hu), nz), -1, dtype=np.int64)
-    pi_, zi_ = np.nonzero(test)
-    if len(pi_):
-        p0 = cam[pi_, zi_]
-        p1 = c[hu[pi_]] + 1e-6 * w[pi_]
-        hits = mirrors.first_hits(p0, p1, hu[pi_, None])
-        if tower_box is not None:
-            hits = np.where((hits < 0) & _segments_hit_box(p0, p1, *tower_box), _TOWER_HIT, hits)
-        cam_hit[pi_, zi_] = hits
-    imageable = test & (cam_hit == -1)
+    # ---------------------------------------------------------------- offset and altitude of each line
+    line_of = chain.copy()
+    every_pair = np.arange(len(cand))
+    mi, zi = _choose_line_settings(ctx, every_pair, line_of, n_h)
+    line_off, line_z = ctx.offsets[mi], ctx.altitudes[zi]
 
-    # facet centres in the field of view when the HUA is centred (only where the pair is imageable somewhere)
-    fc = pose.facet_centres
-    n_facets = fc.shape[1]
-    in_view = np.zeros((len(hu), nz), dtype=np.int64)
-    rows = np.flatnonzero(imageable.any(axis=1))
-    step = max(1, 400_000 // max(1, nz * n_facets))
-    for a in range(0, len(rows), step):
-        r_ = rows[a:a + step]
-        in_view[r_] = _in_fov(fc[hu[r_]][:, None, :, :], cam[r_], head[r_], pitch[r_], camera).sum(axis=-1)
-    in_view = np.where(imageable, in_view, -1)
+    def evaluate(assign: NDArray[np.int64]) -> Views:
+        ln = assign[cand.hua]
+        return ctx.views(every_pair, ln, line_off[ln], line_z[ln])
 
-    # ---------------------------------------------------------------- per-pass altitude choice
-    low_xy = np.where((rng[:, :1] > 0) & steep_ok[:, None], cam[:, 0, :2], np.nan) if len(hu) else cam[:, 0, :2]
-    group = _merge_fragments(chain, hu, pairs.rank, low_xy, b, settings, spec.mirror_width_m)
-    pass_of_pair = group[chain[hu]]
-    chains_used, pass_idx = np.unique(pass_of_pair, return_inverse=True)
-    n_pass = len(chains_used)
-    # per HUA and altitude: imaged at all, and the most facet centres in view over its imageable pairs
-    score_img = np.zeros((n_pass, nz))
-    score_frm = np.zeros((n_pass, nz))
-    if len(hu):
-        best = np.full((n_h, nz), -1, dtype=np.int64)
-        np.maximum.at(best, hu, in_view)
-        hua_pass = np.full(n_h, -1, dtype=np.int64)
-        hua_pass[hu] = pass_idx
-        hs = np.unique(hu)
-        np.add.at(score_img, hua_pass[hs], (best[hs] >= 0).astype(float))
-        np.add.at(score_frm, hua_pass[hs], np.maximum(best[hs], 0).astype(float))
-    zsel = np.zeros(n_pass, dtype=np.int64)
-    for k in range(n_pass):
-        order = np.lexsort((zs, -score_frm[k], -score_img[k]))
-        zsel[k] = order[0]
-    zpair = zsel[pass_idx]
-    prow = np.arange(len(hu))
-    p_cam = cam[prow, zpair] if len(hu) else np.zeros((0, 3))
-    p_head = head[prow, zpair] if len(hu) else np.zeros(0)
-    p_pitch = pitch[prow, zpair] if len(hu) else np.zeros(0)
-    p_img = imageable[prow, zpair] if len(hu) else np.zeros(0, bool)
-    p_camhit = cam_hit[prow, zpair] if len(hu) else np.zeros(0, np.int64)
-    p_geo = geo_ok[prow, zpair] if len(hu) else np.zeros(0, bool)
-    p_rng = rng[prow, zpair] if len(hu) else np.zeros(0)
+    views = evaluate(line_of)
+    imaged = np.zeros(n_h, dtype=bool)
+    imaged[cand.hua[views.ok]] = True
+    merge_lat = 1.5 * spec.mirror_width_m if st.merge_lateral_m is None else st.merge_lateral_m
+    moved = _move_huas(ctx, cand, line_of, line_off, line_z, imaged, b, st, merge_lat, wanted)
+    if np.any(moved != line_of):
+        line_of = moved
+        views = evaluate(line_of)
+    # HUAs still not imaged: extra lines built the same way among them only, then one line per HUA left
+    # (its own normals' plane), each shifted and raised like the others
+    for alone in ((False, True) if st.extra_passes else ()):
+        imaged[:] = False
+        imaged[cand.hua[views.ok]] = True
+        left = np.flatnonzero(wanted & has_cand & ~imaged)
+        if len(left) == 0:
+            break
+        if alone:
+            sub_id = np.arange(len(left))
+        else:
+            is_left = np.zeros(n_h, dtype=bool)
+            is_left[left] = True
+            among = all_cand.take(is_left[all_cand.hua] & is_left[all_cand.target])
+            _, sub_id = np.unique(link_chains(plane_links(among, n_h, abreast), c)[left], return_inverse=True)
+        extra = chain_lines(sub_id, b[left], c[left, :2])
+        n0 = len(lines)
+        lines = ScanLines(np.r_[lines.origin, extra.origin], np.r_[lines.direction, extra.direction])
+        ctx = dataclasses.replace(ctx, lines=lines)
+        trial = line_of.copy()
+        trial[left] = n0 + sub_id
+        mi2, zi2 = _choose_line_settings(ctx, np.flatnonzero(np.isin(cand.hua, left)), trial, n_h)
+        line_off = np.r_[line_off, ctx.offsets[mi2[n0:]]]
+        line_z = np.r_[line_z, ctx.altitudes[zi2[n0:]]]
+        v2 = evaluate(trial)
+        rescued = np.zeros(n_h, dtype=bool)
+        rescued[cand.hua[v2.ok]] = True
+        line_of = np.where(rescued & ~imaged, trial, line_of)
+        views = evaluate(line_of)
 
-    # corners of the HUA seen from the chosen camera positions
+    # ---------------------------------------------------------------- captures: up to max_targets per HUA
+    ok = views.ok
+    rank = np.zeros(len(cand), dtype=np.int64)
+    if np.any(ok):
+        k = np.flatnonzero(ok)  # cand is sorted by HUA then distance: rank = position among the HUA's imaged
+        first = np.r_[True, cand.hua[k][1:] != cand.hua[k][:-1]]
+        grp = np.cumsum(first) - 1
+        rank[k] = np.arange(len(k)) - np.flatnonzero(first)[grp]
+    capture = ok & (rank < st.max_targets)
+    cam = views.camera
+    head, pitch = gaze_angles(cam, c[cand.hua])
+    in_frame = np.zeros(len(cand), dtype=np.int64)
+    cap_idx = np.flatnonzero(capture)
+    in_frame[cap_idx] = ctx.facets_in_view(cand.hua[cap_idx], cam[cap_idx])
+    n_facets = pose.facet_centres.shape[1]
+    # corners of the HUA seen from the capture points
     outline = pose.mirror_outline()
-    inset = 1.0 - settings.corner_inset
-    ctr = c[hu]
-    corners = ctr[:, None, :] + inset * (outline[hu] - ctr[:, None, :])
-    corner_blocked = np.zeros(len(hu), dtype=np.int64)
-    ci = np.flatnonzero(p_img)
-    if len(ci):
-        q0 = np.repeat(p_cam[ci], 4, axis=0)
-        q1 = corners[ci].reshape(-1, 3)
-        q1 = q1 + 1e-6 * _unit(q0 - q1)
-        hits = mirrors.first_hits(q0, q1, np.repeat(hu[ci], 4)[:, None])
-        if tower_box is not None:
-            hits = np.where((hits < 0) & _segments_hit_box(q0, q1, *tower_box), _TOWER_HIT, hits)
-        corner_blocked[ci] = (hits.reshape(-1, 4) != -1).sum(axis=1)
-    in_frame = in_view[prow, zpair] if len(hu) else np.zeros(0, np.int64)
+    inset = 1.0 - st.corner_inset
+    corner_blocked = np.zeros(len(cand), dtype=np.int64)
+    if len(cap_idx):
+        hh = cand.hua[cap_idx]
+        corners = c[hh][:, None, :] + inset * (outline[hh] - c[hh][:, None, :])
+        q0 = np.repeat(cam[cap_idx], 4, axis=0)
+        q1 = corners.reshape(-1, 3)
+        q1 = q1 + 1e-6 * unit(q0 - q1)
+        hits = ctx.mirrors.first_hits(q0, q1, np.repeat(hh, 4)[:, None])
+        if limits.tower_box is not None:
+            hits = np.where((hits < 0) & segments_hit_box(q0, q1, *limits.tower_box), TOWER_HIT, hits)
+        corner_blocked[cap_idx] = (hits.reshape(-1, 4) != -1).sum(axis=1)
 
-    # ---------------------------------------------------------------- build passes
+    # ---------------------------------------------------------------- passes: lines with a wanted HUA to assess
     def nm(k: int) -> str:
         return names[k] if k >= 0 else "the tower"
 
-    rank_of = {(int(h), int(t)): int(r) for h, t, r in zip(hu, tg, pairs.rank)}
+    pair_line = line_of[cand.hua]
+    used = np.unique(pair_line)
+    assessed = {int(h) for h in cand.hua[capture]}
     drafts = []
-    assessed: set[int] = set()
-    by_pass = np.argsort(pass_idx, kind="stable")
-    bounds = np.searchsorted(pass_idx[by_pass], np.arange(n_pass + 1))
-    for k in range(n_pass):
-        idx = by_pass[bounds[k]:bounds[k + 1]]
+    for ln in used.tolist():
+        idx = np.flatnonzero(pair_line == ln)
+        cap = idx[capture[idx]]
         issues: list[str] = []
-        hidden_behind = 0
-        cap = idx[p_img[idx]]
-        assessed.update(int(h) for h in hu[cap])
-        for p in idx:
-            h, t = int(hu[p]), int(tg[p])
-            label = f"{names[h]}-{names[t]}"
-            if not refl_ok[p]:
-                blk = int(refl_hit[p])
-                if rank_of.get((h, blk), 1 << 30) < int(pairs.rank[p]):  # behind a nearer target of this HUA
-                    hidden_behind += 1
-                    continue
-                issues.append(f"{label}: reflected ray HUA->target blocked by {nm(blk)}")
-            elif not steep_ok[p]:
-                issues.append(f"{label}: camera direction only {w_elev[p]:.1f} deg above the horizon")
-            elif not p_geo[p]:
-                if p_rng[p] > settings.max_range_m:
-                    issues.append(f"{label}: camera {p_rng[p]:.0f} m from the HUA (> {settings.max_range_m:g} m)")
-                else:
-                    issues.append(f"{label}: camera position outside the gimbal range or in the tower keep-out")
-            elif not p_img[p]:
-                issues.append(f"{label}: camera view of {names[h]} blocked by {nm(int(p_camhit[p]))}")
-            elif corner_blocked[p]:
-                issues.append(f"{label}: {int(corner_blocked[p])} of 4 corners of {names[h]} hidden from the camera")
-        if hidden_behind:
-            issues.append(f"{hidden_behind} farther candidate target(s) hidden behind the nearest one (not imaged)")
-        huas_here = sorted({int(h) for h in hu[idx]}, key=lambda h: c[h, 1])
+        huas_here = sorted({int(h) for h in cand.hua[idx]}, key=lambda h: c[h, 1])
         for h in huas_here:
-            if h not in assessed:
-                issues.append(f"{names[h]}: not assessed (no imageable target)")
-        if len(cap):
-            frac = in_frame[cap] / n_facets
-            if np.any(frac < 1.0):
-                issues.append(
-                    f"HUA not framed whole: {np.mean(in_frame[cap]):.1f} of {n_facets} facet centres in the "
-                    f"{camera.horizontal_fov_deg:.1f} x {camera.vertical_fov_deg:.1f} deg field of view on average "
-                    f"(camera {p_rng[cap].min():.1f}-{p_rng[cap].max():.1f} m from the HUA)"
-                )
-        drafts.append((k, idx, cap, issues))
+            if h in assessed:
+                continue
+            mine = idx[cand.hua[idx] == h]
+            best = mine[np.lexsort((cand.distance_m[mine], -views.code[mine]))[0]]  # the pair that came nearest
+            label = f"{names[h]}-{names[int(cand.target[best])]}"
+            issues.append(_pair_issue(int(views.code[best]), label, names[h], names[int(cand.target[best])],
+                                      views, int(best), nm, st, limits.max_plane_offset_m))
+            issues.append(f"{names[h]}: not assessed (no imageable target)")
+        for p in cap[corner_blocked[cap] > 0]:
+            issues.append(f"{names[int(cand.hua[p])]}-{names[int(cand.target[p])]}: {int(corner_blocked[p])} of 4 "
+                          f"corners of {names[int(cand.hua[p])]} hidden from the camera")
+        if len(cap) and np.any(in_frame[cap] < n_facets):
+            issues.append(
+                f"HUA not framed whole: {np.mean(in_frame[cap]):.1f} of {n_facets} facet centres in the "
+                f"{camera.horizontal_fov_deg:.1f} x {camera.vertical_fov_deg:.1f} deg field of view on average "
+                f"(camera {views.range_m[cap].min():.1f}-{views.range_m[cap].max():.1f} m from the HUA)"
+            )
+        drafts.append((ln, idx, cap, issues))
 
-    # HUAs with no candidate target at all: report in the pass of their chain
-    chain_to_pass = {int(ch): k for k, ch in enumerate(chains_used)}
-    no_target = np.flatnonzero(wanted & ~has_cand)
-    chain = group[chain]
-    extra: dict[int, list[str]] = {}
+    # heliostats with no candidate target at all: reported in the pass of their line, if it is flown
     unassessed: list[tuple[str, str]] = []
-    for h in no_target.tolist():
-        reason = "no target heliostat in front of its mirror (nearest the tower in its line, or isolated)"
+    extra: dict[int, list[str]] = {}
+    reason = "no target heliostat in front of its mirror (nearest the tower in its line, or isolated)"
+    for h in np.flatnonzero(wanted & ~has_cand).tolist():
         unassessed.append((names[h], reason))
-        k = chain_to_pass.get(int(chain[h]))
-        if k is not None:
-            extra.setdefault(k, []).append(f"{names[h]}: not assessed ({reason})")
-    for h in np.unique(hu).tolist():
+        extra.setdefault(int(line_of[h]), []).append(f"{names[h]}: not assessed ({reason})")
+    for h in np.unique(cand.hua).tolist():
         if h not in assessed:
             unassessed.append((names[h], "every candidate target blocked or out of reach"))
 
     # order: azimuth of the pass around the tower, starting after the largest empty sector
-    tower = getattr(field, "tower", None)
     centre_xy = np.zeros(2) if tower is None else np.array([0.5 * (tower.x_min_m + tower.x_max_m),
                                                             0.5 * (tower.y_min_m + tower.y_max_m)])
+    n_pass = len(drafts)
     az = np.zeros(n_pass)
-    out_dir = np.zeros((n_pass, 2))
-    for k, idx, _, _ in drafts:
-        hh = np.unique(hu[idx])
-        m = c[hh, :2].mean(axis=0) - centre_xy
-        az[k] = _azimuth_deg(m[0], m[1])
-        d = -b[hh].sum(axis=0)
-        nd = np.linalg.norm(d)
-        out_dir[k] = d / nd if nd > 1e-12 else m / max(np.linalg.norm(m), 1e-12)
+    for k, (_, idx, _, _) in enumerate(drafts):
+        m_ = c[np.unique(cand.hua[idx]), :2].mean(axis=0) - centre_xy
+        az[k] = azimuth_deg(m_[0], m_[1])
     order = np.argsort(az, kind="stable")
     if n_pass > 1:
         a_sorted = az[order]
@@ -1096,41 +907,36 @@ def plan_ufacet(
         order = np.r_[order[start:], order[:start]]
 
     passes_enu = []
-    for rank_, k in enumerate(order):
-        _, idx, cap, issues = drafts[k]
-        issues = issues + extra.get(int(k), [])
+    for rank_, k in enumerate(order.tolist()):
+        ln, idx, cap, issues = drafts[k]
+        issues = issues + extra.get(int(ln), [])
         feasible = len(cap) > 0
-        use = cap if feasible else idx[(pairs.rank[idx] == 0) & (p_rng[idx] > 0)]
-        e = out_dir[k] if rank_ % 2 == 0 else -out_dir[k]
-        proj = p_cam[use, :2] @ e
-        use = use[np.lexsort((pairs.rank[use], proj))]
-        z = float(zs[zsel[k]])
-        pts = [p_cam[p] for p in use]
-        if pts:
-            first, last = pts[0].copy(), pts[-1].copy()
-        else:  # nothing to show: a nominal line over the HUAs at the pass altitude
-            hh = np.unique(hu[idx])
-            proj_h = c[hh, :2] @ e
-            first = np.r_[c[hh[np.argmin(proj_h)], :2], z]
-            last = np.r_[c[hh[np.argmax(proj_h)], :2], z]
-        first[2] = last[2] = z
-        span = last[:2] - first[:2]
-        if np.linalg.norm(span) > 1.0:  # fly straight from lead-in to run-past through the first and last capture
-            e = span / np.linalg.norm(span)
-        lead = first - lead_in_m * np.r_[e, 0.0]
-        run = last + run_past_m * np.r_[e, 0.0]
+        e = -lines.direction[ln] if rank_ % 2 == 0 else lines.direction[ln]  # even passes fly away from the tower
+        z = float(line_z[ln])
+        p0 = lines.origin[ln] + line_off[ln] * lines.across[ln]
+        if feasible:
+            use = cap[np.lexsort((cand.distance_m[cap], cam[cap, :2] @ e))]
+            s_use = (cam[use, :2] - p0) @ e
+        else:  # nothing to image: a nominal line over the HUAs at the pass altitude
+            use = idx[:0]
+            s_use = (c[np.unique(cand.hua[idx]), :2] - p0) @ e
+        first = np.r_[p0 + (s_use.min() - lead_in_m) * e, z]
+        last = np.r_[p0 + (s_use.max() + run_past_m) * e, z]
         wps: list[tuple[NDArray[np.float64], float, float, str, bool, str | None]] = []
-        h0 = float(p_head[use[0]]) if len(use) else float(_azimuth_deg(-e[0], -e[1]))
-        g0 = float(p_pitch[use[0]]) if len(use) else -90.0
-        wps.append((lead, h0, g0, "lead_in", False, None))
-        for p in use:
-            wps.append((p_cam[p], float(p_head[p]), float(p_pitch[p]), "scan", bool(feasible), names[int(hu[p])]))
-        h1 = float(p_head[use[-1]]) if len(use) else h0
-        g1 = float(p_pitch[use[-1]]) if len(use) else g0
-        wps.append((run, h1, g1, "run_past", False, None))
-        pr = tuple((names[int(hu[p])], names[int(tg[p])]) for p in use) if feasible else ()
-        nominal_pitch = float(np.median(p_pitch[use])) if len(use) else g0
-        passes_enu.append((rank_, float(_azimuth_deg(e[0], e[1])), z, nominal_pitch, pr, wps, feasible, issues))
+        h0 = float(head[use[0]]) if feasible else float(azimuth_deg(-e[0], -e[1]))
+        g0 = float(pitch[use[0]]) if feasible else -90.0
+        wps.append((first, h0, g0, "lead_in", False, None))
+        for p in use.tolist():
+            wps.append((cam[p], float(head[p]), float(pitch[p]), "scan", True, names[int(cand.hua[p])]))
+        if not feasible:  # the nominal ends of the line, no capture
+            for s_ in (s_use.min(), s_use.max()):
+                wps.append((np.r_[p0 + s_ * e, z], h0, g0, "scan", False, None))
+        h1 = float(head[use[-1]]) if feasible else h0
+        g1 = float(pitch[use[-1]]) if feasible else g0
+        wps.append((last, h1, g1, "run_past", False, None))
+        pr = tuple((names[int(cand.hua[p])], names[int(cand.target[p])]) for p in use.tolist())
+        nominal_pitch = float(np.median(pitch[use])) if feasible else g0
+        passes_enu.append((rank_, float(azimuth_deg(e[0], e[1])), z, nominal_pitch, pr, wps, feasible, issues))
 
     # flux along the passes
     if settings.flux_check and passes_enu:
@@ -1237,10 +1043,10 @@ def plan_passes(
         In flight (boustrophedon) order. In each pass, the ``k``-th capturing
         ``scan`` waypoint images ``pairs[k]``; ``lead_in`` and ``run_past``
         waypoints bracket them. Scan waypoints have ``hua`` set and point the
-        optical axis at the HUA mirror centre. An infeasible pass
-        (``feasible=False``: nothing imageable) keeps the nominal camera
-        positions of its HUAs' nearest targets with ``capture=False`` and says
-        why in ``issues``.
+        optical axis at the HUA mirror centre. All waypoints of a pass lie on
+        one straight line. An infeasible pass (``feasible=False``: nothing
+        imageable) keeps its line over its HUAs as ``scan`` waypoints with
+        ``capture=False`` and says why in ``issues``.
 
     Raises
     ------

@@ -1,0 +1,82 @@
+"""Concentrated sunlight near a tracking heliostat field (flight safety flag, paper section 3)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from pihim.field.kinematics import FieldPose
+from pihim.planning.sightlines import dot
+
+__all__ = ["beam_concentration"]
+
+
+def beam_concentration(points: ArrayLike, pose: FieldPose, aim_point: ArrayLike, *,
+                       divergence_mrad: float = 7.0) -> NDArray[np.float64]:
+    """Rough concentration of reflected sunlight at points, in suns.
+
+    Each tracked heliostat sends a beam from its mirror centre to the aim
+    point. Modelled as a cone of circular cross-section, its radius shrinks
+    linearly from ``r0 = sqrt(A / pi)`` (``A`` the mirror area) at the mirror
+    to ``L * divergence`` at the aim point (``L`` the slant range; the
+    design canting focuses it there); beyond the focus it is ignored (the
+    flights stay below the aim points of interest). A beam contributes
+    ``(r0 / r)^2`` suns inside its cone. Cosine losses, shading, blocking and
+    astigmatism are ignored: this flags the focusing region (paper section
+    3 lists it as a flight safety factor); it is not a flux map.
+
+    Parameters
+    ----------
+    points : array_like, shape (M, 3)
+        ENU metres.
+    pose : FieldPose
+        Tracked field.
+    aim_point : array_like, shape (3,)
+        Aim point of the tracking, ENU metres.
+    divergence_mrad : float
+        Beam half-angle at the focus, mrad.
+
+    Returns
+    -------
+    ndarray, shape (M,)
+        Suns (1 is direct sunlight; 0 outside every beam).
+    """
+    pts = np.atleast_2d(np.asarray(points, float))
+    a = np.asarray(aim_point, float)
+    spec = pose.field.spec  # type: ignore[attr-defined]
+    r0 = math.sqrt(4.0 * spec.mirror_half_width_m * spec.mirror_half_height_m / math.pi)
+    theta = divergence_mrad * 1e-3
+    c = pose.mirror_centres
+    axis = a - c
+    length = np.linalg.norm(axis, axis=1)
+    dirs = -axis / length[:, None]  # unit vectors from the aim point toward the mirrors
+    tree = cKDTree(dirs)
+    out = np.zeros(len(pts))
+    rmax = max(r0, float(length.max()) * theta)  # no beam is wider between its mirror and its focus
+    for s0 in range(0, len(pts), 20_000):
+        p = pts[s0:s0 + 20_000]
+        v = p - a
+        dist = np.linalg.norm(v, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            q = v / dist[:, None]
+            half = np.where(dist > rmax, np.arcsin(np.minimum(1.0, rmax / dist)), np.pi)
+        q = np.where(np.isfinite(q), q, 0.0)
+        lists = tree.query_ball_point(q, np.minimum(2.0, 2.0 * np.sin(np.minimum(half, np.pi / 2)) + 1e-12),
+                                      return_sorted=False)
+        lens = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(p))
+        if lens.sum() == 0:
+            continue
+        pi = np.repeat(np.arange(len(p)), lens)
+        hi = np.fromiter((k for x in lists for k in x), dtype=np.int64, count=int(lens.sum()))
+        w = p[pi] - c[hi]
+        e = axis[hi] / length[hi, None]
+        along = dot(w, e)
+        f = along / length[hi]
+        perp = np.linalg.norm(w - along[:, None] * e, axis=1)
+        radius = (1.0 - f) * r0 + f * length[hi] * theta
+        inside = (f > 0) & (f <= 1.0) & (perp <= radius)
+        np.add.at(out, s0 + pi[inside], (r0 / np.maximum(radius[inside], 1e-9)) ** 2)
+    return out

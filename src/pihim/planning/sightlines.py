@@ -1,0 +1,219 @@
+"""Sight lines over a tracked heliostat field: gaze angles, field of view, ray / mirror and ray / tower tests.
+
+Geometry shared by the UFACET planner (:mod:`pihim.planning.ufacet`,
+:mod:`pihim.planning.lines`) and the contrast scoring: every test is
+vectorised over many rays, with a k-d tree over the mirror centres so that a
+ray is tested only against mirrors near it. Mirrors are the flat tracked
+outlines (``mirror_half_width_m`` x ``mirror_half_height_m`` around each
+mirror centre, in the mirror plane); the tower is its axis-aligned box.
+Headings are degrees clockwise from North, pitch negative below the horizon
+(docs/conventions.md, "Flight plans").
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from pihim.camera.model import CameraModel
+from pihim.errors import PihimInputError
+from pihim.field.kinematics import FieldPose
+
+__all__ = [
+    "TOWER_HIT",
+    "MirrorIndex",
+    "azimuth_deg",
+    "camera_frame",
+    "first_mirror_hits",
+    "gaze_angles",
+    "in_fov",
+    "optical_axis",
+    "segments_hit_box",
+    "tower_box",
+]
+
+#: Blocker code for the tower in hit arrays (mirrors are >= 0, nothing is -1).
+TOWER_HIT = -2
+_EPS_T = 1e-6
+
+
+def unit(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def dot(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    return np.einsum("...i,...i->...", a, b)
+
+
+def azimuth_deg(dx: ArrayLike, dy: ArrayLike) -> NDArray[np.float64]:
+    """Azimuth clockwise from North in [0, 360)."""
+    a = np.mod(np.degrees(np.arctan2(dx, dy)), 360.0)
+    return np.where(a >= 360.0, 0.0, a)
+
+
+def gaze_angles(camera_enu: ArrayLike, look_at_enu: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Heading and gimbal pitch pointing the optical axis from ``camera_enu`` at ``look_at_enu``.
+
+    Parameters
+    ----------
+    camera_enu, look_at_enu : array_like, shape (..., 3)
+        ENU metres.
+
+    Returns
+    -------
+    heading_deg : ndarray
+        Clockwise from North, [0, 360). For a point straight below it is 0.
+    pitch_deg : ndarray
+        Above the horizon positive, [-90, 90] (-90 = straight down).
+    """
+    d = np.asarray(look_at_enu, float) - np.asarray(camera_enu, float)
+    horiz = np.hypot(d[..., 0], d[..., 1])
+    return azimuth_deg(d[..., 0], d[..., 1]), np.degrees(np.arctan2(d[..., 2], horiz))
+
+
+def optical_axis(heading_deg: ArrayLike, pitch_deg: ArrayLike) -> NDArray[np.float64]:
+    """Unit ENU optical axis for a heading (clockwise from North) and a pitch (negative down), degrees."""
+    h = np.radians(np.asarray(heading_deg, float))
+    p = np.radians(np.asarray(pitch_deg, float))
+    h, p = np.broadcast_arrays(h, p)
+    return np.stack([np.cos(p) * np.sin(h), np.cos(p) * np.cos(h), np.sin(p)], axis=-1)
+
+
+def camera_frame(heading_deg: NDArray[np.float64], pitch_deg: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
+    """OpenCV camera axes in ENU (x right, y down, z forward) for zero roll."""
+    f = optical_axis(heading_deg, pitch_deg)
+    h = np.radians(heading_deg)
+    r = np.stack([np.cos(h), -np.sin(h), np.zeros_like(h)], axis=-1)
+    return r, np.cross(f, r), f
+
+
+def in_fov(points: NDArray[np.float64], cam: NDArray[np.float64], heading: NDArray[np.float64],
+            pitch: NDArray[np.float64], camera: CameraModel) -> NDArray[np.bool_]:
+    """Whether ``points`` (..., K, 3) fall in the camera's field of view; cam/heading/pitch shape (...)."""
+    r, dn, f = camera_frame(heading, pitch)
+    v = points - cam[..., None, :]
+    zc = dot(v, f[..., None, :])
+    tx = 0.5 * camera.width_px / camera.focal_length_px
+    ty = 0.5 * camera.height_px / camera.focal_length_px
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (zc > 0) & (np.abs(dot(v, r[..., None, :])) <= tx * zc) & (np.abs(dot(v, dn[..., None, :])) <= ty * zc)
+
+
+def tower_box(tower: Any, clearance: float = 0.0) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    if tower is None:
+        return None
+    c = np.asarray(tower.box_corners(), float)
+    return c.min(axis=0) - [clearance, clearance, 0.0], c.max(axis=0) + clearance
+
+
+def segments_hit_box(p0: NDArray[np.float64], p1: NDArray[np.float64], lo: NDArray[np.float64],
+                      hi: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Segments p0->p1 (N, 3) crossing the axis-aligned box [lo, hi] (slab method)."""
+    d = p1 - p0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t1 = (lo - p0) * inv
+        t2 = (hi - p0) * inv
+    tmin = np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2))
+    tmax = np.where(np.isnan(t2), np.inf, np.maximum(t1, t2))
+    # parallel components: inside the slab or not
+    par = d == 0
+    inside_slab = (p0 >= lo) & (p0 <= hi)
+    tmin = np.where(par, np.where(inside_slab, -np.inf, np.inf), tmin)
+    tmax = np.where(par, np.where(inside_slab, np.inf, -np.inf), tmax)
+    enter = tmin.max(axis=1)
+    leave = tmax.min(axis=1)
+    return (enter <= leave) & (leave >= 0.0) & (enter <= 1.0)
+
+
+class MirrorIndex:
+    """Tracked mirror rectangles of a field with a spatial index for batched ray tests."""
+
+    def __init__(self, pose: FieldPose) -> None:
+        spec = pose.field.spec  # type: ignore[attr-defined]
+        self.centres = np.ascontiguousarray(pose.mirror_centres, dtype=float)
+        self.x = np.ascontiguousarray(pose.rotations[:, :, 0])
+        self.y = np.ascontiguousarray(pose.rotations[:, :, 1])
+        self.n = np.ascontiguousarray(pose.normals)
+        self.hw = float(spec.mirror_half_width_m)
+        self.hh = float(spec.mirror_half_height_m)
+        self.radius = math.hypot(self.hw, self.hh)
+        self.tree = cKDTree(self.centres)
+
+    def first_hits(self, p0: NDArray[np.float64], p1: NDArray[np.float64], exclude: NDArray[np.int64],
+                   chunk: int = 50_000) -> NDArray[np.int64]:
+        """Index of the first mirror each segment p0->p1 crosses (-1 for none), skipping ``exclude`` (N, E)."""
+        n = len(p0)
+        out = np.full(n, -1, dtype=np.int64)
+        for a in range(0, n, chunk):
+            b = min(n, a + chunk)
+            out[a:b] = self._first_hits(p0[a:b], p1[a:b], exclude[a:b])
+        return out
+
+    def _first_hits(self, p0: NDArray[np.float64], p1: NDArray[np.float64],
+                    exclude: NDArray[np.int64]) -> NDArray[np.int64]:
+        n = len(p0)
+        out = np.full(n, -1, dtype=np.int64)
+        if n == 0:
+            return out
+        mid = 0.5 * (p0 + p1)
+        r = 0.5 * np.linalg.norm(p1 - p0, axis=1) + self.radius
+        lists = self.tree.query_ball_point(mid, r, return_sorted=False)
+        lens = np.fromiter((len(x) for x in lists), dtype=np.int64, count=n)
+        if lens.sum() == 0:
+            return out
+        ray = np.repeat(np.arange(n), lens)
+        rect = np.fromiter((k for x in lists for k in x), dtype=np.int64, count=int(lens.sum()))
+        keep = np.all(rect[:, None] != exclude[ray], axis=1)
+        ray, rect = ray[keep], rect[keep]
+        d = p1[ray] - p0[ray]
+        nn = self.n[rect]
+        denom = dot(d, nn)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = dot(self.centres[rect] - p0[ray], nn) / denom
+        ok = np.isfinite(t) & (t > _EPS_T) & (t < 1.0 - _EPS_T)
+        ray, rect, t, d = ray[ok], rect[ok], t[ok], d[ok]
+        q = p0[ray] + t[:, None] * d - self.centres[rect]
+        inside = (np.abs(dot(q, self.x[rect])) <= self.hw) & (np.abs(dot(q, self.y[rect])) <= self.hh)
+        ray, rect, t = ray[inside], rect[inside], t[inside]
+        if len(ray):
+            order = np.lexsort((t, ray))
+            ray, rect = ray[order], rect[order]
+            first = np.r_[True, ray[1:] != ray[:-1]]
+            out[ray[first]] = rect[first]
+        return out
+
+
+def first_mirror_hits(pose: FieldPose, p0: ArrayLike, p1: ArrayLike, *,
+                      exclude: ArrayLike | None = None) -> NDArray[np.int64]:
+    """First tracked mirror rectangle crossed by each segment ``p0 -> p1``, vectorised.
+
+    Parameters
+    ----------
+    pose : FieldPose
+        Tracked field; mirrors are its flat outlines (``mirror_half_width_m``
+        x ``mirror_half_height_m`` around each mirror centre, in the mirror
+        plane).
+    p0, p1 : array_like, shape (N, 3)
+        Segment ends, ENU metres.
+    exclude : array_like of int, shape (N,) or (N, E), optional
+        Heliostat indices ignored per segment (e.g. the HUA and the target);
+        -1 entries ignore nothing.
+
+    Returns
+    -------
+    ndarray of int, shape (N,)
+        Index of the first heliostat hit along the segment, -1 if none.
+    """
+    a = np.atleast_2d(np.asarray(p0, float))
+    b = np.atleast_2d(np.asarray(p1, float))
+    if a.shape != b.shape or a.shape[-1] != 3:
+        raise PihimInputError(f"p0 and p1 must both be (N, 3), got {a.shape} and {b.shape}")
+    ex = np.full((len(a), 1), -1, dtype=np.int64) if exclude is None else np.asarray(exclude, dtype=np.int64)
+    if ex.ndim == 1:
+        ex = ex[:, None]
+    return MirrorIndex(pose).first_hits(a, b, ex)
