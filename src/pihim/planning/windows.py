@@ -37,24 +37,24 @@ ground (sigma 15 deg, n = 1.45, sun 1000 W m^-2), default shift search.
 =============  ============================  ==========================  =========================
 date           minimum                       morning peak                afternoon peak
 =============  ============================  ==========================  =========================
-2021-05-13     0.00 at 12:50 (noon 13:00,    0.75 at 09:10               0.76 at 16:50
+2021-05-13     0.00 at 12:50 (noon 13:00,    0.76 at 09:20               0.76 at 17:00
                sun 74 deg high)
-2021-03-20     0.02 at 13:10 (noon, sun      0.49 at 10:10               0.50 at 16:00
-               55 deg high)
+2021-03-20     0.01 at 13:00 (noon 13:10,    0.49 at 10:20               0.50 at 16:20
+               sun 55 deg high)
 =============  ============================  ==========================  =========================
 
-Windows at 0.8 of the day's best (``relative=True``): 08:00-10:10 and
-16:00-18:10 on 2021-05-13; 09:00-11:00 and 15:30-17:30 on 2021-03-20. At an
-absolute 0.3: 07:20-11:10 and 14:50-18:40; 09:00-11:20 and 15:10-17:30.
+Windows at 0.8 of the day's best (``relative=True``): 08:20-10:20 and
+15:50-17:50 on 2021-05-13; 09:10-11:00 and 15:30-17:10 on 2021-03-20. At an
+absolute 0.3: 07:50-11:20 and 14:50-18:20; 09:00-11:30 and 15:00-17:30.
 
 **Verdict: the sweep agrees on the structure, and at the equinox on the
 morning window, but puts the afternoon window about one hour later** than
 the paper's. Two windows placed nearly symmetrically about solar noon are
 separated by a deep minimum at noon, where essentially no heliostat is
-usable. At the equinox the predicted morning window (09:00-11:00, peak
-10:10) matches the paper's 9:30-11:30; the afternoon one (15:30-17:30, peak
-16:00) starts where the paper's 14:00-16:00 ends. In May the windows sit
-further from noon (peaks 09:10 and 16:50) and the paper's windows are
+usable. At the equinox the predicted morning window (09:10-11:00, peak
+10:20) matches the paper's 9:30-11:30; the afternoon one (15:30-17:10, peak
+16:20) starts where the paper's 14:00-16:00 ends. In May the windows sit
+further from noon (peaks 09:20 and 17:00) and the paper's windows are
 about half covered. Why:
 
 * **The contrast comes from the ground-vs-ground edge.** With every
@@ -113,9 +113,9 @@ The numbers come from :func:`sweep_day` with the defaults (``pihim windows
 --date 2021-05-13`` and ``--date 2021-03-20``); they depend on the planner's
 geometry, which may still change.
 
-Speed: per time, tracking ~1 ms, planning ~25 ms, ground table ~20 ms,
-scoring and shift search ~30 ms; a 10-minute NSTTF sweep (73 times in May)
-takes about 6-8 s on two cores (``benchmarks/bench_windows.py``).
+Speed: per time, tracking ~1 ms, planning ~60 ms, ground table ~20 ms,
+scoring and shift search ~35 ms; a 10-minute NSTTF sweep (73 times in May)
+takes about 8-9 s on two cores (``benchmarks/bench_windows.py``).
 
 References
 ----------
