@@ -61,8 +61,8 @@ about half covered. Why:
   heliostat tracking, neighbouring mirrors differ in orientation by a few
   degrees, so the skies they reflect toward the camera differ by a few
   degrees; with the sky's DoLP gradient of at most ~0.015 per degree the
-  predicted sky-vs-sky DoLP differences stay below ~0.08 all day and
-  ``fraction_sky`` is 0 on both dates (with one neighbour turned face up,
+  predicted sky-vs-sky DoLP differences stay below ~0.04 at the five
+  instants examined below (07:00-18:50), ``fraction_sky`` is 0 on both dates (with one neighbour turned face up,
   as in the paper's sky-vs-sky test, differences above 0.3 appear; see
   ``tests/planning/test_scoring.py``). The paper measured its sky-vs-sky
   contrast with all heliostats but the pair facing up, which does not carry
@@ -73,26 +73,28 @@ about half covered. Why:
   difference is governed by how far the sun lies out of the plane of
   incidence at the lower edge (the plane through the camera's line of
   sight and the mirror normal): across the NSTTF images on 2021-05-13 their
-  correlation is 0.91-0.97. Near solar noon the sun is high and due South,
-  the heliostats North of the tower face South, and the UFACET cameras look
+  correlation is 0.91-0.98 from mid-morning to mid-afternoon (0.49-0.57 at
+  low sun, where the reflection DoLP limits instead). Near solar noon the
+  sun is high and due South, the heliostats North of the tower face South,
+  and the UFACET cameras look
   along the heliostats' North-South vertical planes, so the sun lies within
-  ~7 deg (median) of that plane: the sunlit microfacets that send light to
+  ~5 deg (median) of that plane: the sunlit microfacets that send light to
   the camera and to the mirror then polarize it in (nearly) the same plane,
   the mirror reflection keeps that orientation, and both regions show the
-  same AoP (median difference 17 deg). The noon sun being "too high" is
+  same AoP (median difference 15 deg). The noon sun being "too high" is
   the same statement: it stays close to the North-South planes for longer
   in summer, which is why the May minimum is wider.
 * **Mid-morning and mid-afternoon are good** because the sun is then
-  ~35 deg (median) out of those planes (09:10 and 16:50 on 2021-05-13):
-  median AoP differences of 73-75 deg, above the paper's 50 deg, on 83 %
+  33-36 deg (median) out of those planes (09:20 and 17:00 on 2021-05-13):
+  median AoP differences of 72-73 deg, above the paper's 50 deg on 84-85 %
   of the images, and the mirror-reflected ground carries a DoLP of about
-  0.45-0.5 (median), well above the paper's 0.2 gate.
+  0.46-0.47 (median), well above the paper's 0.2 gate.
 * **Early morning and late afternoon drop off** although the sun is even
-  further out of plane (~42 deg): with the sun low, the light the ground
+  further out of plane (~43 deg): with the sun low, the light the ground
   sends toward the mirrors is less polarized (median DoLP of the
-  mirror-reflected ground 0.17 at 07:00, 0.20 at 18:50), about half the
-  images fail the 0.2 reflection gate, and the AoP difference falls back to
-  a median of ~50 deg.
+  mirror-reflected ground 0.16 at 07:00, 0.21 at 18:50), 67 % and 44 % of
+  the images fail the 0.2 reflection gate, and the AoP difference falls
+  back to a median of 46-50 deg.
 * **The high-DoLP sky band (90 deg from the sun)** decides the sky-vs-sky
   scenario only; at mid-morning and mid-afternoon the heliostats reflect
   sky near it, but two tracking neighbours see nearly the same part of it,
