@@ -115,9 +115,9 @@ The numbers come from :func:`sweep_day` with the defaults (``pihim windows
 --date 2021-05-13`` and ``--date 2021-03-20``); they depend on the planner's
 geometry, which may still change.
 
-Speed: per time, tracking ~1 ms, planning ~60 ms, ground table ~20 ms,
-scoring and shift search ~35 ms; a 10-minute NSTTF sweep (73 times in May)
-takes about 8-9 s on two cores (``benchmarks/bench_windows.py``).
+Speed: per time, tracking ~1 ms, planning ~55 ms, ground table ~17 ms,
+scoring and shift search ~30 ms; a 10-minute NSTTF sweep (73 times in May)
+takes about 7 s on two cores (``benchmarks/bench_windows.py``).
 
 References
 ----------
