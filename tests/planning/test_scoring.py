@@ -325,6 +325,16 @@ def test_shift_only_when_it_gains_and_stays_safe(shifted):
     assert n_shifted >= 1
 
 
+def test_scoring_in_batches_gives_the_same_plan(shifted):
+    sun, posed, passes, search, out = shifted
+    n_images = sum(w.capture for p in passes for w in p.waypoints)
+    assert len(passes) > 4 and n_images > 10
+    batched = score_passes(passes, posed, sun, search=search, aim_point=AIM, origin=NSTTF, batch_images=5)
+    assert batched == out  # passes are independent: the memory bound does not change the result
+    with pytest.raises(PihimInputError, match="batch_images"):
+        score_passes(passes, posed, sun, batch_images=0)
+
+
 def test_shifted_predictions_are_recomputed_at_the_new_positions(field, shifted):
     sun, posed, passes, search, out = shifted
     scene = build_scene(posed, sun)

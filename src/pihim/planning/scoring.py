@@ -1052,6 +1052,7 @@ def score_passes(
     camera: CameraModel | None = None,
     aim_point: ArrayLike | None = None,
     origin: Any = None,
+    batch_images: int = 2000,
 ) -> tuple[ScanPass, ...]:
     """Predict the contrast of every planned image and, optionally, shift passes to raise it.
 
@@ -1079,6 +1080,10 @@ def score_passes(
     origin : Site, GeodeticOrigin or (lat, lon, h), optional
         Field origin for exact geodetic coordinates of shifted waypoints;
         without it each waypoint's own geodetic position is offset locally.
+    batch_images : int
+        Passes are scored in consecutive groups of about this many images
+        (passes are independent; the groups bound the memory of large
+        fields, the result does not depend on it).
 
     Returns
     -------
@@ -1090,10 +1095,25 @@ def score_passes(
         fractions; other passes keep ``shift=None``.
     """
     passes = tuple(passes)
+    if isinstance(batch_images, bool) or not isinstance(batch_images, int) or batch_images < 1:
+        raise PihimInputError(f"batch_images must be a positive integer, got {batch_images!r}")
     if scene is None:
         scene = build_scene(pose, sun_dir, model)
     elif scene.pose is not pose:
         raise PihimInputError("scene was built for another FieldPose")
+    counts = [sum(w.capture for w in sp.waypoints) for sp in passes]
+    if sum(counts) > batch_images and len(passes) > 1:
+        groups: list[list[ScanPass]] = [[]]
+        size = 0
+        for sp, k in zip(passes, counts, strict=True):
+            if groups[-1] and size + k > batch_images:
+                groups.append([])
+                size = 0
+            groups[-1].append(sp)
+            size += k
+        return tuple(sp for g in groups for sp in score_passes(
+            g, pose, sun_dir, scene=scene, search=search, camera=camera, aim_point=aim_point, origin=origin,
+            batch_images=batch_images))
     fld = pose.field
     imgs = _collect_images(passes, fld)
     pred = predict_images(scene, imgs.cameras, imgs.hua, imgs.target)
