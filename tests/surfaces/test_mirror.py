@@ -65,6 +65,16 @@ def test_transmission_amplitudes_satisfy_boundary_conditions(cos_i, n2, k2):
     assert (N / n1) * t_p == pytest.approx(1.0 + r_p, abs=1e-12)
 
 
+def test_matched_indices_have_no_interface_even_at_grazing_incidence():
+    cos_i = np.array([0.0, 1e-9, 0.5, 1.0])
+    r_s, r_p = fresnel_amplitudes(cos_i, 1.2, complex(1.2, 0.0))
+    t_s, t_p = fresnel_transmission_amplitudes(cos_i, 1.2, 1.2)
+    assert np.all(r_s == 0) and np.all(r_p == 0) and np.all(t_s == 1) and np.all(t_p == 1)
+    # next to a matched interface the amplitudes are continuous with that limit
+    r_near, _ = fresnel_amplitudes(np.array([0.5]), 1.2, 1.2001)
+    assert abs(r_near[0]) < 1e-3
+
+
 def test_transmission_mueller_layout_and_validation():
     t = fresnel_transmission_mueller(np.cos(np.radians([0.0, 40.0, 70.0])), 1.0, 1.5)
     assert np.allclose(t[..., 2, 3], 0.0) and np.all(t[..., 2, 2] > 0)  # no retardance, no field flip

@@ -54,9 +54,12 @@ def fresnel_amplitudes(
     n1 = np.asarray(n1, dtype=complex)
     n2 = np.asarray(n2, dtype=complex)
     cos_t = _cos_transmitted(cos_i, n1, n2)
-    r_s = (n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)
-    r_p = (n2 * cos_i - n1 * cos_t) / (n2 * cos_i + n1 * cos_t)
-    return r_s, r_p
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r_s = (n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)
+        r_p = (n2 * cos_i - n1 * cos_t) / (n2 * cos_i + n1 * cos_t)
+    # matched indices: no interface, no reflection (also the limit at grazing incidence, where both are 0/0)
+    same = np.asarray(n1) == np.asarray(n2)
+    return np.where(same, 0.0, r_s), np.where(same, 0.0, r_p)
 
 
 def fresnel_reflectance(cos_i: ArrayLike, n1: ArrayLike = 1.0, n2: ArrayLike = 1.5) -> tuple[NDArray, NDArray]:
@@ -126,9 +129,11 @@ def fresnel_transmission_amplitudes(
     n1 = np.asarray(n1, dtype=complex)
     n2 = np.asarray(n2, dtype=complex)
     cos_t = _cos_transmitted(cos_i, n1, n2)
-    t_s = 2.0 * n1 * cos_i / (n1 * cos_i + n2 * cos_t)
-    t_p = 2.0 * n1 * cos_i / (n2 * cos_i + n1 * cos_t)
-    return t_s, t_p
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_s = 2.0 * n1 * cos_i / (n1 * cos_i + n2 * cos_t)
+        t_p = 2.0 * n1 * cos_i / (n2 * cos_i + n1 * cos_t)
+    same = n1 == n2  # no interface: the field passes unchanged (the limit at grazing incidence too)
+    return np.where(same, 1.0 + 0j, t_s), np.where(same, 1.0 + 0j, t_p)
 
 
 def fresnel_transmission_mueller(cos_i: ArrayLike, n1: ArrayLike = 1.0, n2: ArrayLike = 1.5) -> NDArray[np.float64]:
