@@ -1,5 +1,6 @@
 """End-to-end tests of ``pihim plan`` on the embedded NSTTF-like field."""
 
+import csv
 import json
 from importlib import resources
 
@@ -19,7 +20,15 @@ def test_plan_writes_every_format(tmp_path, capsys):
     assert rc == 0
     summary = json.loads(capsys.readouterr().out)
     names = {"plan.json", "mission.plan", "mission.waypoints", "plan.kml", "litchi.csv", "plan.png"}
-    assert names <= {p.name for p in out.iterdir()}
+    written = {p.name for p in out.iterdir()}
+    assert names <= written
+    # the whole-plan litchi.csv exceeds Litchi's 99 waypoints: the flights are also written as missions
+    parts = sorted(n for n in written - names)
+    whole = list(csv.DictReader((out / "litchi.csv").read_text().splitlines()))
+    assert len(whole) > 99 and parts and parts[0] == "litchi_01.csv"
+    rows = [list(csv.DictReader((out / n).read_text().splitlines())) for n in parts]
+    assert all(0 < len(r) <= 99 for r in rows)
+    assert sum(len(r) for r in rows) >= len(whole)  # the flights add transits and returns
     plan = json.loads((out / "plan.json").read_text())
     jsonschema.validate(plan, PLAN_SCHEMA)
     jsonschema.validate(json.loads((out / "mission.plan").read_text()), QGC_SCHEMA)

@@ -21,6 +21,9 @@ from pihim.planning.export import (
     OUTPUT_NAMES,
     export_all,
     litchi_csv_text,
+    litchi_mission_texts,
+    litchi_missions,
+    litchi_waypoints,
     load_plan_schema,
     load_qgc_plan_schema,
     mission_items,
@@ -465,6 +468,30 @@ def test_litchi_options_and_limits(plan):
     assert len(flight_rows) == len(plan.flights[0].waypoints) - 2  # no take-off, no landing
     with pytest.raises(PihimInputError, match="exceed Litchi's limit of 10"):
         litchi_csv_text(plan, max_waypoints=10)
+
+
+def test_litchi_missions_cut_flights_at_pass_boundaries(plan):
+    per_flight = [litchi_waypoints(plan, f.index) for f in plan.flights]
+    assert sum(len(w) for w in per_flight) > 12
+    for limit in (7, 12, 99):
+        missions = litchi_missions(plan, max_waypoints=limit)
+        assert all(0 < len(m) <= limit for m in missions)
+        # concatenated, the missions are the flights' Litchi waypoints, in order
+        assert [w for m in missions for w in m] == [w for f in per_flight for w in f]
+        # no mission spans two flights; each starts a flight, a pass's lead-in or a transit
+        starts = {id(f[0]) for f in per_flight}
+        for m in missions:
+            owner = {k for k, f in enumerate(per_flight) for w in m if any(w is x for x in f)}
+            assert len(owner) == 1
+            longest_pass = max(len(p.waypoints) for p in plan.passes)
+            if longest_pass <= limit:
+                assert id(m[0]) in starts or m[0].kind in ("lead_in", "transit")
+    assert len(litchi_missions(plan, max_waypoints=99)) == len(plan.flights)  # small plan: one per flight
+    texts = litchi_mission_texts(plan, max_waypoints=7)
+    assert len(texts) == len(litchi_missions(plan, max_waypoints=7))
+    assert all(len(list(csv.DictReader(t.splitlines()))) <= 7 for t in texts)
+    with pytest.raises(PihimInputError, match="max_waypoints"):
+        litchi_missions(plan, max_waypoints=0)
 
 
 # --------------------------------------------------------------------------- map

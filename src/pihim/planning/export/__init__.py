@@ -11,7 +11,9 @@ file                   writer                          for
 ``plan.png``           :func:`write_plan_figure`       a map of the passes
 =====================  ==============================  ==================================
 
-:func:`export_all` writes all six. Every writer validates the plan first (a
+:func:`export_all` writes all six (and, when ``litchi.csv`` is longer than
+Litchi's 99 waypoints, the flights as ``litchi_01.csv`` ... missions,
+:func:`litchi_missions`). Every writer validates the plan first (a
 plan without passes or a waypoint with a non-finite number raises
 :class:`~pihim.errors.PihimInputError` with a one-line message) and writes
 atomically (temporary sibling, then rename), so a failure never leaves a
@@ -35,6 +37,8 @@ from pihim.planning.export.litchi import (
     LITCHI_HEADER,
     LITCHI_MAX_WAYPOINTS,
     litchi_csv_text,
+    litchi_mission_texts,
+    litchi_missions,
     litchi_waypoints,
     write_litchi_csv,
 )
@@ -63,6 +67,8 @@ __all__ = [
     "export_all",
     "kml_text",
     "litchi_csv_text",
+    "litchi_mission_texts",
+    "litchi_missions",
     "litchi_waypoints",
     "load_plan_schema",
     "load_qgc_plan_schema",
@@ -142,8 +148,12 @@ def export_all(
     litchi_hover_ms : int
         Hover before each Litchi photo, milliseconds.
     litchi_max_waypoints : int or None
-        Refuse Litchi missions longer than this. Default None: write them
-        all and warn (:class:`UserWarning`) above Litchi's 99.
+        Refuse Litchi missions longer than this. Default None: write
+        ``litchi.csv`` whole and, when it is longer than Litchi's 99
+        waypoints (and ``flight`` is None), also every flight cut into
+        missions of at most 99 waypoints at pass boundaries
+        (:func:`litchi_missions`) as ``litchi_01.csv``, ``litchi_02.csv``
+        ..., in flight order; a :class:`UserWarning` says so.
     figsize, dpi
         Map size (inches) and resolution.
     **mission_options
@@ -154,7 +164,8 @@ def export_all(
     Returns
     -------
     dict of str to Path
-        Keys of :data:`OUTPUT_NAMES`.
+        Keys of :data:`OUTPUT_NAMES`, plus ``litchi_01``, ``litchi_02`` ...
+        for the Litchi missions when they are written.
 
     Raises
     ------
@@ -172,13 +183,22 @@ def export_all(
         "figure": plan_png_bytes(plan, field=field, figsize=figsize, dpi=dpi),
     }
     n_litchi = len(litchi_waypoints(plan, flight))
+    names = dict(OUTPUT_NAMES)
     if litchi_max_waypoints is None and n_litchi > LITCHI_MAX_WAYPOINTS:
+        if flight is None and plan.flights:
+            parts = litchi_mission_texts(plan, hover_ms=litchi_hover_ms)
+            for k, text in enumerate(parts, start=1):
+                contents[f"litchi_{k:02d}"] = text
+                names[f"litchi_{k:02d}"] = f"litchi_{k:02d}.csv"
+            hint = f"the flights are also written as {len(parts)} missions litchi_01.csv ... litchi_{len(parts):02d}.csv"
+        else:
+            hint = "export one flight at a time"
         warnings.warn(f"litchi.csv has {n_litchi} waypoints; Litchi accepts at most {LITCHI_MAX_WAYPOINTS} per "
-                      "mission: export one flight at a time", UserWarning, stacklevel=2)
+                      f"mission: {hint}", UserWarning, stacklevel=2)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise PihimInputError(f"{out} exists and is not a directory")
-    paths = {key: out / name for key, name in OUTPUT_NAMES.items()}
+    paths = {key: out / name for key, name in names.items()}
     with contextlib.ExitStack() as stack:
         for key, data in contents.items():
             write_data(stack.enter_context(atomic_path(paths[key])), data, newline="\n")

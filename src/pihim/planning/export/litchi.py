@@ -26,7 +26,10 @@ Take-off and landing are Litchi's own; waypoints of kind ``takeoff`` and
 Action, Path Mode *straight lines*, Cruising Speed) must be set in the
 Mission Hub after import. Litchi missions hold at most 99 waypoints (the DJI
 waypoint-mission limit); longer plans are refused by default
-(``max_waypoints``): export one flight at a time.
+(``max_waypoints``): export one flight at a time, or let
+:func:`litchi_missions` cut every flight into missions of at most 99
+waypoints at pass boundaries (``pihim plan`` writes them as
+``litchi_01.csv`` ... when ``litchi.csv`` is longer).
 
 OpenCSP's UFACET planner writes Litchi CSVs the same way (from a template
 exported by the Mission Hub, 8-decimal longitude and latitude, altitude,
@@ -46,6 +49,7 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 from pathlib import Path
 
 from pihim.errors import PihimInputError
@@ -64,6 +68,8 @@ __all__ = [
     "LITCHI_HEADER",
     "LITCHI_MAX_WAYPOINTS",
     "litchi_csv_text",
+    "litchi_mission_texts",
+    "litchi_missions",
     "litchi_waypoints",
     "write_litchi_csv",
 ]
@@ -117,17 +123,57 @@ def litchi_csv_text(
 ) -> str:
     """The Litchi CSV text (see :func:`write_litchi_csv`)."""
     check_plan(plan)
-    if isinstance(hover_ms, bool) or not isinstance(hover_ms, int) or hover_ms < 0:
-        raise PihimInputError(f"hover_ms must be a whole number of milliseconds >= 0, got {hover_ms!r}")
     wps = litchi_waypoints(plan, flight)
     if not wps:
         raise PihimInputError("no waypoints to write to the Litchi CSV (only take-off/landing)")
     if max_waypoints is not None and len(wps) > max_waypoints:
         raise PihimInputError(
             f"{len(wps)} waypoints exceed Litchi's limit of {max_waypoints} per mission: "
-            "export one flight at a time (flight=...) or pass max_waypoints=None"
+            "export one flight at a time (flight=...), split with litchi_missions or pass max_waypoints=None"
         )
-    home_h = plan.home.height_m
+    return _csv_text(wps, plan.home.height_m, hover_ms)
+
+
+def litchi_missions(plan: Plan, max_waypoints: int = LITCHI_MAX_WAYPOINTS) -> tuple[tuple[Waypoint, ...], ...]:
+    """The plan's flights cut into Litchi missions of at most ``max_waypoints`` waypoints.
+
+    Missions follow the flights in order and never span two flights (two
+    batteries). Within a flight a mission ends just before a pass's lead-in
+    or a transit waypoint, taking as many whole passes as fit; only a pass
+    longer than ``max_waypoints`` by itself is cut inside (between two of
+    its waypoints). Take-off and landing are Litchi's own and left out.
+
+    Returns
+    -------
+    tuple of tuple of Waypoint
+        The missions, each non-empty; their concatenation is every flight's
+        Litchi waypoints in order.
+    """
+    check_plan(plan)
+    if isinstance(max_waypoints, bool) or not isinstance(max_waypoints, int) or max_waypoints < 1:
+        raise PihimInputError(f"max_waypoints must be a positive integer, got {max_waypoints!r}")
+    missions: list[tuple[Waypoint, ...]] = []
+    for f in plan.flights:
+        wps = litchi_waypoints(plan, f.index)
+        cuts = [k for k, w in enumerate(wps) if k == 0 or w.kind in ("lead_in", "transit")] + [len(wps)]
+        current: list[Waypoint] = []
+        for a, b in itertools.pairwise(cuts):
+            segment = list(wps[a:b])
+            if current and len(current) + len(segment) > max_waypoints:
+                missions.append(tuple(current))
+                current = []
+            while len(segment) > max_waypoints:  # one pass longer than a mission
+                missions.append(tuple(segment[:max_waypoints]))
+                segment = segment[max_waypoints:]
+            current += segment
+        if current:
+            missions.append(tuple(current))
+    return tuple(missions)
+
+
+def _csv_text(wps: tuple[Waypoint, ...], home_h: float, hover_ms: int) -> str:
+    if isinstance(hover_ms, bool) or not isinstance(hover_ms, int) or hover_ms < 0:
+        raise PihimInputError(f"hover_ms must be a whole number of milliseconds >= 0, got {hover_ms!r}")
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(LITCHI_HEADER)
@@ -202,3 +248,9 @@ def write_litchi_csv(
     """
     text = litchi_csv_text(plan, flight=flight, hover_ms=hover_ms, max_waypoints=max_waypoints)
     return write_export(path, text, newline="\n")
+
+
+def litchi_mission_texts(plan: Plan, *, hover_ms: int = 0,
+                         max_waypoints: int = LITCHI_MAX_WAYPOINTS) -> tuple[str, ...]:
+    """Litchi CSV texts of :func:`litchi_missions`, one per mission."""
+    return tuple(_csv_text(m, plan.home.height_m, hover_ms) for m in litchi_missions(plan, max_waypoints))
