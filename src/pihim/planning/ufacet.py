@@ -673,6 +673,145 @@ def _move_huas(ctx: _Context, cand: Candidates, line_of: NDArray[np.int64], line
     return out
 
 
+def _assign_lines(ctx: _Context, all_cand: Candidates, chain: NDArray[np.int64], b: NDArray[np.float64],
+                  st: UfacetSettings, abreast: float, merge_lat: float,
+                  wanted: NDArray[np.bool_]) -> tuple[_Context, NDArray[np.int64], NDArray, NDArray, Views]:
+    """Line of every HUA, each line's sideways offset and altitude, and the views of every candidate pair.
+
+    Steps 1-3 of the module docstring: the chains' lines get their best
+    offset and altitude; HUAs not imaged move to a nearby line; extra lines
+    are built for the HUAs left. Returns the context (with the extra lines),
+    the line per heliostat, offset and altitude per line and the views.
+    """
+    cand, c = ctx.cand, ctx.pose.mirror_centres
+    n_h = len(chain)
+    has_cand = np.zeros(n_h, dtype=bool)
+    has_cand[all_cand.hua] = True
+    line_of = chain.copy()
+    every_pair = np.arange(len(cand))
+    mi, zi = _choose_line_settings(ctx, every_pair, line_of, n_h)
+    line_off, line_z = ctx.offsets[mi], ctx.altitudes[zi]
+
+    def evaluate(assign: NDArray[np.int64]) -> Views:
+        ln = assign[cand.hua]
+        return ctx.views(every_pair, ln, line_off[ln], line_z[ln])
+
+    views = evaluate(line_of)
+    imaged = np.zeros(n_h, dtype=bool)
+    imaged[cand.hua[views.ok]] = True
+    moved = _move_huas(ctx, cand, line_of, line_off, line_z, imaged, b, st, merge_lat, wanted)
+    if np.any(moved != line_of):
+        line_of = moved
+        views = evaluate(line_of)
+    # HUAs still not imaged: extra lines built the same way among them only, then one line per HUA left
+    # (its own normals' plane), each shifted and raised like the others
+    for alone in ((False, True) if st.extra_passes else ()):
+        imaged[:] = False
+        imaged[cand.hua[views.ok]] = True
+        left = np.flatnonzero(wanted & has_cand & ~imaged)
+        if len(left) == 0:
+            break
+        if alone:
+            sub_id = np.arange(len(left))
+        else:
+            is_left = np.zeros(n_h, dtype=bool)
+            is_left[left] = True
+            among = all_cand.take(is_left[all_cand.hua] & is_left[all_cand.target])
+            _, sub_id = np.unique(link_chains(plane_links(among, n_h, abreast), c)[left], return_inverse=True)
+        extra = chain_lines(sub_id, b[left], c[left, :2])
+        n0 = len(ctx.lines)
+        ctx = dataclasses.replace(ctx, lines=ScanLines(np.r_[ctx.lines.origin, extra.origin],
+                                                       np.r_[ctx.lines.direction, extra.direction]))
+        trial = line_of.copy()
+        trial[left] = n0 + sub_id
+        mi2, zi2 = _choose_line_settings(ctx, np.flatnonzero(np.isin(cand.hua, left)), trial, n_h)
+        line_off = np.r_[line_off, ctx.offsets[mi2[n0:]]]
+        line_z = np.r_[line_z, ctx.altitudes[zi2[n0:]]]
+        v2 = evaluate(trial)
+        rescued = np.zeros(n_h, dtype=bool)
+        rescued[cand.hua[v2.ok]] = True
+        line_of = np.where(rescued & ~imaged, trial, line_of)
+        views = evaluate(line_of)
+    return ctx, line_of, line_off, line_z, views
+
+
+def _corners_hidden(ctx: _Context, hua: NDArray[np.int64], cam: NDArray[np.float64],
+                    corner_inset: float) -> NDArray[np.int64]:
+    """How many of the 4 mirror corners of each HUA a mirror or the tower hides from its camera."""
+    if len(hua) == 0:
+        return np.zeros(0, dtype=np.int64)
+    c = ctx.pose.mirror_centres
+    outline = ctx.pose.mirror_outline()
+    corners = c[hua][:, None, :] + (1.0 - corner_inset) * (outline[hua] - c[hua][:, None, :])
+    q0 = np.repeat(cam, 4, axis=0)
+    q1 = corners.reshape(-1, 3)
+    q1 = q1 + 1e-6 * unit(q0 - q1)
+    hits = ctx.mirrors.first_hits(q0, q1, np.repeat(hua, 4)[:, None])
+    if ctx.limits.tower_box is not None:
+        hits = np.where((hits < 0) & segments_hit_box(q0, q1, *ctx.limits.tower_box), TOWER_HIT, hits)
+    return (hits.reshape(-1, 4) != -1).sum(axis=1)
+
+
+def _order_around_tower(centres_xy: list[NDArray[np.float64]], tower: Any) -> NDArray[np.int64]:
+    """Passes by azimuth of their HUAs' centroid around the tower, starting after the largest empty sector."""
+    centre = np.zeros(2) if tower is None else np.array([0.5 * (tower.x_min_m + tower.x_max_m),
+                                                         0.5 * (tower.y_min_m + tower.y_max_m)])
+    n = len(centres_xy)
+    az = np.array([float(azimuth_deg(*(m - centre))) for m in centres_xy]) if n else np.zeros(0)
+    order = np.argsort(az, kind="stable")
+    if n > 1:
+        a_sorted = az[order]
+        gaps = np.diff(np.r_[a_sorted, a_sorted[0] + 360.0])
+        start = (int(np.argmax(gaps)) + 1) % n
+        order = np.r_[order[start:], order[:start]]
+    return order
+
+
+def _flux_issues(paths: list[list[NDArray[np.float64]]], pose: FieldPose, aim: NDArray[np.float64],
+                 st: UfacetSettings) -> dict[int, str]:
+    """Concentrated-sunlight warnings per pass, sampled every ``flux_sample_m`` along its waypoints."""
+    samples, owner = [], []
+    for k, pts in enumerate(paths):
+        xyz = np.array(pts)
+        seg = np.diff(xyz, axis=0)
+        for a_, d_, l_ in zip(xyz[:-1], seg, np.linalg.norm(seg, axis=1), strict=True):
+            m_ = max(1, math.ceil(l_ / st.flux_sample_m))
+            samples.append(a_ + np.outer(np.arange(m_) / m_, d_))
+            owner.append(np.full(m_, k))
+        samples.append(xyz[-1:])
+        owner.append(np.array([k]))
+    ow = np.concatenate(owner)
+    suns = beam_concentration(np.concatenate(samples), pose, aim, divergence_mrad=st.beam_divergence_mrad)
+    out = {}
+    for k in np.unique(ow[suns > st.flux_limit_suns]).tolist():
+        m_ = (ow == k) & (suns > st.flux_limit_suns)
+        out[int(k)] = (f"concentrated sunlight up to {suns[m_].max():.1f} suns (limit {st.flux_limit_suns:g}) at "
+                       f"{int(m_.sum())} of {int((ow == k).sum())} points along the pass")
+    return out
+
+
+def _scan_passes(drafts: list[tuple], origin: GeodeticOrigin, speed_m_s: float) -> list[ScanPass]:
+    """ScanPass objects from (index, azimuth, altitude, pitch, pairs, waypoints, feasible, issues) drafts.
+
+    Geodetic coordinates of every waypoint are converted at once.
+    """
+    all_xyz = np.array([w_[0] for p_ in drafts for w_ in p_[5]]) if drafts else np.zeros((0, 3))
+    lat, lon, hgt = enu_to_geodetic(all_xyz, origin) if len(all_xyz) else (np.zeros(0),) * 3
+    passes: list[ScanPass] = []
+    q = 0
+    for rank_, azi, z, gp, pr, wps, feasible, issues in drafts:
+        wl = []
+        for xyz, hd, gpw, kind, capture, hua in wps:
+            hd = float(hd) % 360.0
+            wl.append(Waypoint(float(xyz[0]), float(xyz[1]), float(xyz[2]), float(lat[q]), float(lon[q]),
+                               float(hgt[q]), 0.0 if hd >= 360.0 else hd, float(gpw), float(speed_m_s),
+                               kind=kind, capture=capture, hua=hua))
+            q += 1
+        passes.append(ScanPass(index=rank_, azimuth_deg=azi, altitude_m=z, gimbal_pitch_deg=gp, pairs=pr,
+                               waypoints=tuple(wl), feasible=feasible, issues=tuple(issues)))
+    return passes
+
+
 def _pair_issue(code: int, label: str, hua: str, target: str, v: Views, i: int, nm: Any,
                 st: UfacetSettings, limit_m: float) -> str:
     if code == VIEW_REFLECTION_BLOCKED:
@@ -758,64 +897,20 @@ def plan_ufacet(
                                  max_off_axis_deg=st.max_off_axis_deg, max_lateral_m=max_lateral)
     b, _ = horizontal_normals(pose)
     chain = link_chains(plane_links(all_cand, n_h, abreast), c)
-    lines = chain_lines(chain, b, c[:, :2])
     cand = all_cand.take(wanted[all_cand.hua])
     has_cand = np.zeros(n_h, dtype=bool)
     has_cand[all_cand.hua] = True
     limits = ViewLimits(st.max_range_m, st.min_reflection_elevation_deg, st.gimbal_pitch_min_deg,
                         st.gimbal_pitch_max_deg, tower_box(tower), tower_box(tower, st.tower_clearance_m),
                         spec.mirror_width_m if st.max_camera_offset_m is None else st.max_camera_offset_m)
-    ctx = _Context(pose, MirrorIndex(pose), limits, camera, cand, pair_geometry(pose, cand.hua, cand.target), lines,
-                   line_offsets(st.line_offset_max_m, st.line_offset_step_m),
+    merge_lat = 1.5 * spec.mirror_width_m if st.merge_lateral_m is None else st.merge_lateral_m
+    ctx = _Context(pose, MirrorIndex(pose), limits, camera, cand, pair_geometry(pose, cand.hua, cand.target),
+                   chain_lines(chain, b, c[:, :2]), line_offsets(st.line_offset_max_m, st.line_offset_step_m),
                    _altitude_grid(min_alt, max_altitude_m, st.altitude_step_m))
 
-    # ---------------------------------------------------------------- offset and altitude of each line
-    line_of = chain.copy()
-    every_pair = np.arange(len(cand))
-    mi, zi = _choose_line_settings(ctx, every_pair, line_of, n_h)
-    line_off, line_z = ctx.offsets[mi], ctx.altitudes[zi]
-
-    def evaluate(assign: NDArray[np.int64]) -> Views:
-        ln = assign[cand.hua]
-        return ctx.views(every_pair, ln, line_off[ln], line_z[ln])
-
-    views = evaluate(line_of)
-    imaged = np.zeros(n_h, dtype=bool)
-    imaged[cand.hua[views.ok]] = True
-    merge_lat = 1.5 * spec.mirror_width_m if st.merge_lateral_m is None else st.merge_lateral_m
-    moved = _move_huas(ctx, cand, line_of, line_off, line_z, imaged, b, st, merge_lat, wanted)
-    if np.any(moved != line_of):
-        line_of = moved
-        views = evaluate(line_of)
-    # HUAs still not imaged: extra lines built the same way among them only, then one line per HUA left
-    # (its own normals' plane), each shifted and raised like the others
-    for alone in ((False, True) if st.extra_passes else ()):
-        imaged[:] = False
-        imaged[cand.hua[views.ok]] = True
-        left = np.flatnonzero(wanted & has_cand & ~imaged)
-        if len(left) == 0:
-            break
-        if alone:
-            sub_id = np.arange(len(left))
-        else:
-            is_left = np.zeros(n_h, dtype=bool)
-            is_left[left] = True
-            among = all_cand.take(is_left[all_cand.hua] & is_left[all_cand.target])
-            _, sub_id = np.unique(link_chains(plane_links(among, n_h, abreast), c)[left], return_inverse=True)
-        extra = chain_lines(sub_id, b[left], c[left, :2])
-        n0 = len(lines)
-        lines = ScanLines(np.r_[lines.origin, extra.origin], np.r_[lines.direction, extra.direction])
-        ctx = dataclasses.replace(ctx, lines=lines)
-        trial = line_of.copy()
-        trial[left] = n0 + sub_id
-        mi2, zi2 = _choose_line_settings(ctx, np.flatnonzero(np.isin(cand.hua, left)), trial, n_h)
-        line_off = np.r_[line_off, ctx.offsets[mi2[n0:]]]
-        line_z = np.r_[line_z, ctx.altitudes[zi2[n0:]]]
-        v2 = evaluate(trial)
-        rescued = np.zeros(n_h, dtype=bool)
-        rescued[cand.hua[v2.ok]] = True
-        line_of = np.where(rescued & ~imaged, trial, line_of)
-        views = evaluate(line_of)
+    # ---------------------------------------------------------------- offset, altitude and HUAs of each line
+    ctx, line_of, line_off, line_z, views = _assign_lines(ctx, all_cand, chain, b, st, abreast, merge_lat, wanted)
+    lines = ctx.lines  # with the extra lines
 
     # ---------------------------------------------------------------- captures: up to max_targets per HUA
     ok = views.ok
@@ -832,20 +927,8 @@ def plan_ufacet(
     cap_idx = np.flatnonzero(capture)
     in_frame[cap_idx] = ctx.facets_in_view(cand.hua[cap_idx], cam[cap_idx])
     n_facets = pose.facet_centres.shape[1]
-    # corners of the HUA seen from the capture points
-    outline = pose.mirror_outline()
-    inset = 1.0 - st.corner_inset
     corner_blocked = np.zeros(len(cand), dtype=np.int64)
-    if len(cap_idx):
-        hh = cand.hua[cap_idx]
-        corners = c[hh][:, None, :] + inset * (outline[hh] - c[hh][:, None, :])
-        q0 = np.repeat(cam[cap_idx], 4, axis=0)
-        q1 = corners.reshape(-1, 3)
-        q1 = q1 + 1e-6 * unit(q0 - q1)
-        hits = ctx.mirrors.first_hits(q0, q1, np.repeat(hh, 4)[:, None])
-        if limits.tower_box is not None:
-            hits = np.where((hits < 0) & segments_hit_box(q0, q1, *limits.tower_box), TOWER_HIT, hits)
-        corner_blocked[cap_idx] = (hits.reshape(-1, 4) != -1).sum(axis=1)
+    corner_blocked[cap_idx] = _corners_hidden(ctx, cand.hua[cap_idx], cam[cap_idx], st.corner_inset)
 
     # ---------------------------------------------------------------- passes: lines with a wanted HUA to assess
     def nm(k: int) -> str:
@@ -891,21 +974,7 @@ def plan_ufacet(
         if h not in assessed:
             unassessed.append((names[h], "every candidate target blocked or out of reach"))
 
-    # order: azimuth of the pass around the tower, starting after the largest empty sector
-    centre_xy = np.zeros(2) if tower is None else np.array([0.5 * (tower.x_min_m + tower.x_max_m),
-                                                            0.5 * (tower.y_min_m + tower.y_max_m)])
-    n_pass = len(drafts)
-    az = np.zeros(n_pass)
-    for k, (_, idx, _, _) in enumerate(drafts):
-        m_ = c[np.unique(cand.hua[idx]), :2].mean(axis=0) - centre_xy
-        az[k] = azimuth_deg(m_[0], m_[1])
-    order = np.argsort(az, kind="stable")
-    if n_pass > 1:
-        a_sorted = az[order]
-        gaps = np.diff(np.r_[a_sorted, a_sorted[0] + 360.0])
-        start = (int(np.argmax(gaps)) + 1) % n_pass
-        order = np.r_[order[start:], order[:start]]
-
+    order = _order_around_tower([c[np.unique(cand.hua[idx]), :2].mean(axis=0) for _, idx, _, _ in drafts], tower)
     passes_enu = []
     for rank_, k in enumerate(order.tolist()):
         ln, idx, cap, issues = drafts[k]
@@ -938,44 +1007,10 @@ def plan_ufacet(
         nominal_pitch = float(np.median(pitch[use])) if feasible else g0
         passes_enu.append((rank_, float(azimuth_deg(e[0], e[1])), z, nominal_pitch, pr, wps, feasible, issues))
 
-    # flux along the passes
     if settings.flux_check and passes_enu:
-        samples, owner = [], []
-        for k, (_, _, _, _, _, wps, _, _) in enumerate(passes_enu):
-            xyz = np.array([w_[0] for w_ in wps])
-            seg = np.diff(xyz, axis=0)
-            lens = np.linalg.norm(seg, axis=1)
-            for a_, d_, l_ in zip(xyz[:-1], seg, lens):
-                m_ = max(1, math.ceil(l_ / settings.flux_sample_m))
-                samples.append(a_ + np.outer(np.arange(m_) / m_, d_))
-                owner.append(np.full(m_, k))
-            samples.append(xyz[-1:])
-            owner.append(np.array([k]))
-        sp = np.concatenate(samples)
-        ow = np.concatenate(owner)
-        suns = beam_concentration(sp, pose, aim, divergence_mrad=settings.beam_divergence_mrad)
-        for k in np.unique(ow[suns > settings.flux_limit_suns]).tolist():
-            m_ = (ow == k) & (suns > settings.flux_limit_suns)
-            passes_enu[k][7].append(
-                f"concentrated sunlight up to {suns[m_].max():.1f} suns (limit {settings.flux_limit_suns:g}) at "
-                f"{int(m_.sum())} of {int((ow == k).sum())} points along the pass"
-            )
-
-    # WGS84 for every waypoint at once
-    all_xyz = np.array([w_[0] for p_ in passes_enu for w_ in p_[5]]) if passes_enu else np.zeros((0, 3))
-    lat, lon, hgt = enu_to_geodetic(all_xyz, org) if len(all_xyz) else (np.zeros(0),) * 3
-    passes: list[ScanPass] = []
-    q = 0
-    for rank_, azi, z, gp, pr, wps, feasible, issues in passes_enu:
-        wl = []
-        for xyz, hd, gpw, kind, capture, hua in wps:
-            hd = float(hd) % 360.0
-            wl.append(Waypoint(float(xyz[0]), float(xyz[1]), float(xyz[2]), float(lat[q]), float(lon[q]),
-                               float(hgt[q]), 0.0 if hd >= 360.0 else hd, float(gpw), float(speed_m_s),
-                               kind=kind, capture=capture, hua=hua))  # type: ignore[arg-type]
-            q += 1
-        passes.append(ScanPass(index=rank_, azimuth_deg=azi, altitude_m=z, gimbal_pitch_deg=gp, pairs=pr,
-                               waypoints=tuple(wl), feasible=feasible, issues=tuple(issues)))
+        for k, text in _flux_issues([[w_[0] for w_ in p_[5]] for p_ in passes_enu], pose, aim, settings).items():
+            passes_enu[k][7].append(text)
+    passes = _scan_passes(passes_enu, org, speed_m_s)
     return UfacetPlan(
         passes=tuple(passes),
         min_altitude_m=float(min_alt),
