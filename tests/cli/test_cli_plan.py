@@ -51,6 +51,7 @@ def test_plan_writes_every_format(tmp_path, capsys):
         (["--time", TIME, "--aim", "0,0,-1"], "above the ground"),
         (["--time", TIME, "--heliostats", "8E3,99W1"], "unknown heliostat"),
         (["--time", TIME, "--max-altitude", "8"], "no feasible pass"),
+        (["--time", TIME, "--heliostats", "5W1,5E2"], "no scan pass to fly: 5e2: no target heliostat in front"),
     ],
 )
 def test_impossible_requests(tmp_path, capsys, args, needle):

@@ -28,7 +28,7 @@ from pihim.planning.endurance import (
 from pihim.planning.lines import alignment_summary
 from pihim.planning.model import Plan
 from pihim.planning.scoring import ScoringModel, ShiftSearch, coverage, score_passes
-from pihim.planning.ufacet import home_waypoint, plan_passes, track_at
+from pihim.planning.ufacet import home_waypoint, plan_ufacet, track_at
 from pihim.sky.sun import Site
 
 
@@ -99,8 +99,13 @@ def build_plan(
     endurance = endurance or DroneEndurance()
     scoring = scoring or ScoringModel()
     sun, pose = track_at(field, time, aim_point=aim, site=site)
-    passes = plan_passes(field, pose, aim_point=aim, origin=site, camera=camera,
-                         max_altitude_m=max_altitude_m, heliostats=heliostats)
+    planned = plan_ufacet(field, pose, aim_point=aim, origin=site, camera=camera,
+                          max_altitude_m=max_altitude_m, heliostats=heliostats)
+    passes = planned.passes
+    if not passes:
+        first = "; ".join(f"{n}: {why}" for n, why in planned.unassessed[:3])
+        more = f" (and {len(planned.unassessed) - 3} more)" if len(planned.unassessed) > 3 else ""
+        raise PihimInputError(f"no scan pass to fly: {first}{more}")
     t_plan = _time.perf_counter()
     scored = score_passes(passes, pose, sun.vector, model=scoring, camera=camera, aim_point=aim, origin=site,
                           search=ShiftSearch(max_altitude_m=max_altitude_m) if shift else None)
