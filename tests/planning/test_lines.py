@@ -68,8 +68,8 @@ def test_links_follow_the_normals_plane_not_the_nearest_heliostat() -> None:
     assert link[1] == 3 and link[3] == -1
     chain = link_chains(link, pose.mirror_centres)
     assert chain[0] == chain[1] == chain[3]
-    lines = chain_lines(chain, *horizontal_normals(pose)[:1], pose.mirror_centres[:, :2])
     b, _ = horizontal_normals(pose)
+    lines = chain_lines(chain, b, pose.mirror_centres[:, :2])
     k = chain[0]
     expect = unit(b[[0, 1, 3]].sum(axis=0))
     assert np.allclose(lines.direction[k], expect)

@@ -387,7 +387,7 @@ def pair_geometry(pose: FieldPose, hua: NDArray[np.int64], target: NDArray[np.in
     ch, nh, ct = c[hua], n[hua], c[target]
     u = unit(ct - ch)
     w = 2.0 * dot(u, nh)[:, None] * nh - u
-    nxy = nh[:, :2] / np.maximum(np.hypot(nh[:, 0], nh[:, 1]), 1e-12)[:, None]
+    nxy = horizontal_normals(pose)[0][hua]
     rot = pose.rotations[target]
     spec = pose.field.spec  # type: ignore[attr-defined]
     return PairGeometry(hua, target, ch, nh, nxy, ct, n[target], np.ascontiguousarray(rot[:, :, 0]),

@@ -98,7 +98,7 @@ import dataclasses
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -790,12 +790,22 @@ def _flux_issues(paths: list[list[NDArray[np.float64]]], pose: FieldPose, aim: N
     return out
 
 
-def _scan_passes(drafts: list[tuple], origin: GeodeticOrigin, speed_m_s: float) -> list[ScanPass]:
-    """ScanPass objects from (index, azimuth, altitude, pitch, pairs, waypoints, feasible, issues) drafts.
+class _PassDraft(NamedTuple):
+    """A pass before geodetic conversion (internal); waypoints are (xyz, heading, pitch, kind, capture, hua)."""
 
-    Geodetic coordinates of every waypoint are converted at once.
-    """
-    all_xyz = np.array([w_[0] for p_ in drafts for w_ in p_[5]]) if drafts else np.zeros((0, 3))
+    index: int
+    azimuth_deg: float
+    altitude_m: float
+    pitch_deg: float
+    pairs: tuple[tuple[str, str], ...]
+    waypoints: list[tuple[NDArray[np.float64], float, float, str, bool, str | None]]
+    feasible: bool
+    issues: list[str]
+
+
+def _scan_passes(drafts: list[_PassDraft], origin: GeodeticOrigin, speed_m_s: float) -> list[ScanPass]:
+    """ScanPass objects from drafts; geodetic coordinates of every waypoint are converted at once."""
+    all_xyz = np.array([w_[0] for d in drafts for w_ in d.waypoints]) if drafts else np.zeros((0, 3))
     lat, lon, hgt = enu_to_geodetic(all_xyz, origin) if len(all_xyz) else (np.zeros(0),) * 3
     passes: list[ScanPass] = []
     q = 0
@@ -975,7 +985,7 @@ def plan_ufacet(
             unassessed.append((names[h], "every candidate target blocked or out of reach"))
 
     order = _order_around_tower([c[np.unique(cand.hua[idx]), :2].mean(axis=0) for _, idx, _, _ in drafts], tower)
-    passes_enu = []
+    passes_enu: list[_PassDraft] = []
     for rank_, k in enumerate(order.tolist()):
         ln, idx, cap, issues = drafts[k]
         issues = issues + extra.get(int(ln), [])
@@ -1005,11 +1015,13 @@ def plan_ufacet(
         wps.append((last, h1, g1, "run_past", False, None))
         pr = tuple((names[int(cand.hua[p])], names[int(cand.target[p])]) for p in use.tolist())
         nominal_pitch = float(np.median(pitch[use])) if feasible else g0
-        passes_enu.append((rank_, float(azimuth_deg(e[0], e[1])), z, nominal_pitch, pr, wps, feasible, issues))
+        passes_enu.append(_PassDraft(rank_, float(azimuth_deg(e[0], e[1])), z, nominal_pitch, pr, wps, feasible,
+                                     issues))
 
     if settings.flux_check and passes_enu:
-        for k, text in _flux_issues([[w_[0] for w_ in p_[5]] for p_ in passes_enu], pose, aim, settings).items():
-            passes_enu[k][7].append(text)
+        for k, text in _flux_issues([[w_[0] for w_ in d.waypoints] for d in passes_enu], pose, aim,
+                                    settings).items():
+            passes_enu[k].issues.append(text)
     passes = _scan_passes(passes_enu, org, speed_m_s)
     return UfacetPlan(
         passes=tuple(passes),
