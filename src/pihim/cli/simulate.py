@@ -1,0 +1,198 @@
+"""``pihim simulate``: one synthetic raw frame of a tracking field, with its log and its ground truth.
+
+A thin layer over :func:`pihim.render.simulate.simulate_frame` and
+:func:`pihim.render.simulate.write_simulated_frame`; see ``docs/cli.md``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import time as _time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from pihim.camera.model import CameraModel
+from pihim.cli._common import emit_json, load_field_option, parse_point, stderr_console
+from pihim.errors import PihimInputError
+from pihim.field import UFACET_AIM_POINT
+from pihim.render.frame import RenderSettings
+from pihim.render.simulate import (
+    LookAtPose,
+    PairPose,
+    PoseRequest,
+    WaypointPose,
+    simulate_frame,
+    simulated_frame_paths,
+    write_simulated_frame,
+)
+from pihim.sky.sun import parse_site
+
+SUMMARY_SCHEMA_ID = "pihim.simulate-summary/1"
+_TRITON_WIDTH_PX = 2448
+_TRITON_FOCAL_MM = 35.0
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``WxH`` (even, at least 16 x 16) to ``(width, height)``."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise PihimInputError(f"--size must look like 2448x2048, got {text!r}") from None
+    if w < 16 or h < 16 or w % 2 or h % 2:
+        raise PihimInputError(f"--size must be even and at least 16x16, got {text}")
+    return w, h
+
+
+def camera_for_size(width: int, height: int) -> CameraModel:
+    """The Triton + 35 mm camera at another pixel count, with the same horizontal field of view.
+
+    The focal length is scaled with the width (pixel pitch unchanged), so a
+    small frame sees what the full frame sees, with fewer pixels.
+    """
+    if (width, height) == (CameraModel().width_px, CameraModel().height_px):
+        return CameraModel()
+    return CameraModel(width_px=width, height_px=height, focal_length_mm=_TRITON_FOCAL_MM * width / _TRITON_WIDTH_PX,
+                       name=f"Lucid Triton TRI050S-PC + 35 mm, scaled to {width}x{height} (same horizontal FOV)")
+
+
+def parse_pose_request(hua: str | None, target: str | None, waypoint: str | None, camera: str | None,
+                       look_at: str | None, roll: float | None) -> PoseRequest:
+    """Exactly one of ``--hua/--target``, ``--waypoint`` or ``--camera/--look-at [--roll]``."""
+    pair = hua is not None or target is not None
+    way = waypoint is not None
+    look = camera is not None or look_at is not None or roll is not None
+    chosen = sum((pair, way, look))
+    if chosen != 1:
+        what = "none was given" if chosen == 0 else "several were given"
+        raise PihimInputError(
+            f"give exactly one camera pose: --hua NAME --target NAME, --waypoint plan.json:INDEX, "
+            f"or --camera X,Y,Z --look-at X,Y,Z ({what})"
+        )
+    if pair:
+        if hua is None or target is None:
+            raise PihimInputError("--hua and --target go together")
+        return PairPose(hua.strip(), target.strip())
+    if way:
+        assert waypoint is not None
+        path, sep, idx = waypoint.rpartition(":")
+        if not sep or not path:
+            raise PihimInputError(f"--waypoint must be PLAN.json:INDEX, got {waypoint!r}")
+        try:
+            index = int(idx)
+        except ValueError:
+            raise PihimInputError(f"--waypoint index must be an integer >= 0, got {idx!r}") from None
+        if index < 0:
+            raise PihimInputError(f"--waypoint index must be an integer >= 0, got {index}")
+        if not Path(path).is_file():
+            raise PihimInputError(f"--waypoint {path}: no such file")
+        return WaypointPose(path, index)
+    if camera is None or look_at is None:
+        raise PihimInputError("--camera and --look-at go together (--roll needs them)")
+    cam = parse_point(camera, name="--camera")
+    tgt = parse_point(look_at, name="--look-at")
+    assert cam is not None and tgt is not None
+    if cam == tgt:
+        raise PihimInputError(f"--look-at equals --camera ({camera}): the camera must look somewhere")
+    return LookAtPose(tuple(cam), tuple(tgt), 0.0 if roll is None else float(roll))  # type: ignore[arg-type]
+
+
+@contextlib.contextmanager
+def _render_progress(enabled: bool) -> Iterator[Callable[[int, int], Any] | None]:
+    """A ``progress(done, total)`` callback drawing a bar on stderr, or None."""
+    if not enabled:
+        yield None
+        return
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
+                  TimeRemainingColumn(), console=stderr_console, transient=True) as bar:
+        task = bar.add_task("rendering", total=None)
+
+        def update(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        yield update
+
+
+def simulate(
+    time: Annotated[str, typer.Option("--time", help="ISO 8601 time with UTC offset, e.g. 2021-05-13T13:00-06:00.")],
+    out: Annotated[Path, typer.Option("--out", help="Raw frame to write, FRAME.tiff (FRAME.json etc. beside it).")],
+    field: Annotated[str, typer.Option("--field", help="nsttf-like (default) or an OpenCSP heliostat CSV.")] = "nsttf-like",
+    facets: Annotated[Path | None, typer.Option(help="OpenCSP facet-centroid CSV (with --field CSV).")] = None,
+    site: Annotated[str, typer.Option(help="nsttf (default) or LAT,LON,H (deg, deg, ellipsoidal m).")] = "nsttf",
+    aim: Annotated[str | None, typer.Option(help="Aim point X,Y,Z (m, ENU); default OpenCSP's UFACET aim 60,8.8,28.9.")] = None,
+    hua: Annotated[str | None, typer.Option("--hua", help="Heliostat under assessment (with --target).")] = None,
+    target: Annotated[str | None, typer.Option("--target", help="Heliostat seen reflected in the HUA.")] = None,
+    waypoint: Annotated[str | None, typer.Option("--waypoint", help="PLAN.json:INDEX, a capture waypoint of pihim plan.")] = None,
+    camera: Annotated[str | None, typer.Option("--camera", help="Camera position X,Y,Z (m, ENU), with --look-at.")] = None,
+    look_at: Annotated[str | None, typer.Option("--look-at", help="Point X,Y,Z (m, ENU) on the optical axis.")] = None,
+    roll: Annotated[float | None, typer.Option("--roll", help="Camera roll, deg (with --camera).")] = None,
+    canting_sigma_mrad: Annotated[float, typer.Option("--canting-sigma-mrad", help="Facet canting error sigma, mrad.")] = 0.0,
+    tracking_sigma_mrad: Annotated[float, typer.Option("--tracking-sigma-mrad", help="Drive-angle error sigma, mrad.")] = 0.0,
+    gps_sigma_m: Annotated[float, typer.Option("--gps-sigma-m", help="Logged position error sigma, m.")] = 0.0,
+    attitude_sigma_deg: Annotated[float, typer.Option("--attitude-sigma-deg", help="Logged attitude error sigma, deg.")] = 0.0,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of every random draw (>= 0).")] = 0,
+    size: Annotated[str, typer.Option("--size", help="Frame size WxH (even); the field of view stays the Triton's.")] = "2448x2048",
+    supersample: Annotated[int, typer.Option("--supersample", help="Edge pixels get N x N rays (1..16).")] = 4,
+    blur_sigma_px: Annotated[float, typer.Option("--blur-sigma-px", help="Gaussian lens blur sigma, pixels.")] = 0.0,
+    json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
+) -> int:
+    """Render a raw polarimetric frame of the tracking field with its log and ground truth."""
+    t0 = _time.perf_counter()
+    # everything is checked before the field is loaded or anything rendered
+    paths = simulated_frame_paths(out)
+    if out.is_dir():
+        raise PihimInputError(f"--out {out}: is a directory; give a FRAME.tiff file name")
+    request = parse_pose_request(hua, target, waypoint, camera, look_at, roll)
+    width, height = parse_size(size)
+    cam = camera_for_size(width, height)
+    settings = RenderSettings(supersample=supersample)
+    site_obj = parse_site(site)
+    aim_point = parse_point(aim, name="--aim") or list(UFACET_AIM_POINT)
+    fld = load_field_option(field, facets, nsttf_tower=site.strip().lower() == "nsttf")
+    nsttf_like = field.strip().lower() in ("nsttf-like", "nsttf")
+    with _render_progress(sys.stderr.isatty()) as bar:
+        sim = simulate_frame(
+            fld, time, site=site_obj, aim_point=aim_point, camera=cam, pose_request=request,
+            canting_sigma_mrad=canting_sigma_mrad, tracking_sigma_mrad=tracking_sigma_mrad,
+            gps_sigma_m=gps_sigma_m, attitude_sigma_deg=attitude_sigma_deg, seed=seed,
+            blur_sigma_px=blur_sigma_px, settings=settings, progress=bar,
+            field_source="nsttf-like" if nsttf_like else str(field),
+            facets_source=None if facets is None else str(facets),
+        )
+    write_simulated_frame(sim, out)
+    seconds = _time.perf_counter() - t0
+    stats = sim.rendered.stats
+    in_view = [h["name"] for h in sim.log["heliostats"]]
+    if json_out:
+        emit_json({
+            "schema": SUMMARY_SCHEMA_ID,
+            "files": {k: str(v) for k, v in paths.items()},
+            "width_px": width,
+            "height_px": height,
+            "time": sim.log["time"],
+            "hua": sim.log["hua"],
+            "target": sim.log["target"],
+            "heliostats_in_view": in_view,
+            "seed": seed,
+            "rays": int(stats.get("rays", 0)),
+            "exposure": sim.log["sensor"]["exposure"],
+            "seconds": {"render": round(float(stats.get("seconds", float("nan"))), 4),
+                        "total": round(seconds, 4)},
+        })
+    else:
+        pair = f"HUA {sim.log['hua']}, target {sim.log['target']}; " if sim.log["hua"] else ""
+        clipped = sim.log["sensor"]["exposure"].get("clipped_fraction") or 0.0
+        stderr_console.print(
+            f"[bold]pihim simulate[/bold]: wrote {out} ({width}x{height} raw) with {paths['json'].name} "
+            f"and S0/DoLP/AoP/labels TIFFs", highlight=False, soft_wrap=True,
+        )
+        stderr_console.print(
+            f"  {pair}{len(in_view)} heliostat{'' if len(in_view) == 1 else 's'} in view; {int(stats.get('rays', 0)):,} rays, "
+            f"{clipped:.2%} clipped, {seconds:.1f} s", highlight=False, soft_wrap=True,
+        )
+    return 0
