@@ -25,7 +25,7 @@ from pihim.polarimetry.stokes import aop_deg
 from pihim.render.frame import RenderSettings, render_frame
 from pihim.render.paths import MIRROR, SKY, STRUCTURE_HIT, trace_paths
 from pihim.render.scene import FACET, STRUCTURE, field_scene, rectangle_scene
-from pihim.render.shading import Environment, SurfaceFinish, shade_paths
+from pihim.render.shading import Environment, GroundTable, MirrorTable, SurfaceFinish, shade_paths
 from pihim.sky.model import SkyModel
 from pihim.sky.sun import NSTTF, parse_time, sun_position
 from pihim.surfaces.mirror import SecondSurfaceMirror
@@ -262,3 +262,21 @@ def test_sun_disc_radiance_and_size():
     r_px = cam.fx_px * math.tan(math.radians(env.sun_half_angle_deg))
     assert sun_px.sum() == pytest.approx(math.pi * r_px**2, rel=0.02)
     assert fr.s0[32, 32] == pytest.approx(env.sun_radiance, rel=1e-3)
+
+
+def test_ground_and_mirror_tables_match_direct_evaluation():
+    env = Environment.clear_sky(SUN)
+    gt = GroundTable(env)
+    rng = np.random.default_rng(5)
+    v = normalize(rng.normal(size=(400, 3)) * [1, 1, 0.6] + [0, 0, 0.8])
+    v = v[v[:, 2] > 0.15]  # views from 0 to ~80 deg zenith
+    vis = rng.random(len(v)) < 0.5
+    got, e = gt.lookup(v, vis)
+    sun_part, _ = env.ground.stokes(v, env.sun_dir, None, e)
+    everything, _ = env.ground.stokes(v, env.sun_dir, env.sky, e)
+    expected = everything - sun_part + vis[:, None] * sun_part
+    err = np.abs(got - expected)[:, :3] / expected[:, :1]
+    assert err.max() < 2e-3
+    mt = MirrorTable(env.mirror)
+    c = rng.random(200)
+    np.testing.assert_allclose(mt.mueller(c), env.mirror.mueller(c), atol=1e-6)

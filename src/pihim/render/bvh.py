@@ -30,12 +30,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, parallel_chunksize, prange
 from numpy.typing import ArrayLike, NDArray
 
 from pihim.errors import PihimInputError
 
-__all__ = ["BLOCK", "RectangleBVH", "build_bvh", "cast_one", "cast_rays"]
+__all__ = ["BLOCK", "DYNAMIC_CHUNK", "RectangleBVH", "build_bvh", "cast_one", "cast_rays"]
 
 #: Fast-math flags that keep IEEE infinities and NaNs (the slab test relies on them).
 _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
@@ -43,6 +43,8 @@ _LEAF_SIZE = 4
 _STACK = 64
 #: Rays per parallel work item (work arrays are allocated once per block).
 BLOCK = 256
+#: Blocks handed to a thread at a time (dynamic scheduling; see numba.parallel_chunksize).
+DYNAMIC_CHUNK = 4
 _INF = np.inf
 
 
@@ -75,6 +77,17 @@ class RectangleBVH:
     node_first: NDArray[np.int64]
     node_count: NDArray[np.int64]
     node_right: NDArray[np.int64]
+
+    def __post_init__(self) -> None:
+        # traversal copies: primitive data in leaf order (contiguous per leaf), node boxes packed
+        prim = np.concatenate([self.origin, self.u_dual, self.v_dual, self.normal], axis=1)[self.order]
+        object.__setattr__(self, "_prim", np.ascontiguousarray(prim))
+        object.__setattr__(self, "_box", np.ascontiguousarray(np.concatenate([self.node_lo, self.node_hi], axis=1)))
+
+    def arrays(self) -> tuple:
+        """The arrays :func:`cast_one` takes, in its order."""
+        return (self._prim, self.order, self._box, self.node_first, self.node_count,  # type: ignore[attr-defined]
+                self.node_right)
 
     @property
     def n_primitives(self) -> int:
@@ -282,17 +295,17 @@ def build_bvh(origin: ArrayLike, edge_u: ArrayLike, edge_v: ArrayLike) -> Rectan
 
 
 @njit(inline="always", cache=True, fastmath=_FAST)
-def _box_entry(lo, hi, node, ox, oy, oz, ix, iy, iz, tmax):  # pragma: no cover - compiled
-    t1 = (lo[node, 0] - ox) * ix
-    t2 = (hi[node, 0] - ox) * ix
+def _box_entry(box, node, ox, oy, oz, ix, iy, iz, tmax):  # pragma: no cover - compiled
+    t1 = (box[node, 0] - ox) * ix
+    t2 = (box[node, 3] - ox) * ix
     tn = min(t1, t2)
     tf = max(t1, t2)
-    t1 = (lo[node, 1] - oy) * iy
-    t2 = (hi[node, 1] - oy) * iy
+    t1 = (box[node, 1] - oy) * iy
+    t2 = (box[node, 4] - oy) * iy
     tn = max(tn, min(t1, t2))
     tf = min(tf, max(t1, t2))
-    t1 = (lo[node, 2] - oz) * iz
-    t2 = (hi[node, 2] - oz) * iz
+    t1 = (box[node, 2] - oz) * iz
+    t2 = (box[node, 5] - oz) * iz
     tn = max(tn, min(t1, t2))
     tf = min(tf, max(t1, t2))
     if tf >= max(tn, 0.0) and tn <= tmax:
@@ -301,24 +314,24 @@ def _box_entry(lo, hi, node, ox, oy, oz, ix, iy, iz, tmax):  # pragma: no cover 
 
 
 @njit(cache=True, fastmath=_FAST)
-def cast_one(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first, node_count, node_right,
+def cast_one(prim, order, box, node_first, node_count, node_right,
              ox, oy, oz, dx, dy, dz, tmin, tmax, skip, any_hit, stack):  # pragma: no cover - compiled
     """Nearest rectangle hit by one ray in ``(tmin, tmax)``, skipping primitive ``skip``.
 
-    Returns ``(t, primitive)``; ``(inf, -1)`` when nothing is hit. With
-    ``any_hit`` the first hit found is returned (shadow rays). ``stack`` is
-    a caller-owned int64 work array of at least 64 entries (allocated once
-    per batch of rays, not per ray).
+    The first six arguments are :meth:`RectangleBVH.arrays`. Returns ``(t,
+    primitive)`` with the primitive's index in the caller's order; ``(inf,
+    -1)`` when nothing is hit. With ``any_hit`` the first hit found is
+    returned (shadow rays). ``stack`` is a caller-owned int64 work array of
+    at least 64 entries (allocated once per batch of rays, not per ray).
     """
     best_t = tmax
-    best_p = -1
-    if node_lo.shape[0] == 0:
+    best_k = -1
+    if box.shape[0] == 0:
         return _INF, -1
     ix = 1.0 / dx if dx != 0.0 else _INF
     iy = 1.0 / dy if dy != 0.0 else _INF
     iz = 1.0 / dz if dz != 0.0 else _INF
-    sp = 0
-    if _box_entry(node_lo, node_hi, 0, ox, oy, oz, ix, iy, iz, best_t) == _INF:
+    if _box_entry(box, 0, ox, oy, oz, ix, iy, iz, best_t) == _INF:
         return _INF, -1
     stack[0] = 0
     sp = 1
@@ -329,39 +342,38 @@ def cast_one(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first
         if cnt > 0:
             first = node_first[node]
             for k in range(first, first + cnt):
-                p = order[k]
-                if p == skip:
-                    continue
-                nx = normal[p, 0]
-                ny = normal[p, 1]
-                nz = normal[p, 2]
+                nx = prim[k, 9]
+                ny = prim[k, 10]
+                nz = prim[k, 11]
                 den = dx * nx + dy * ny + dz * nz
                 if den == 0.0:
                     continue
-                wx = origin[p, 0] - ox
-                wy = origin[p, 1] - oy
-                wz = origin[p, 2] - oz
+                wx = prim[k, 0] - ox
+                wy = prim[k, 1] - oy
+                wz = prim[k, 2] - oz
                 t = (wx * nx + wy * ny + wz * nz) / den
                 if t <= tmin or t >= best_t:
                     continue
-                qx = ox + t * dx - origin[p, 0]
-                qy = oy + t * dy - origin[p, 1]
-                qz = oz + t * dz - origin[p, 2]
-                uu = qx * u_dual[p, 0] + qy * u_dual[p, 1] + qz * u_dual[p, 2]
+                qx = t * dx - wx
+                qy = t * dy - wy
+                qz = t * dz - wz
+                uu = qx * prim[k, 3] + qy * prim[k, 4] + qz * prim[k, 5]
                 if uu < 0.0 or uu > 1.0:
                     continue
-                vv = qx * v_dual[p, 0] + qy * v_dual[p, 1] + qz * v_dual[p, 2]
+                vv = qx * prim[k, 6] + qy * prim[k, 7] + qz * prim[k, 8]
                 if vv < 0.0 or vv > 1.0:
                     continue
+                if order[k] == skip:
+                    continue
                 best_t = t
-                best_p = p
+                best_k = k
                 if any_hit:
-                    return best_t, best_p
+                    return best_t, order[best_k]
             continue
         left = node_first[node]
         right = node_right[node]
-        tl = _box_entry(node_lo, node_hi, left, ox, oy, oz, ix, iy, iz, best_t)
-        tr = _box_entry(node_lo, node_hi, right, ox, oy, oz, ix, iy, iz, best_t)
+        tl = _box_entry(box, left, ox, oy, oz, ix, iy, iz, best_t)
+        tr = _box_entry(box, right, ox, oy, oz, ix, iy, iz, best_t)
         if tl != _INF and tr != _INF:
             if tl <= tr:
                 stack[sp] = right
@@ -376,22 +388,21 @@ def cast_one(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first
         elif tr != _INF:
             stack[sp] = right
             sp += 1
-    if best_p < 0:
+    if best_k < 0:
         return _INF, -1
-    return best_t, best_p
+    return best_t, order[best_k]
 
 
 @njit(parallel=True, cache=True)
-def _cast_many(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first, node_count, node_right,
-               ray_o, ray_d, tmax, t_out, p_out):  # pragma: no cover - compiled
+def _cast_many(prim, order, box, node_first, node_count, node_right, ray_o, ray_d, tmax, t_out,
+               p_out):  # pragma: no cover - compiled
     n = ray_o.shape[0]
     n_blocks = (n + BLOCK - 1) // BLOCK
     for blk in prange(n_blocks):
         stack = np.empty(_STACK, np.int64)
         for i in range(blk * BLOCK, min(n, (blk + 1) * BLOCK)):
-            t, p = cast_one(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first, node_count,
-                            node_right, ray_o[i, 0], ray_o[i, 1], ray_o[i, 2], ray_d[i, 0], ray_d[i, 1],
-                            ray_d[i, 2], 0.0, tmax, -1, False, stack)
+            t, p = cast_one(prim, order, box, node_first, node_count, node_right, ray_o[i, 0], ray_o[i, 1],
+                            ray_o[i, 2], ray_d[i, 0], ray_d[i, 1], ray_d[i, 2], 0.0, tmax, -1, False, stack)
             t_out[i] = t
             p_out[i] = p
 
@@ -423,6 +434,6 @@ def cast_rays(
         raise PihimInputError(f"origins and directions must have the same shape, got {o.shape} and {d.shape}")
     t = np.empty(o.shape[0])
     p = np.empty(o.shape[0], np.int64)
-    _cast_many(bvh.origin, bvh.u_dual, bvh.v_dual, bvh.normal, bvh.order, bvh.node_lo, bvh.node_hi,
-               bvh.node_first, bvh.node_count, bvh.node_right, o, d, float(t_max), t, p)
+    with parallel_chunksize(DYNAMIC_CHUNK):
+        _cast_many(*bvh.arrays(), o, d, float(t_max), t, p)
     return t, p

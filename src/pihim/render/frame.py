@@ -6,7 +6,7 @@
 and shades it (:mod:`pihim.render.paths`, :mod:`pihim.render.shading`),
 then re-renders every pixel whose path differs from a 4-neighbour's (an
 object edge, a facet gap, a shadow border, the sun's limb) with ``n x n``
-stratified sub-pixel rays and replaces its value by their mean. Edges are
+stratified sub-pixel rays (default 3 x 3, the centre ray reused) and replaces its value by their mean. Edges are
 therefore area-weighted to ``1 / n^2`` of a pixel, while the smooth
 interiors cost one ray per pixel.
 
@@ -48,7 +48,9 @@ class RenderSettings:
     Attributes
     ----------
     supersample : int
-        ``n``: edge pixels get ``n x n`` rays (1: no antialiasing).
+        ``n``: edge pixels get ``n x n`` stratified rays, ``1 / n^2`` of the
+        pixel area each (1: no antialiasing). For odd ``n`` the grid contains
+        the pixel centre, whose ray is reused. Default 3 (9 rays).
     max_bounces : int
         Mirror reflections followed per path.
     chunk_rays : int
@@ -58,7 +60,7 @@ class RenderSettings:
         513: about 0.3 deg at the zenith, 0.45 deg at the horizon).
     """
 
-    supersample: int = 4
+    supersample: int = 3
     max_bounces: int = 2
     chunk_rays: int = 1 << 20
     sky_table_size: int = 513
@@ -103,10 +105,10 @@ def environment_tables(env: Environment, scene: Scene, sky_table_size: int = 513
     sky = SkyTable(env.sky, env.sun_dir, int(sky_table_size))
     if env.ground is not None and scene.ground is not None:
         gt = GroundTable(env)
-        g_sky, g_sun, g_step = gt.sky_part, gt.sun_part, gt.step_deg
+        g_sky, g_sun, g_step, g_astep = gt.sky_part, gt.sun_part, gt.step_deg, gt.azimuth_step_deg
     else:  # no ground model: the ground is black
         g_sky = g_sun = np.zeros((2, 2, 4))
-        g_step = 90.0
+        g_step = g_astep = 360.0
     mt = MirrorTable(env.mirror)
     finish = np.array([[f.albedo, np.radians(f.sigma_deg), f.refractive_index,
                         1.0 / (2.0 * np.pi * float(f._facets.facet_density(0.0)))]  # type: ignore[attr-defined]
@@ -114,7 +116,7 @@ def environment_tables(env: Environment, scene: Scene, sky_table_size: int = 513
     return (env.sun_dir, float(np.cos(np.radians(env.sun_half_angle_deg))), env.sun_radiance,
             float(env.sun_irradiance_w_m2), env.sky_irradiance_w_m2,
             sky.table, float(sky.radius), float(sky.step),
-            np.ascontiguousarray(g_sky), np.ascontiguousarray(g_sun), float(g_step),
+            np.ascontiguousarray(g_sky), np.ascontiguousarray(g_sun), float(g_step), float(g_astep),
             len(mt.cos), mt.a, mt.b, mt.c, mt.d, finish)
 
 
@@ -201,15 +203,23 @@ def render_frame(
         offs = (np.arange(n_sub) + 0.5) / n_sub - 0.5
         ou, ov = np.meshgrid(offs, offs)
         ou, ov = ou.ravel(), ov.ravel()
-        k2 = n_sub * n_sub
+        # an odd grid contains the pixel centre, already traced: reuse it
+        reuse = n_sub % 2 == 1
+        if reuse:
+            keep = (ou != 0.0) | (ov != 0.0)
+            ou, ov = ou[keep], ov[keep]
+        k_new = len(ou)
         idx = np.flatnonzero(edge.ravel())
-        per = max(1, chunk // k2)
+        per = max(1, chunk // k_new)
         for a in range(0, len(idx), per):
             sel = idx[a:a + per]
             u = (jj[sel][:, None] + ou[None, :]).ravel()
             v = (ii[sel][:, None] + ov[None, :]).ravel()
             s, _, _ = run(u, v)
-            stokes[sel] = s.reshape(len(sel), k2, 3).mean(axis=1)
+            total_s = s.reshape(len(sel), k_new, 3).sum(axis=1)
+            if reuse:
+                total_s += stokes[sel]
+            stokes[sel] = total_s / (n_sub * n_sub)
             rays += len(u)
     elapsed = time.perf_counter() - t_start
     img = stokes.reshape(h, w, 3).astype(np.float32)

@@ -22,9 +22,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, parallel_chunksize, prange
 
-from pihim.render.bvh import BLOCK, cast_one
+from pihim.render.bvh import BLOCK, DYNAMIC_CHUNK, cast_one
 from pihim.render.paths import (
     FACET_BACK,
     GROUND,
@@ -97,11 +97,11 @@ def _undistort(xd, yd, k1, k2, p1, p2, k3):  # pragma: no cover - compiled
 
 
 @njit(parallel=True, cache=True)
-def _kernel(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first, node_count, node_right,
+def _kernel(prim, order, box, node_first, node_count, node_right, normal,
             kind, prim_heliostat, prim_facet, has_ground, ga, gb, gc,
             sun, cos_sun, sun_radiance, sun_irr, sky_irr,
             sky_table, sky_radius, sky_step,
-            g_sky, g_sun, g_step,
+            g_sky, g_sun, g_step, g_astep,
             m_cos_n, m_a, m_b, m_c, m_d,
             finish,
             cam_pos, rot, fx, fy, cx, cy, dist, px_u, px_v, max_bounces,
@@ -141,8 +141,8 @@ def _kernel(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first,
             nx = ny = nz = 0.0
             valid = not (math.isnan(dx) or math.isnan(dy) or math.isnan(dz))
             while valid:
-                t, p = cast_one(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first, node_count,
-                                node_right, ox, oy, oz, dx, dy, dz, 0.0, np.inf, skip, False, stack)
+                t, p = cast_one(prim, order, box, node_first, node_count, node_right,
+                                ox, oy, oz, dx, dy, dz, 0.0, np.inf, skip, False, stack)
                 tg = np.inf
                 if has_ground:
                     den = dz - gb * dx - gc * dy
@@ -197,8 +197,8 @@ def _kernel(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first,
             vis = False
             if tk == GROUND or tk == TOWER_HIT or tk == STRUCTURE_HIT or tk == FACET_BACK:
                 if nx * sun[0] + ny * sun[1] + nz * sun[2] > 0.0:
-                    ts, ps = cast_one(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first,
-                                      node_count, node_right, px + _EPS * nx, py + _EPS * ny, pz + _EPS * nz,
+                    ts, ps = cast_one(prim, order, box, node_first, node_count, node_right,
+                                      px + _EPS * nx, py + _EPS * ny, pz + _EPS * nz,
                                       sun[0], sun[1], sun[2], 0.0, np.inf, tp, True, stack)
                     vis = ps < 0
             # ---- terminal Stokes in frame (d = light direction, e)
@@ -239,7 +239,7 @@ def _kernel(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first,
                     zen = math.degrees(math.acos(vz))
                     azd = math.degrees(math.atan2(ldx, ldy)) % 360.0
                     fi = min(max(zen / g_step, 0.0), gz_n - 1.000001)
-                    fj = min(max(azd / g_step, 0.0), ga_n - 1.000001)
+                    fj = min(max(azd / g_astep, 0.0), ga_n - 1.000001)
                     i0 = int(fi)
                     j0 = int(fj)
                     wi = fi - i0
@@ -359,7 +359,8 @@ def render_rays(scene, tables, camera_arrays, px_u, px_v, max_bounces, out_stoke
     """Run the fused kernel on pixel coordinates ``px_u``, ``px_v`` (see :func:`pihim.render.frame.render_frame`)."""
     b = scene.bvh
     g = scene.ground if scene.ground is not None else (0.0, 0.0, 0.0)
-    _kernel(b.origin, b.u_dual, b.v_dual, b.normal, b.order, b.node_lo, b.node_hi, b.node_first, b.node_count,
-            b.node_right, scene.kind, scene.heliostat, scene.facet, scene.ground is not None, float(g[0]),
-            float(g[1]), float(g[2]), *tables, *camera_arrays, px_u, px_v, int(max_bounces),
-            out_stokes, out_key, out_labels)
+    # dynamic scheduling: image rows differ in cost, equal static halves leave a thread idle
+    with parallel_chunksize(DYNAMIC_CHUNK):
+        _kernel(*b.arrays(), b.normal, scene.kind, scene.heliostat, scene.facet, scene.ground is not None,
+                float(g[0]), float(g[1]), float(g[2]), *tables, *camera_arrays, px_u, px_v, int(max_bounces),
+                out_stokes, out_key, out_labels)

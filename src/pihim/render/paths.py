@@ -18,10 +18,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, parallel_chunksize, prange
 from numpy.typing import NDArray
 
-from pihim.render.bvh import BLOCK, cast_one
+from pihim.render.bvh import BLOCK, DYNAMIC_CHUNK, cast_one
 from pihim.render.scene import FACET, TOWER, Scene
 
 __all__ = [
@@ -105,7 +105,7 @@ def _ground_t(ox, oy, oz, dx, dy, dz, ga, gb, gc):  # pragma: no cover - compile
 
 
 @njit(parallel=True, cache=True)
-def _trace(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first, node_count, node_right,
+def _trace(prim, order, box, node_first, node_count, node_right, normal,
            kind, has_ground, ga, gb, gc, sun, cos_sun, ray_o, ray_d, max_bounces,
            first_kind, first_prim, term_kind, term_prim, term_point, term_dir, term_normal, sun_vis,
            n_bounce, b_normal, b_dir, b_prim):  # pragma: no cover - compiled
@@ -113,86 +113,86 @@ def _trace(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first, 
     gn = gn / np.sqrt(gn[0] ** 2 + gn[1] ** 2 + gn[2] ** 2)
     n_rays = ray_o.shape[0]
     for blk in prange((n_rays + BLOCK - 1) // BLOCK):
-      stack = np.empty(64, np.int64)
-      for i in range(blk * BLOCK, min(n_rays, (blk + 1) * BLOCK)):
-        ox, oy, oz = ray_o[i, 0], ray_o[i, 1], ray_o[i, 2]
-        dx, dy, dz = ray_d[i, 0], ray_d[i, 1], ray_d[i, 2]
-        skip = -1
-        nb = 0
-        tk = LOST
-        tp = -1
-        px = py = pz = np.nan
-        nx = ny = nz = 0.0
-        first_kind[i] = LOST
-        first_prim[i] = -1
-        while True:
-            t, p = cast_one(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first, node_count,
-                            node_right, ox, oy, oz, dx, dy, dz, 0.0, np.inf, skip, False, stack)
-            tg = _ground_t(ox, oy, oz, dx, dy, dz, ga, gb, gc) if has_ground else np.inf
-            if tg < t:
-                tk = GROUND
-                tp = -1
-                px, py, pz = ox + tg * dx, oy + tg * dy, oz + tg * dz
-                nx, ny, nz = gn[0], gn[1], gn[2]
-            elif p >= 0:
-                pn0, pn1, pn2 = normal[p, 0], normal[p, 1], normal[p, 2]
-                facing = dx * pn0 + dy * pn1 + dz * pn2
-                px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
-                k = kind[p]
-                if k == FACET and facing < 0.0:
-                    if nb == 0:
-                        first_kind[i] = MIRROR
-                        first_prim[i] = p
-                    if nb >= max_bounces:
-                        tk = LOST
-                        tp = p
-                        px = py = pz = np.nan
-                        break
-                    b_normal[i, nb, 0] = pn0
-                    b_normal[i, nb, 1] = pn1
-                    b_normal[i, nb, 2] = pn2
-                    b_dir[i, nb, 0] = dx
-                    b_dir[i, nb, 1] = dy
-                    b_dir[i, nb, 2] = dz
-                    b_prim[i, nb] = p
-                    nb += 1
-                    dx, dy, dz = dx - 2.0 * facing * pn0, dy - 2.0 * facing * pn1, dz - 2.0 * facing * pn2
-                    ox, oy, oz = px, py, pz
-                    skip = p
-                    continue
-                if k == FACET:
-                    tk = FACET_BACK
-                elif k == TOWER:
-                    tk = TOWER_HIT
+        stack = np.empty(64, np.int64)
+        for i in range(blk * BLOCK, min(n_rays, (blk + 1) * BLOCK)):
+            ox, oy, oz = ray_o[i, 0], ray_o[i, 1], ray_o[i, 2]
+            dx, dy, dz = ray_d[i, 0], ray_d[i, 1], ray_d[i, 2]
+            skip = -1
+            nb = 0
+            tk = LOST
+            tp = -1
+            px = py = pz = np.nan
+            nx = ny = nz = 0.0
+            first_kind[i] = LOST
+            first_prim[i] = -1
+            while True:
+                t, p = cast_one(prim, order, box, node_first, node_count, node_right,
+                                ox, oy, oz, dx, dy, dz, 0.0, np.inf, skip, False, stack)
+                tg = _ground_t(ox, oy, oz, dx, dy, dz, ga, gb, gc) if has_ground else np.inf
+                if tg < t:
+                    tk = GROUND
+                    tp = -1
+                    px, py, pz = ox + tg * dx, oy + tg * dy, oz + tg * dz
+                    nx, ny, nz = gn[0], gn[1], gn[2]
+                elif p >= 0:
+                    pn0, pn1, pn2 = normal[p, 0], normal[p, 1], normal[p, 2]
+                    facing = dx * pn0 + dy * pn1 + dz * pn2
+                    px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
+                    k = kind[p]
+                    if k == FACET and facing < 0.0:
+                        if nb == 0:
+                            first_kind[i] = MIRROR
+                            first_prim[i] = p
+                        if nb >= max_bounces:
+                            tk = LOST
+                            tp = p
+                            px = py = pz = np.nan
+                            break
+                        b_normal[i, nb, 0] = pn0
+                        b_normal[i, nb, 1] = pn1
+                        b_normal[i, nb, 2] = pn2
+                        b_dir[i, nb, 0] = dx
+                        b_dir[i, nb, 1] = dy
+                        b_dir[i, nb, 2] = dz
+                        b_prim[i, nb] = p
+                        nb += 1
+                        dx, dy, dz = dx - 2.0 * facing * pn0, dy - 2.0 * facing * pn1, dz - 2.0 * facing * pn2
+                        ox, oy, oz = px, py, pz
+                        skip = p
+                        continue
+                    if k == FACET:
+                        tk = FACET_BACK
+                    elif k == TOWER:
+                        tk = TOWER_HIT
+                    else:
+                        tk = STRUCTURE_HIT
+                    tp = p
+                    sgn = -1.0 if facing > 0.0 else 1.0
+                    nx, ny, nz = sgn * pn0, sgn * pn1, sgn * pn2
                 else:
-                    tk = STRUCTURE_HIT
-                tp = p
-                sgn = -1.0 if facing > 0.0 else 1.0
-                nx, ny, nz = sgn * pn0, sgn * pn1, sgn * pn2
-            else:
-                tp = -1
-                if dx * sun[0] + dy * sun[1] + dz * sun[2] >= cos_sun:
-                    tk = SUN
-                else:
-                    tk = SKY
-            break
-        if nb == 0:
-            first_kind[i] = tk
-            first_prim[i] = tp
-        term_kind[i] = tk
-        term_prim[i] = tp
-        term_point[i, 0], term_point[i, 1], term_point[i, 2] = px, py, pz
-        term_dir[i, 0], term_dir[i, 1], term_dir[i, 2] = dx, dy, dz
-        term_normal[i, 0], term_normal[i, 1], term_normal[i, 2] = nx, ny, nz
-        n_bounce[i] = nb
-        vis = False
-        if tk == GROUND or tk == TOWER_HIT or tk == STRUCTURE_HIT or tk == FACET_BACK:
-            if nx * sun[0] + ny * sun[1] + nz * sun[2] > 0.0:
-                sx, sy, sz = px + _EPS * nx, py + _EPS * ny, pz + _EPS * nz
-                ts, ps = cast_one(origin, u_dual, v_dual, normal, order, node_lo, node_hi, node_first, node_count,
-                                  node_right, sx, sy, sz, sun[0], sun[1], sun[2], 0.0, np.inf, tp, True, stack)
-                vis = ps < 0
-        sun_vis[i] = vis
+                    tp = -1
+                    if dx * sun[0] + dy * sun[1] + dz * sun[2] >= cos_sun:
+                        tk = SUN
+                    else:
+                        tk = SKY
+                break
+            if nb == 0:
+                first_kind[i] = tk
+                first_prim[i] = tp
+            term_kind[i] = tk
+            term_prim[i] = tp
+            term_point[i, 0], term_point[i, 1], term_point[i, 2] = px, py, pz
+            term_dir[i, 0], term_dir[i, 1], term_dir[i, 2] = dx, dy, dz
+            term_normal[i, 0], term_normal[i, 1], term_normal[i, 2] = nx, ny, nz
+            n_bounce[i] = nb
+            vis = False
+            if tk == GROUND or tk == TOWER_HIT or tk == STRUCTURE_HIT or tk == FACET_BACK:
+                if nx * sun[0] + ny * sun[1] + nz * sun[2] > 0.0:
+                    sx, sy, sz = px + _EPS * nx, py + _EPS * ny, pz + _EPS * nz
+                    ts, ps = cast_one(prim, order, box, node_first, node_count, node_right,
+                                      sx, sy, sz, sun[0], sun[1], sun[2], 0.0, np.inf, tp, True, stack)
+                    vis = ps < 0
+            sun_vis[i] = vis
 
 
 def trace_paths(
@@ -235,11 +235,11 @@ def trace_paths(
     bvh = scene.bvh
     s = np.asarray(sun_dir, float)
     s = s / np.linalg.norm(s)
-    _trace(bvh.origin, bvh.u_dual, bvh.v_dual, bvh.normal, bvh.order, bvh.node_lo, bvh.node_hi, bvh.node_first,
-           bvh.node_count, bvh.node_right, scene.kind, g is not None,
-           *(g if g is not None else (0.0, 0.0, 0.0)), s, float(np.cos(np.radians(sun_half_angle_deg))),
-           o, d, int(max_bounces),
-           out.first_kind, out.first_prim, out.terminal_kind, out.terminal_prim, out.terminal_point,
-           out.terminal_dir, out.terminal_normal, out.sun_visible, out.n_bounces, out.bounce_normal,
-           out.bounce_dir, out.bounce_prim)
+    with parallel_chunksize(DYNAMIC_CHUNK):
+        _trace(*bvh.arrays(), bvh.normal, scene.kind, g is not None,
+               *(g if g is not None else (0.0, 0.0, 0.0)), s, float(np.cos(np.radians(sun_half_angle_deg))),
+               o, d, int(max_bounces),
+               out.first_kind, out.first_prim, out.terminal_kind, out.terminal_prim, out.terminal_point,
+               out.terminal_dir, out.terminal_normal, out.sun_visible, out.n_bounces, out.bounce_normal,
+               out.bounce_dir, out.bounce_prim)
     return out

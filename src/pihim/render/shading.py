@@ -219,7 +219,7 @@ def _ground_reference(v: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 class GroundTable:
-    """The ground model tabulated over view directions (upper hemisphere, 1-deg grid by default).
+    """The ground model tabulated over view directions (upper hemisphere; 1 deg in zenith, 2 deg in azimuth).
 
     Two tables: the part lit by the sun (specular sun term and the sun's share
     of the Lambertian part) and the sky part. Stokes are stored in the frame
@@ -228,12 +228,13 @@ class GroundTable:
     ground sends no light toward the camera anyway).
     """
 
-    def __init__(self, env: Environment, step_deg: float = 1.0) -> None:
+    def __init__(self, env: Environment, step_deg: float = 1.0, azimuth_step_deg: float = 2.0) -> None:
         if env.ground is None:
             raise PihimInputError("the environment has no ground model")
         self.step_deg = float(step_deg)
+        self.azimuth_step_deg = float(azimuth_step_deg)
         self.zen = np.arange(0.0, 90.0 + 0.5 * step_deg, step_deg)
-        self.az = np.arange(0.0, 360.0 + 0.5 * step_deg, step_deg)
+        self.az = np.arange(0.0, 360.0 + 0.5 * azimuth_step_deg, azimuth_step_deg)
         zz, aa = np.meshgrid(np.radians(self.zen), np.radians(self.az), indexing="ij")
         v = np.stack([np.sin(zz) * np.sin(aa), np.sin(zz) * np.cos(aa), np.cos(zz)], axis=-1)
         v[..., 2] = np.maximum(v[..., 2], 1e-9)
@@ -249,7 +250,7 @@ class GroundTable:
         zen = np.degrees(np.arccos(np.clip(v[:, 2], 0.0, 1.0)))
         az = np.mod(np.degrees(np.arctan2(v[:, 0], v[:, 1])), 360.0)
         fi = np.clip(zen / self.step_deg, 0.0, len(self.zen) - 1.000001)
-        fj = np.clip(az / self.step_deg, 0.0, len(self.az) - 1.000001)
+        fj = np.clip(az / self.azimuth_step_deg, 0.0, len(self.az) - 1.000001)
         i0 = fi.astype(np.int64)
         j0 = fj.astype(np.int64)
         wi = (fi - i0)[:, None]
