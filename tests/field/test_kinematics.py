@@ -396,3 +396,18 @@ def test_back_structure(pose: FieldPose) -> None:
     assert np.allclose(off, 0.0, atol=1e-12)
     assert np.allclose(back_structure(pose.rotations, pose.mirror_centres, FIELD.spec).segments, b.segments)
     assert np.allclose(mirror_outline(pose.rotations, pose.mirror_centres, FIELD.spec), pose.mirror_outline())
+
+
+def test_with_drive_matches_tracking_at_the_tracked_angles_and_moves_otherwise():
+    from pihim.field import nsttf_like_field, track_field
+
+    field = nsttf_like_field()
+    pose = track_field(field, np.array([0.3, -0.4, 0.866]))
+    same = pose.with_drive(pose.drive.azimuth_deg, pose.drive.elevation_deg)
+    np.testing.assert_allclose(same.normals, pose.normals, atol=1e-12)
+    np.testing.assert_allclose(same.mirror_centres, pose.mirror_centres, atol=1e-12)
+    np.testing.assert_allclose(same.facet_normals, pose.facet_normals, atol=1e-12)
+    up = pose.with_drive(180.0, 90.0)  # every mirror face-up
+    np.testing.assert_allclose(up.normals, np.tile([0.0, 0.0, 1.0], (len(field), 1)), atol=1e-12)
+    np.testing.assert_allclose(up.mirror_centres[:, 2], field.pivots[:, 2] + field.spec.pivot_offset_m)
+    np.testing.assert_allclose(up.facet_normals_local, pose.facet_normals_local)

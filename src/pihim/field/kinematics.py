@@ -707,6 +707,31 @@ class FieldPose:
         """Back-structure segments in ENU."""
         return back_structure(self.rotations, self.mirror_centres, self.field.spec)  # type: ignore[attr-defined]
 
+    def with_drive(self, azimuth_deg: ArrayLike, elevation_deg: ArrayLike) -> FieldPose:
+        """The same field with its heliostats driven to other az-el angles (same canting).
+
+        Normals, frames (:func:`rotation_from_drive`), mirror centres (``pivot
+        + pivot_offset * normal``) and facet frames follow the new angles;
+        the facet normals in the heliostat frame (the canting) are kept. Used
+        for tracking errors and for heliostats parked away from tracking.
+
+        Parameters
+        ----------
+        azimuth_deg, elevation_deg : array_like, shape (N,)
+            Drive angles of the mirror normals, degrees.
+        """
+        spec = self.field.spec  # type: ignore[attr-defined]
+        az = np.broadcast_to(np.asarray(azimuth_deg, float), self.normals.shape[:1])
+        el = np.broadcast_to(np.asarray(elevation_deg, float), self.normals.shape[:1])
+        if not (np.all(np.isfinite(az)) and np.all(np.isfinite(el))):
+            raise PihimInputError("drive angles must be finite")
+        normals = normals_from_drive(az, el)
+        rot = rotation_from_drive(az, el)
+        centres = np.asarray(self.field.pivots, float) + float(spec.pivot_offset_m) * normals  # type: ignore[attr-defined]
+        enu = self.facet_normals_local @ np.swapaxes(rot, -1, -2)
+        fc = facet_centres(rot, centres, spec.facet_centroids)
+        return FieldPose(self.field, normals, centres, rot, self.focal_lengths_m, self.facet_normals_local, enu, fc)
+
 
 def track_field(
     field: object,

@@ -66,9 +66,6 @@ from pihim.field import (
     apply_canting_deviation,
     drive_angles,
     enu_to_geodetic,
-    facet_centres,
-    normals_from_drive,
-    rotation_from_drive,
     track_field,
 )
 from pihim.polarimetry.stokes import aop_deg, dolp
@@ -245,19 +242,6 @@ def _check_request(req: Any) -> None:
 
 
 # --------------------------------------------------------------------------- geometry
-
-
-def _true_field(commanded: FieldPose, az_deg: NDArray, el_deg: NDArray) -> FieldPose:
-    """The field re-derived from (perturbed) drive angles, as :func:`track_field` builds it."""
-    fld = commanded.field
-    spec = fld.spec  # type: ignore[attr-defined]
-    normals = normals_from_drive(az_deg, el_deg)
-    rot = rotation_from_drive(az_deg, el_deg)
-    centres = np.asarray(fld.pivots, float) + float(spec.pivot_offset_m) * normals  # type: ignore[attr-defined]
-    local = commanded.facet_normals_local
-    enu = local @ np.swapaxes(rot, -1, -2)
-    fc = facet_centres(rot, centres, spec.facet_centroids)
-    return FieldPose(fld, normals, centres, rot, commanded.focal_lengths_m, local, enu, fc)
 
 
 def _check_camera_position(position: NDArray, pose: FieldPose, scene: Scene) -> None:
@@ -545,7 +529,7 @@ def simulate_frame(
     err_el = rng_track.standard_normal(n_h) * tracking_sigma + 0.0
     true_az = _fold360(cmd_az + np.degrees(err_az * 1e-3))
     true_el = cmd_el + np.degrees(err_el * 1e-3)
-    truth_field = _true_field(commanded, true_az, true_el)
+    truth_field = commanded.with_drive(true_az, true_el)
     scene = field_scene(truth_field, facet_local)
 
     # --- the camera
