@@ -137,7 +137,7 @@ def simulate(
     attitude_sigma_deg: Annotated[float, typer.Option("--attitude-sigma-deg", help="Logged attitude error sigma, deg.")] = 0.0,
     seed: Annotated[int, typer.Option("--seed", help="Seed of every random draw (>= 0).")] = 0,
     size: Annotated[str, typer.Option("--size", help="Frame size WxH (even); the field of view stays the Triton's.")] = "2448x2048",
-    supersample: Annotated[int, typer.Option("--supersample", help="Edge pixels get N x N rays (1..16).")] = 4,
+    supersample: Annotated[int, typer.Option("--supersample", help="Edge pixels get N x N rays (1..16).")] = RenderSettings().supersample,
     blur_sigma_px: Annotated[float, typer.Option("--blur-sigma-px", help="Gaussian lens blur sigma, pixels.")] = 0.0,
     json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
 ) -> int:
