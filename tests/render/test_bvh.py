@@ -98,10 +98,12 @@ def test_field_scene_contents():
     along_w = round(spec.mirror_width_m / spec.facet_width_m)
     along_h = round(spec.mirror_height_m / spec.facet_width_m)
     pieces = along_w + spec.cols * along_h + spec.rows * along_w + 1
+    members = 1 + spec.cols + spec.rows + 1
     assert pieces == 62
-    assert (scene.kind == STRUCTURE).sum() == n_h * 6 * pieces
-    # every structure rectangle belongs to a heliostat, six per box
-    assert np.all(np.bincount(scene.heliostat[scene.kind == STRUCTURE]) == 6 * pieces)
+    # four sides per piece and two end caps per member (the caps between pieces are inside)
+    faces = 4 * pieces + 2 * members
+    assert (scene.kind == STRUCTURE).sum() == n_h * faces
+    assert np.all(np.bincount(scene.heliostat[scene.kind == STRUCTURE]) == faces)
     # facet fronts face along the facet normals
     facets = scene.kind == FACET
     np.testing.assert_allclose(scene.bvh.normal[facets], pose.facet_normals.reshape(-1, 3), atol=1e-12)

@@ -98,7 +98,7 @@ def _undistort(xd, yd, k1, k2, p1, p2, k3):  # pragma: no cover - compiled
 
 @njit(parallel=True, cache=True)
 def _kernel(prim, order, box, node_first, node_count, node_right, normal,
-            kind, prim_heliostat, prim_facet, has_ground, ga, gb, gc,
+            kind, prim_heliostat, prim_facet, prim_group, has_ground, ga, gb, gc,
             sun, cos_sun, sun_radiance, sun_irr, sky_irr,
             sky_table, sky_radius, sky_step,
             g_sky, g_sun, g_step, g_astep,
@@ -348,7 +348,9 @@ def _kernel(prim, order, box, node_first, node_count, node_right, normal,
                 out_labels[i, 4] = -1
                 out_labels[i, 5] = -1
             out_labels[i, 6] = nb
-            key = ((fp + 1) << 30) ^ ((tp + 1) << 6) ^ (fk << 3) ^ tk
+            fg = prim_group[fp] + 1 if fp >= 0 else 0
+            tg_ = prim_group[tp] + 1 if tp >= 0 else 0
+            key = (fg << 30) ^ (tg_ << 6) ^ (fk << 3) ^ tk
             if vis:
                 key ^= 1 << 61
             key ^= nb << 62
@@ -361,6 +363,6 @@ def render_rays(scene, tables, camera_arrays, px_u, px_v, max_bounces, out_stoke
     g = scene.ground if scene.ground is not None else (0.0, 0.0, 0.0)
     # dynamic scheduling: image rows differ in cost, equal static halves leave a thread idle
     with parallel_chunksize(DYNAMIC_CHUNK):
-        _kernel(*b.arrays(), b.normal, scene.kind, scene.heliostat, scene.facet, scene.ground is not None,
+        _kernel(*b.arrays(), b.normal, scene.kind, scene.heliostat, scene.facet, scene.group, scene.ground is not None,
                 float(g[0]), float(g[1]), float(g[2]), *tables, *camera_arrays, px_u, px_v, int(max_bounces),
                 out_stokes, out_key, out_labels)

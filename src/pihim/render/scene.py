@@ -77,6 +77,10 @@ class Scene:
         Heliostat index (-1: none).
     facet : ndarray of int16, shape (P,)
         Facet number 1..F (0: not a facet).
+    group : ndarray of int64, shape (P,)
+        Surface id for edge detection: rectangles that render as one smooth
+        surface share it (the pieces of one face of a structure member), so
+        their joints are not taken for edges and supersampled.
     ground : tuple of 3 float or None
         Ground plane ``z = a + b x + c y`` as ``(a, b, c)``; None: no ground
         (rays that miss everything see the sky, also downward).
@@ -90,6 +94,11 @@ class Scene:
     facet: NDArray[np.int16]
     ground: tuple[float, float, float] | None
     heliostat_names: tuple[str, ...] = ()
+    group: NDArray[np.int64] | None = None
+
+    def __post_init__(self) -> None:
+        if self.group is None:
+            object.__setattr__(self, "group", np.arange(self.kind.shape[0], dtype=np.int64))
 
     @property
     def n_rectangles(self) -> int:
@@ -103,7 +112,9 @@ class Scene:
         return a + b * np.asarray(x, float) + c * np.asarray(y, float)
 
 
-def box_rectangles(p0: ArrayLike, p1: ArrayLike, width: ArrayLike, up_hint: ArrayLike) -> tuple[NDArray, NDArray, NDArray]:
+def box_rectangles(
+    p0: ArrayLike, p1: ArrayLike, width: ArrayLike, up_hint: ArrayLike
+) -> tuple[NDArray, NDArray, NDArray]:
     """The six faces of square-section boxes around segments, as rectangles.
 
     Parameters
@@ -253,6 +264,8 @@ def field_scene(
     kinds = [np.full(n_h * n_f, FACET, np.int8)]
     owner = [np.repeat(np.arange(n_h, dtype=np.int32), n_f)]
     facet_no = [np.tile(np.arange(1, n_f + 1, dtype=np.int16), n_h)]
+    groups = [np.arange(n_h * n_f, dtype=np.int64)]
+    next_group = n_h * n_f
     if structure and n_h:
         back = pose.back_structure()
         piece_m = min(float(spec.facet_width_m), float(spec.facet_height_m))
@@ -267,12 +280,22 @@ def field_scene(
             a1 = seg[:, None, 0] + f[None, 1:, None] * (seg[:, None, 1] - seg[:, None, 0])
             bo, bu, bv = box_rectangles(a0.reshape(-1, 3), a1.reshape(-1, 3), sizes.width(kind),
                                         np.repeat(hint, n_pc, axis=0))
-            o.append(bo)
-            u.append(bu)
-            v.append(bv)
-            kinds.append(np.full(len(bo), STRUCTURE, np.int8))
-            owner.append(np.repeat(np.arange(n_h, dtype=np.int32), 6 * n_pc))
-            facet_no.append(np.zeros(len(bo), np.int16))
+            # faces (N, pieces, 6); the end caps between two pieces are inside the member: drop them
+            face = np.broadcast_to(np.arange(6), (n_h, n_pc, 6))
+            piece = np.broadcast_to(np.arange(n_pc)[:, None], (n_h, n_pc, 6))
+            keep = ~(((face == 4) & (piece > 0)) | ((face == 5) & (piece < n_pc - 1)))
+            keep = keep.reshape(-1)
+            o.append(bo[keep])
+            u.append(bu[keep])
+            v.append(bv[keep])
+            kinds.append(np.full(int(keep.sum()), STRUCTURE, np.int8))
+            heliostat_of = np.broadcast_to(np.arange(n_h, dtype=np.int32)[:, None, None], (n_h, n_pc, 6))
+            owner.append(heliostat_of.reshape(-1)[keep])
+            facet_no.append(np.zeros(int(keep.sum()), np.int16))
+            # one group per (heliostat, member, face): the pieces of a face join without an edge
+            g = next_group + (np.arange(n_h)[:, None, None] * 6 + np.arange(6)[None, None, :]) * len(back.kinds) + k
+            groups.append(np.broadcast_to(g, (n_h, n_pc, 6)).reshape(-1)[keep].astype(np.int64))
+        next_group += n_h * 6 * len(back.kinds)
     tw = getattr(field, "tower", None)
     if tower and tw is not None:
         c = tw.box_corners()
@@ -288,6 +311,7 @@ def field_scene(
         kinds.append(np.full(5, TOWER, np.int8))
         owner.append(np.full(5, -1, np.int32))
         facet_no.append(np.zeros(5, np.int16))
+        groups.append(next_group + np.arange(5, dtype=np.int64))
     bvh = build_bvh(np.concatenate(o), np.concatenate(u), np.concatenate(v))
     plane = None
     if ground:
@@ -296,4 +320,4 @@ def field_scene(
         g[:, 2] = field.ground_z  # type: ignore[attr-defined]
         plane = fit_ground_plane(g)
     return Scene(bvh, np.concatenate(kinds), np.concatenate(owner), np.concatenate(facet_no), plane,
-                 tuple(field.names))  # type: ignore[attr-defined]
+                 tuple(field.names), np.concatenate(groups))  # type: ignore[attr-defined]
