@@ -23,7 +23,7 @@ from pihim.field import (
     track_field,
 )
 from pihim.render.frame import RenderSettings
-from pihim.render.paths import MIRROR, SUN
+from pihim.render.paths import GROUND, MIRROR, SUN
 from pihim.render.scene import FACET
 from pihim.render.simulate import (
     SCHEMA_ID,
@@ -108,17 +108,38 @@ def test_pair_pose_is_the_planned_capture_waypoint(pair, field):
     assert pair.truth["pose"]["position_m"] == pytest.approx([wps[0].x_m, wps[0].y_m, wps[0].z_m])
 
 
-def test_exposure_is_chosen_over_mirror_pixels_not_reflecting_the_sun(pair):
+def test_exposure_is_chosen_over_every_pixel_not_seeing_the_sun(pair):
     lab = pair.rendered.labels
-    assert pair.truth["simulation"]["exposure_pixels"] == "mirror-not-sun"
+    assert pair.truth["simulation"]["exposure_pixels"] == "not-sun"
     exp = pair.log["sensor"]["exposure"]
     assert exp["percentile"] == 99.9 and exp["gain_dn"] > 0
+    not_sun = (lab[..., 0] != SUN) & (lab[..., 3] != SUN)
     mirror = (lab[..., 0] == MIRROR) & (lab[..., 3] != SUN)
     raw = pair.raw.astype(float)
-    assert raw.dtype == float and pair.raw.dtype == np.uint16 and pair.raw.shape == (200, 240)
-    # the bright end of the mirror pixels sits just under full scale (headroom 0.9), little clips
-    assert 0.6 * 4095 < np.percentile(raw[mirror], 99.9) <= 4095
-    assert np.mean(pair.raw == 4095) < 0.01
+    assert pair.raw.dtype == np.uint16 and pair.raw.shape == (200, 240)
+    # the bright end of the frame sits just under full scale (headroom 0.9): neither the sunlit
+    # ground nor the brightest mirror region clips
+    assert 0.6 * 4095 < np.percentile(raw[not_sun], 99.9) <= 4095
+    assert np.percentile(raw[mirror], 99.9) < 4095
+    assert np.mean(pair.raw == 4095) < 0.002
+
+
+def test_exposure_pixels_option_sets_the_reference_region(field):
+    kw = dict(camera=small_camera(240, 200), pose_request=PairPose("8E3", "7E3"), seed=3, settings=FAST)
+    mirrors = simulate_frame(field, TIME, exposure_pixels="mirror-not-sun", **kw)
+    every = simulate_frame(field, TIME, **kw)
+    assert mirrors.truth["simulation"]["exposure_pixels"] == "mirror-not-sun"
+    # each exposure puts the 99.9th percentile of its own pixels at 0.9 of full scale (noise-free)
+    for sim, sel in ((mirrors, lambda lab: (lab[..., 0] == MIRROR) & (lab[..., 3] != SUN)),
+                     (every, lambda lab: (lab[..., 0] != SUN) & (lab[..., 3] != SUN))):
+        exp = sim.log["sensor"]["exposure"]
+        m = sel(sim.rendered.labels)
+        r = sim.rendered
+        # the brightest of the four ideal micro-polarizers (0, 45, 90, 135 deg): 0.5 (S0 + S1 cos 2t + S2 sin 2t)
+        brightest = 0.5 * np.max([r.s0 + r.s1, r.s0 + r.s2, r.s0 - r.s1, r.s0 - r.s2], axis=0)[m]
+        assert exp["gain_dn"] * np.percentile(brightest, 99.9) == pytest.approx(0.9 * 4095, rel=0.02)
+    ground = every.rendered.labels[..., 0] == GROUND
+    assert np.all(every.raw[ground] < 4095)
 
 
 # -- the log and the truth ----------------------------------------------------------

@@ -17,9 +17,11 @@ polarimetric drone would take over a field at a given time:
    (:class:`PairPose`), at a capture waypoint of a ``plan.json``
    (:class:`WaypointPose`) or looking at a point (:class:`LookAtPose`); this
    is the **true** camera pose;
-5. the frame rendered (:func:`pihim.render.frame.render_frame`), exposed for
-   the mirrors (mirror pixels whose reflection is not the sun; every pixel if
-   there are none) and recorded as a noisy 12-bit raw mosaic
+5. the frame rendered (:func:`pihim.render.frame.render_frame`), exposed as
+   an auto-exposure would (every pixel that does not see the sun disc,
+   directly or in a mirror; or, with ``exposure_pixels="mirror-not-sun"``,
+   the mirrors only, which clips the sunlit ground) and recorded as a noisy
+   12-bit raw mosaic
    (:func:`pihim.render.sensor.expose`);
 6. the **logged** camera pose: the true pose with GPS noise
    ``N(0, gps_sigma_m)`` on x, y, z and attitude noise
@@ -406,6 +408,7 @@ def simulate_frame(
     sensor: SensorModel = SensorModel(),
     exposure_percentile: float = 99.9,
     headroom: float = 0.9,
+    exposure_pixels: str = "not-sun",
     blur_sigma_px: float = 0.0,
     settings: RenderSettings = RenderSettings(),
     progress: Callable[[int, int], Any] | None = None,
@@ -443,8 +446,12 @@ def simulate_frame(
         >= 0; the same seed gives identical raw bytes and identical JSON.
     sensor : SensorModel
     exposure_percentile, headroom : float
-        See :func:`pihim.render.sensor.choose_exposure` (over the mirror
-        pixels that do not reflect the sun).
+        See :func:`pihim.render.sensor.choose_exposure`.
+    exposure_pixels : {"not-sun", "mirror-not-sun"}
+        Pixels the exposure is chosen over: everything but the sun disc and
+        its reflections (default; nothing else clips), or the mirror pixels
+        that do not reflect the sun (the brightest mirror region just
+        unclipped; the sunlit ground then clips).
     blur_sigma_px : float
         Gaussian lens blur, pixels (>= 0).
     settings : RenderSettings
@@ -490,6 +497,8 @@ def simulate_frame(
     if not 0 < pct <= 100:
         raise PihimInputError(f"exposure percentile must be in (0, 100], got {exposure_percentile!r}")
     head = _sigma("headroom", headroom)
+    if exposure_pixels not in ("not-sun", "mirror-not-sun"):
+        raise PihimInputError(f"exposure_pixels must be 'not-sun' or 'mirror-not-sun', got {exposure_pixels!r}")
     if head <= 0:
         raise PihimInputError(f"headroom must be > 0, got {headroom!r}")
     if not isinstance(site, Site):
@@ -548,7 +557,10 @@ def simulate_frame(
     # --- render and record
     rendered = render_frame(scene, camera, cam_pose, env, settings, progress=progress)
     labels = rendered.labels
-    mask = (labels[..., 0] == MIRROR) & (labels[..., 3] != SUN)
+    if exposure_pixels == "mirror-not-sun":
+        mask = (labels[..., 0] == MIRROR) & (labels[..., 3] != SUN)
+    else:
+        mask = (labels[..., 0] != SUN) & (labels[..., 3] != SUN)
     exposure = choose_exposure(rendered.s0, rendered.s1, rendered.s2, sensor,
                                mask=mask if mask.any() else None, percentile=pct, headroom=head)
     raw = expose(rendered.s0, rendered.s1, rendered.s2, sensor, exposure, blur_sigma_px=blur, rng=rng_noise)
@@ -611,7 +623,7 @@ def simulate_frame(
             "headroom": head,
             "supersample": int(settings.supersample),
             "max_bounces": int(settings.max_bounces),
-            "exposure_pixels": "mirror-not-sun" if mask.any() else "all",
+            "exposure_pixels": exposure_pixels if mask.any() else "all",
         },
     }
     return SimulatedFrame(
