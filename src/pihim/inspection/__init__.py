@@ -1,0 +1,76 @@
+"""Inspection of heliostats in polarimetric images: edges, contrast and scoring.
+
+* :mod:`pihim.inspection.edges` -- Sobel / Canny edge maps of S0, DoLP and
+  (axial) AoP images and their combination (paper section 4.3). Pure numpy;
+  runs on the raw frame's images only.
+* :mod:`pihim.inspection.contrast` -- Michelson contrast of two 200 x 100 px
+  regions either side of an edge and the DoLP / S0 contrast ratio.
+* :mod:`pihim.inspection.success` -- scoring against the ground truth: the
+  paper's edge-detection success (all facet edges of the heliostat found)
+  and success rates over sets (Table 2). Reads truth; the estimator never
+  does.
+* :mod:`pihim.inspection.features` -- sub-pixel edge points (combined S0,
+  DoLP and axial AoP gradient) for model fitting.
+* :mod:`pihim.inspection.pose` -- camera pose refinement on the HUA's facet
+  outlines (coarse FFT search, point-to-line ICP with Levenberg-Marquardt).
+"""
+
+from __future__ import annotations
+
+from pihim.inspection.contrast import (
+    PAPER_ROI_SIZE,
+    RoiPairContrast,
+    contrast_ratio,
+    michelson_contrast,
+    roi_pair_contrast,
+)
+from pihim.inspection.edges import (
+    EDGE_METHODS,
+    IMAGE_TYPES,
+    EdgeMap,
+    EdgeMaps,
+    axial_gradient_magnitude,
+    edge_maps,
+    gradient_magnitude,
+    robust_thresholds,
+)
+from pihim.inspection.success import (
+    EDGE_NAMES,
+    EdgeSuccess,
+    FacetOutlines,
+    FrameScore,
+    SuccessRate,
+    edge_success,
+    facet_outlines_px,
+    outlines_from_simulation,
+    outlines_from_truth,
+    score_frame,
+    success_rate,
+)
+
+__all__ = [
+    "EDGE_METHODS",
+    "EDGE_NAMES",
+    "IMAGE_TYPES",
+    "PAPER_ROI_SIZE",
+    "EdgeMap",
+    "EdgeMaps",
+    "EdgeSuccess",
+    "FacetOutlines",
+    "FrameScore",
+    "RoiPairContrast",
+    "SuccessRate",
+    "axial_gradient_magnitude",
+    "contrast_ratio",
+    "edge_maps",
+    "edge_success",
+    "facet_outlines_px",
+    "gradient_magnitude",
+    "michelson_contrast",
+    "outlines_from_simulation",
+    "outlines_from_truth",
+    "robust_thresholds",
+    "roi_pair_contrast",
+    "score_frame",
+    "success_rate",
+]

@@ -1,0 +1,411 @@
+"""Edge maps of S0, DoLP and AoP images (paper section 4.3).
+
+Pure functions on numpy arrays; no file I/O and no ground truth.
+
+Gradients
+---------
+:func:`gradient_magnitude` is the 3x3 Sobel operator scaled by 1/8, so that
+it estimates the derivative **per pixel**: a ramp of slope ``s`` per pixel
+gives ``s``; a step of height ``h`` gives ``h / 2`` on the two pixels beside
+it. Borders replicate the outermost pixels.
+
+AoP is an orientation (axial, period 180 deg): its raw values jump from 179
+to 0 where nothing changes in the scene. :func:`axial_gradient_magnitude`
+therefore never differentiates the angle itself but the unit vector
+``(cos 2a, sin 2a)``, and reports
+
+``(90 / pi) * sqrt(|grad cos 2a|^2 + |grad sin 2a|^2)``,
+
+which is ``|grad a|`` in **deg per pixel** wherever the AoP varies smoothly
+(and is blind to the 0/180 wrap); a step between two orientations that
+differ axially by ``D`` deg gives ``(90 / pi) * sin(D)`` (28.6 for 90 deg).
+With ``dolp`` the magnitude is multiplied by the DoLP averaged over the 3x3
+Sobel support (clipped to [0, 1]): AoP noise grows like 1 / DoLP, so
+unpolarized regions, where AoP means nothing, do not make edges.
+
+NaN (saturated pixels have NaN DoLP and AoP, see :func:`pihim.camera.polar_image`)
+are handled by filling every NaN pixel with its nearest valid value before
+differentiating, which adds no step of its own; the gradient is then NaN on
+the invalid pixels themselves, and they never count as edges.
+
+Edge pixels and thresholds
+--------------------------
+Each gradient map gets one threshold from robust statistics of its finite
+values ``g`` (:func:`robust_thresholds`):
+
+* ``sigma = 1.4826 * MAD(g)`` (the median absolute deviation scaled to a
+  Gaussian standard deviation), at least ``1e-3 * median(g)`` so that a
+  perfectly smooth image does not turn round-off into edges;
+* ``high = max(median(g) + n_sigma * sigma, floor_fraction * P99.5(g))``:
+  an edge is an outlier of the background gradient distribution (noise plus
+  smooth shading), and on noise-free images, where ``sigma`` collapses, at
+  least a tenth (default) of the strong-edge level;
+* ``low = low_ratio * high`` (Canny's hysteresis threshold; default 0.4,
+  within Canny's recommended 2:1 to 3:1).
+
+``method="sobel"``: edge pixels are ``gradient > high`` (edges are about
+two pixels thick). ``method="canny"``: OpenCV's Canny (``cv2.Canny(dx, dy,
+low, high, L2gradient=True)``) on the same Sobel gradients, so non-maximum
+suppression and hysteresis act on the very maps returned (for AoP the
+gradient direction is the principal direction of the structure tensor of
+``(cos 2a, sin 2a)``); edges are one pixel thick.
+
+The **combined** map is the per-pixel maximum of the three gradient maps,
+each divided by its own ``high`` threshold (so 1 means "at threshold"), and
+its edge pixels are the union of the three binary maps.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from pihim.errors import PihimInputError
+
+__all__ = [
+    "EDGE_METHODS",
+    "IMAGE_TYPES",
+    "EdgeMap",
+    "EdgeMaps",
+    "axial_gradient_magnitude",
+    "edge_maps",
+    "gradient_magnitude",
+    "robust_thresholds",
+]
+
+#: Edge detectors of :func:`edge_maps`.
+EDGE_METHODS: tuple[str, ...] = ("sobel", "canny")
+#: Image types of :class:`EdgeMaps`, in order; the combined map comes last.
+IMAGE_TYPES: tuple[str, ...] = ("S0", "DoLP", "AoP", "combined")
+
+EdgeMethod = Literal["sobel", "canny"]
+
+#: Scale of the 3x3 Sobel kernel to a per-pixel derivative.
+_SOBEL_SCALE = 1.0 / 8.0
+#: Axial (cos 2a, sin 2a) gradient to AoP degrees per pixel.
+_AXIAL_DEG = 90.0 / math.pi
+#: Largest int16 magnitude handed to cv2.Canny (strong gradients are clipped, direction kept).
+_CANNY_CLIP = 32000.0
+#: cv2.Canny sees the high threshold as this many int16 units.
+_CANNY_HIGH_UNITS = 1000.0
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _image(name: str, image: ArrayLike) -> NDArray[np.float64]:
+    a = np.asarray(image)
+    if a.ndim != 2 or a.shape[0] < 1 or a.shape[1] < 1:
+        raise PihimInputError(f"{name} must be a non-empty 2-D image, got shape {a.shape}")
+    if a.dtype.kind not in "fiub":
+        raise PihimInputError(f"{name} must be numeric, got dtype {a.dtype}")
+    return a.astype(np.float64, copy=False)
+
+
+def _fill_nearest(image: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """NaN/inf pixels replaced by their nearest finite neighbour; returns (filled, valid).
+
+    Nearest in OpenCV's 5x5-mask approximation of the Euclidean distance
+    (``cv2.distanceTransformWithLabels``, one label per valid pixel).
+    """
+    valid = np.isfinite(image)
+    if valid.all():
+        return image, valid
+    if not valid.any():
+        return np.zeros_like(image), valid
+    _, labels = cv2.distanceTransformWithLabels((~valid).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    lookup = np.zeros(int(labels.max()) + 1, dtype=np.float64)
+    lookup[labels[valid]] = image[valid]
+    return lookup[labels], valid
+
+
+def _sobel_xy(image: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per-pixel derivatives d/dcolumn and d/drow (Sobel / 8, replicated borders)."""
+    img = np.ascontiguousarray(image, dtype=np.float64)
+    gx = cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=3, scale=_SOBEL_SCALE, borderType=cv2.BORDER_REPLICATE)
+    gy = cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=3, scale=_SOBEL_SCALE, borderType=cv2.BORDER_REPLICATE)
+    return gx, gy
+
+
+def _scalar_gradient(image: ArrayLike, name: str) -> tuple[NDArray, NDArray, NDArray, NDArray[np.bool_]]:
+    """(magnitude, dx, dy, valid) of a scalar image; magnitude NaN where the input was not finite."""
+    filled, valid = _fill_nearest(_image(name, image))
+    gx, gy = _sobel_xy(filled)
+    mag = np.hypot(gx, gy)
+    mag[~valid] = np.nan
+    return mag, gx, gy, valid
+
+
+def _axial_gradient(aop_deg: ArrayLike, dolp: ArrayLike | None, *,
+                    direction: bool = False) -> tuple[NDArray, NDArray | None, NDArray | None, NDArray[np.bool_]]:
+    """(magnitude, dx, dy, valid) of an AoP image; dx, dy along the principal direction (if asked for)."""
+    a, valid = _fill_nearest(_image("AoP", aop_deg))
+    two_a = np.radians(2.0 * a)
+    cx, cy = _sobel_xy(np.cos(two_a))
+    sx, sy = _sobel_xy(np.sin(two_a))
+    jxx = cx * cx + sx * sx
+    jyy = cy * cy + sy * sy
+    mag = _AXIAL_DEG * np.sqrt(jxx + jyy)
+    if dolp is not None:
+        d = _image("DoLP", dolp)
+        if d.shape != a.shape:
+            raise PihimInputError(f"DoLP shape {d.shape} differs from AoP shape {a.shape}")
+        d_filled, d_valid = _fill_nearest(d)
+        weight = cv2.blur(np.clip(d_filled, 0.0, 1.0), (3, 3), borderType=cv2.BORDER_REPLICATE)
+        mag = mag * weight
+        valid = valid & d_valid
+    dx = dy = None
+    if direction:
+        theta = 0.5 * np.arctan2(2.0 * (cx * cy + sx * sy), jxx - jyy)  # principal direction of the structure tensor
+        dx, dy = mag * np.cos(theta), mag * np.sin(theta)
+    mag[~valid] = np.nan
+    return mag, dx, dy, valid
+
+
+def gradient_magnitude(image: ArrayLike) -> NDArray[np.float64]:
+    """Sobel gradient magnitude, per pixel (see the module notes).
+
+    Parameters
+    ----------
+    image : array_like, shape (H, W)
+        Any real image (S0, DoLP, ...); NaN pixels are allowed.
+
+    Returns
+    -------
+    ndarray of float64, shape (H, W)
+        ``hypot(d/dx, d/dy)`` with the 3x3 Sobel kernel scaled by 1/8 (a ramp
+        of slope ``s`` per pixel gives ``s``); NaN where the input is NaN.
+    """
+    return _scalar_gradient(image, "image")[0]
+
+
+def axial_gradient_magnitude(aop_deg: ArrayLike, dolp: ArrayLike | None = None) -> NDArray[np.float64]:
+    """Gradient magnitude of an axial AoP image, in deg per pixel (optionally DoLP-weighted).
+
+    The gradient of ``(cos 2a, sin 2a)``, never of the raw angle, so the
+    0/180 deg wrap makes no edge (see the module notes for the scale).
+
+    Parameters
+    ----------
+    aop_deg : array_like, shape (H, W)
+        AoP in degrees (any real values; only ``2a`` modulo 360 matters).
+    dolp : array_like, shape (H, W), optional
+        If given, the magnitude is multiplied by the 3x3 mean DoLP (clipped to
+        [0, 1]).
+
+    Returns
+    -------
+    ndarray of float64, shape (H, W)
+        NaN where the AoP (or the DoLP, if given) is NaN.
+    """
+    return _axial_gradient(aop_deg, dolp)[0]
+
+
+def robust_thresholds(
+    gradient: ArrayLike,
+    *,
+    n_sigma: float = 5.0,
+    floor_fraction: float = 0.1,
+    low_ratio: float = 0.4,
+) -> tuple[float, float]:
+    """``(high, low)`` edge thresholds of a gradient map from robust statistics.
+
+    ``high = max(median + n_sigma * 1.4826 * MAD, floor_fraction * P99.5)``
+    over the finite values (the MAD-sigma at least 1e-3 of the median);
+    ``low = low_ratio * high``. ``(inf, inf)`` if no value is finite.
+    """
+    g = np.asarray(gradient, dtype=np.float64)
+    g = g[np.isfinite(g)]
+    if g.size == 0:
+        return math.inf, math.inf
+    med = float(np.median(g))
+    sigma = max(1.4826 * float(np.median(np.abs(g - med))), 1e-3 * abs(med))
+    high = max(med + float(n_sigma) * sigma, float(floor_fraction) * float(np.percentile(g, 99.5)))
+    return high, float(low_ratio) * high
+
+
+def _canny(mag: NDArray, dx: NDArray, dy: NDArray, valid: NDArray[np.bool_], high: float,
+           low: float) -> NDArray[np.bool_]:
+    """OpenCV Canny on given gradients: scaled so that ``high`` is 1000 int16 units."""
+    if not math.isfinite(high) or high <= 0.0:
+        # no finite gradient, or a flat image: nothing can be an edge
+        return np.zeros(mag.shape, dtype=bool)
+    scale = _CANNY_HIGH_UNITS / high
+    m = np.nan_to_num(mag, nan=0.0)
+    shrink = np.ones_like(m)
+    big = m * scale > _CANNY_CLIP
+    shrink[big] = _CANNY_CLIP / (m[big] * scale)
+    ix = np.rint(np.nan_to_num(dx) * scale * shrink).astype(np.int16)
+    iy = np.rint(np.nan_to_num(dy) * scale * shrink).astype(np.int16)
+    ix[~valid] = 0
+    iy[~valid] = 0
+    out = cv2.Canny(np.ascontiguousarray(ix), np.ascontiguousarray(iy), low * scale, _CANNY_HIGH_UNITS,
+                    L2gradient=True)
+    return (out > 0) & valid
+
+
+# --------------------------------------------------------------------------- results
+
+
+@dataclass(frozen=True, eq=False)
+class EdgeMap:
+    """Edges of one image type.
+
+    Attributes
+    ----------
+    gradient : ndarray of float32, shape (H, W)
+        Gradient magnitude (S0 units per pixel, DoLP per pixel, AoP deg per
+        pixel (times DoLP if weighted); for ``combined``, multiples of each
+        map's own ``high`` threshold). NaN where the input was invalid.
+    edges : ndarray of bool, shape (H, W)
+        Edge pixels.
+    high, low : float
+        Thresholds used (``low`` is Canny's hysteresis threshold; for the
+        Sobel method it is reported but not used).
+    units : str
+        What ``gradient`` measures.
+    """
+
+    gradient: NDArray[np.float32]
+    edges: NDArray[np.bool_]
+    high: float
+    low: float
+    units: str
+
+    def stats(self) -> dict[str, Any]:
+        """JSON-ready statistics: edge pixel fraction, gradient percentiles, thresholds."""
+        g = self.gradient[np.isfinite(self.gradient)].astype(np.float64)
+        n = self.gradient.size
+        if g.size:
+            p50, p90, p99 = (float(v) for v in np.percentile(g, [50, 90, 99]))
+            grad = {"p50": p50, "p90": p90, "p99": p99, "max": float(g.max())}
+        else:
+            grad = {"p50": None, "p90": None, "p99": None, "max": None}
+
+        def _num(v: float) -> float | None:
+            return float(v) if math.isfinite(v) else None
+
+        return {
+            "edge_fraction": float(self.edges.sum()) / n if n else 0.0,
+            "valid_fraction": float(g.size) / n if n else 0.0,
+            "gradient": grad,
+            "threshold_high": _num(self.high),
+            "threshold_low": _num(self.low),
+            "units": self.units,
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class EdgeMaps:
+    """Edge maps of S0, DoLP and AoP and their combination (see :func:`edge_maps`).
+
+    Index by image type: ``maps["DoLP"].edges``; :data:`IMAGE_TYPES` lists them.
+    """
+
+    s0: EdgeMap
+    dolp: EdgeMap
+    aop: EdgeMap
+    combined: EdgeMap
+    method: str
+    parameters: dict[str, Any] = field(default_factory=dict)
+
+    def __getitem__(self, image_type: str) -> EdgeMap:
+        key = str(image_type).strip().lower()
+        table = {"s0": self.s0, "dolp": self.dolp, "aop": self.aop, "combined": self.combined}
+        if key not in table:
+            raise KeyError(f"unknown image type {image_type!r}; choose one of {', '.join(IMAGE_TYPES)}")
+        return table[key]
+
+    def items(self) -> list[tuple[str, EdgeMap]]:
+        """``(image type, EdgeMap)`` in :data:`IMAGE_TYPES` order."""
+        return [(name, self[name]) for name in IMAGE_TYPES]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, columns) of the maps."""
+        return self.s0.gradient.shape  # type: ignore[return-value]
+
+    def summary(self) -> dict[str, Any]:
+        """Per-image-type statistics (:meth:`EdgeMap.stats`), keyed by image type."""
+        return {name: m.stats() for name, m in self.items()}
+
+
+def edge_maps(
+    s0: ArrayLike,
+    dolp: ArrayLike,
+    aop_deg: ArrayLike,
+    method: EdgeMethod = "sobel",
+    *,
+    n_sigma: float = 5.0,
+    floor_fraction: float = 0.1,
+    low_ratio: float = 0.4,
+    aop_dolp_weighted: bool = True,
+) -> EdgeMaps:
+    """Edge maps of the S0, DoLP and AoP images of one frame, and their combination.
+
+    Parameters
+    ----------
+    s0, dolp, aop_deg : array_like, shape (H, W)
+        Images of the same shape (e.g. :class:`pihim.camera.PolarImage`
+        ``.s0``, ``.dolp``, ``.aop_deg``); NaN marks invalid pixels.
+    method : {"sobel", "canny"}
+        Thresholded Sobel magnitude, or Canny (non-maximum suppression and
+        hysteresis) on the same gradients; see the module notes.
+    n_sigma, floor_fraction, low_ratio : float
+        Threshold rule of :func:`robust_thresholds`, applied per image type.
+    aop_dolp_weighted : bool
+        Weight the AoP gradient by the local DoLP (default).
+
+    Returns
+    -------
+    EdgeMaps
+    """
+    if method not in EDGE_METHODS:
+        raise PihimInputError(f"unknown edge method {method!r}; choose one of {', '.join(EDGE_METHODS)}")
+    for name, v in (("n_sigma", n_sigma), ("floor_fraction", floor_fraction), ("low_ratio", low_ratio)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            raise PihimInputError(f"{name} must be a finite number >= 0, got {v!r}")
+    if not 0 < low_ratio <= 1:
+        raise PihimInputError(f"low_ratio must be in (0, 1], got {low_ratio!r}")
+    s0_a, dolp_a, aop_a = _image("S0", s0), _image("DoLP", dolp), _image("AoP", aop_deg)
+    if not (s0_a.shape == dolp_a.shape == aop_a.shape):
+        raise PihimInputError(
+            f"S0, DoLP and AoP must have the same shape, got {s0_a.shape}, {dolp_a.shape}, {aop_a.shape}"
+        )
+    grads = {
+        "S0": (*_scalar_gradient(s0_a, "S0"), "S0 per pixel"),
+        "DoLP": (*_scalar_gradient(dolp_a, "DoLP"), "DoLP per pixel"),
+        "AoP": (*_axial_gradient(aop_a, dolp_a if aop_dolp_weighted else None, direction=method == "canny"),
+                "AoP deg per pixel x DoLP" if aop_dolp_weighted else "AoP deg per pixel"),
+    }
+    maps: dict[str, EdgeMap] = {}
+    for name, (mag, dx, dy, valid, units) in grads.items():
+        high, low = robust_thresholds(mag, n_sigma=n_sigma, floor_fraction=floor_fraction, low_ratio=low_ratio)
+        if method == "sobel":
+            with np.errstate(invalid="ignore"):
+                edges = np.isfinite(mag) & (mag > high)
+        else:
+            edges = _canny(mag, dx, dy, valid, high, low)
+        maps[name] = EdgeMap(mag.astype(np.float32), edges, high, low, units)
+    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels stay NaN
+        stacked = np.stack([
+            m.gradient.astype(np.float64) / m.high if math.isfinite(m.high) and m.high > 0
+            else np.where(np.isfinite(m.gradient), 0.0, np.nan)
+            for m in maps.values()
+        ])
+        combined_grad = np.nanmax(stacked, axis=0)
+    combined_edges = maps["S0"].edges | maps["DoLP"].edges | maps["AoP"].edges
+    combined = EdgeMap(combined_grad.astype(np.float32), combined_edges, 1.0, float(low_ratio),
+                       "multiples of each image type's high threshold")
+    params = {"n_sigma": float(n_sigma), "floor_fraction": float(floor_fraction), "low_ratio": float(low_ratio),
+              "aop_dolp_weighted": bool(aop_dolp_weighted)}
+    return EdgeMaps(maps["S0"], maps["DoLP"], maps["AoP"], combined, str(method), params)
+

@@ -1,0 +1,179 @@
+"""Tests of :mod:`pihim.inspection.edges`: Sobel scale, step position, axial AoP gradients, thresholds, NaN."""
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from pihim.errors import PihimInputError
+from pihim.inspection.edges import (
+    IMAGE_TYPES,
+    axial_gradient_magnitude,
+    edge_maps,
+    gradient_magnitude,
+    robust_thresholds,
+)
+
+H, W = 48, 64
+
+
+def _grid():
+    return np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+
+
+def _interior(a, m=2):
+    return a[m:-m, m:-m]
+
+
+def test_sobel_of_a_ramp_is_its_slope_per_pixel():
+    x, y = _grid()
+    g = gradient_magnitude(0.3 * x - 0.1 * y + 7.0)
+    assert g.shape == (H, W) and g.dtype == np.float64
+    np.testing.assert_allclose(_interior(g), math.hypot(0.3, 0.1), rtol=1e-12)
+
+
+def test_step_gives_half_its_height_on_the_two_pixels_beside_it():
+    x, _ = _grid()
+    img = np.where(x >= 20, 5.0, 1.0)  # step between columns 19 and 20
+    g = gradient_magnitude(img)
+    np.testing.assert_allclose(g[:, 19], 2.0)
+    np.testing.assert_allclose(g[:, 20], 2.0)
+    others = np.delete(g, [19, 20], axis=1)
+    assert np.all(others == 0.0)
+    dolp = np.full((H, W), 0.5)
+    aop = np.full((H, W), 30.0)
+    sob = edge_maps(img, dolp, aop, "sobel")
+    assert set(np.nonzero(sob["S0"].edges.any(axis=0))[0]) == {19, 20}
+    assert sob["S0"].edges[:, 19].all() and sob["S0"].edges[:, 20].all()
+    can = edge_maps(img, dolp, aop, "canny")
+    cols = np.nonzero(can["S0"].edges.any(axis=0))[0]
+    assert len(cols) == 1 and cols[0] in (19, 20)  # one pixel thick, on the step
+    assert can["S0"].edges[2:-2, cols[0]].all()
+    # a uniform image has no edges in any map
+    for m in (sob, can):
+        assert not m["DoLP"].edges.any() and not m["AoP"].edges.any()
+
+
+def test_aop_wrap_from_179_to_0_is_not_an_edge():
+    x, _ = _grid()
+    rate = 0.5  # deg per pixel
+    aop = np.mod(170.0 + rate * x, 180.0)  # crosses 179.x -> 0 near column 20
+    assert aop.max() > 179.0 and aop.min() < 1.0
+    g = axial_gradient_magnitude(aop)
+    np.testing.assert_allclose(_interior(g), rate, rtol=2e-4)  # deg per pixel, uniform across the wrap
+    # the raw angle would see a ~90 deg/px cliff there: the test is meaningful
+    assert gradient_magnitude(aop).max() > 80.0
+    # the same ramp next to a real 90 deg step: edges only at the step
+    img = np.where(x >= 48, np.mod(aop + 90.0, 180.0), aop)
+    maps = edge_maps(np.ones((H, W)), np.full((H, W), 0.8), img, "sobel")
+    cols = set(np.nonzero(maps["AoP"].edges.any(axis=0))[0])
+    assert cols == {47, 48}
+    canny = edge_maps(np.ones((H, W)), np.full((H, W), 0.8), img, "canny")
+    assert set(np.nonzero(canny["AoP"].edges.any(axis=0))[0]) <= {47, 48}
+    assert canny["AoP"].edges.sum() >= H - 4
+
+
+def test_axial_step_scale_and_dolp_weight():
+    x, _ = _grid()
+    aop = np.where(x >= 30, 100.0, 10.0)  # 90 deg apart
+    g = axial_gradient_magnitude(aop)
+    np.testing.assert_allclose(g[:, 29], 90.0 / math.pi, rtol=1e-12)  # (90 / pi) * sin(90 deg)
+    # 5 and 175 deg are 10 deg apart (axially), not 170
+    g10 = axial_gradient_magnitude(np.where(x >= 30, 175.0, 5.0))
+    np.testing.assert_allclose(g10[:, 29], 90.0 / math.pi * math.sin(math.radians(10.0)), rtol=1e-12)
+    half = axial_gradient_magnitude(aop, np.full((H, W), 0.5))
+    np.testing.assert_allclose(half, 0.5 * g, rtol=1e-12)
+
+
+def test_nan_pixels_make_no_false_edges():
+    x, y = _grid()
+    dolp = np.where(x >= 40, 0.6, 0.2)  # a real DoLP step at column 40
+    aop = np.full((H, W), 45.0)
+    dolp = dolp.copy()
+    aop = aop.copy()
+    hole = (y >= 10) & (y < 30) & (x >= 10) & (x < 25)  # a saturated block inside a uniform region
+    dolp[hole] = np.nan
+    aop[hole] = np.nan
+    s0 = np.ones((H, W))
+    for method in ("sobel", "canny"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            maps = edge_maps(s0, dolp, aop, method)
+        d = maps["DoLP"]
+        assert np.all(np.isnan(d.gradient[hole])) and not d.edges[hole].any()
+        assert np.all(np.isfinite(d.gradient[~hole]))
+        edge_cols = set(np.nonzero(d.edges.any(axis=0))[0])
+        assert edge_cols and edge_cols <= {39, 40}  # the step, and nothing around the hole
+        assert not maps["AoP"].edges.any()
+        assert np.all(np.isnan(maps["AoP"].gradient[hole]))
+        assert maps["combined"].edges.sum() == d.edges.sum()
+
+
+def test_all_nan_and_flat_images():
+    nan = np.full((8, 8), np.nan)
+    maps = edge_maps(np.zeros((8, 8)), nan, nan)
+    for name, m in maps.items():
+        assert not m.edges.any(), name
+    st = maps["DoLP"].stats()
+    assert st["valid_fraction"] == 0.0 and st["threshold_high"] is None and st["gradient"]["p50"] is None
+    assert maps["S0"].stats()["edge_fraction"] == 0.0
+
+
+def test_robust_threshold_rule():
+    rng = np.random.default_rng(1)
+    g = np.abs(rng.normal(0.0, 1.0, 100_000))
+    med = np.median(g)
+    mad = np.median(np.abs(g - med))
+    high, low = robust_thresholds(g, n_sigma=5.0, floor_fraction=0.0, low_ratio=0.4)
+    assert high == pytest.approx(med + 5.0 * 1.4826 * mad) and low == pytest.approx(0.4 * high)
+    # noise-free: sigma collapses and the floor (a fraction of the strong-edge level) decides
+    sparse = np.zeros(10_000)
+    sparse[:200] = 3.0
+    assert robust_thresholds(sparse)[0] == pytest.approx(0.3)
+    assert robust_thresholds([np.nan, np.inf])[0] == math.inf
+
+
+def test_noisy_step_found_with_few_false_edges():
+    rng = np.random.default_rng(7)
+    x, _ = _grid()
+    big = np.tile(np.where(x >= 32, 1.0, 0.0), (4, 1))  # 192 x 64
+    s0 = 100.0 + 20.0 * big + rng.normal(0.0, 1.0, big.shape)
+    maps = edge_maps(s0, np.full(big.shape, 0.3), np.zeros(big.shape), "sobel")
+    e = maps["S0"].edges
+    assert e[2:-2, 31].all() and e[2:-2, 32].all()
+    false = np.delete(e, [31, 32], axis=1)
+    assert false.mean() < 1e-3
+    can = edge_maps(s0, np.full(big.shape, 0.3), np.zeros(big.shape), "canny")["S0"].edges
+    assert (can[2:-2, 31] | can[2:-2, 32]).mean() > 0.98
+    assert np.delete(can, [30, 31, 32, 33], axis=1).mean() < 1e-3
+
+
+def test_combined_is_the_union_and_normalised():
+    x, y = _grid()
+    s0 = np.where(x >= 20, 2.0, 1.0)
+    dolp = np.where(y >= 30, 0.7, 0.1)
+    aop = np.where(x >= 50, 120.0, 30.0)
+    maps = edge_maps(s0, dolp, aop, "sobel")
+    c = maps["combined"]
+    np.testing.assert_array_equal(c.edges, maps["S0"].edges | maps["DoLP"].edges | maps["AoP"].edges)
+    assert c.high == 1.0
+    ratio = np.nanmax(np.stack([maps[t].gradient / maps[t].high for t in ("S0", "DoLP", "AoP")]), axis=0)
+    np.testing.assert_allclose(c.gradient, ratio, rtol=1e-6)
+    assert [name for name, _ in maps.items()] == list(IMAGE_TYPES)
+    assert set(maps.summary()) == set(IMAGE_TYPES)
+    assert maps["dolp"] is maps.dolp and maps.shape == (H, W)
+
+
+def test_bad_input_is_refused():
+    a = np.zeros((8, 8))
+    with pytest.raises(PihimInputError, match="same shape"):
+        edge_maps(a, np.zeros((8, 6)), a)
+    with pytest.raises(PihimInputError, match="edge method"):
+        edge_maps(a, a, a, "laplace")
+    with pytest.raises(PihimInputError, match="2-D"):
+        gradient_magnitude(np.zeros((2, 3, 4)))
+    with pytest.raises(PihimInputError, match="low_ratio"):
+        edge_maps(a, a, a, low_ratio=0.0)
+    with pytest.raises(KeyError):
+        edge_maps(a, a, a)["RGB"]
