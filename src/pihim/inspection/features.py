@@ -1,0 +1,172 @@
+"""Sub-pixel edge points of polarimetric images, for model fitting.
+
+The estimators (:mod:`pihim.inspection.pose`, :mod:`pihim.inspection.canting`)
+fit projected model outlines to edge *points*, not to edge maps: every edge
+pixel of a Canny map is moved along its gradient direction to the maximum of
+a parabola through the gradient magnitudes at -1, 0, +1 pixel, which
+localises a blurred step to a few hundredths of a pixel.
+
+The gradient is the quadrature sum of three normalised gradients, so that an
+edge seen in any of S0, DoLP or AoP counts:
+
+* S0 divided by its median (linear: the gradient of ``log S0`` would move a
+  blurred step's peak toward its dark side by about half a pixel),
+* DoLP,
+* the axial AoP: the gradient of ``(cos 2a, sin 2a)`` times DoLP, half the
+  length of the change of the unit axial vector (no false edge at the
+  0/180 deg wrap; weak where the light is barely polarized).
+
+References
+----------
+.. [1] J. Canny, "A computational approach to edge detection", IEEE PAMI 8(6),
+   679-698 (1986), doi:10.1109/TPAMI.1986.4767851.
+.. [2] F. Devernay, "A non-maxima suppression method for edge detection with
+   sub-pixel accuracy", INRIA RR-2724 (1995) (parabolic sub-pixel peak).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pihim.errors import PihimInputError
+
+__all__ = ["EdgePoints", "combined_gradient", "edge_points"]
+
+
+@dataclass(frozen=True, eq=False)
+class EdgePoints:
+    """Sub-pixel edge points.
+
+    Attributes
+    ----------
+    xy : ndarray, shape (N, 2)
+        Positions ``(u, v)`` in pixels (OpenCV convention: pixel centres at
+        integers).
+    normal : ndarray, shape (N, 2)
+        Unit gradient directions.
+    strength : ndarray, shape (N,)
+        Gradient magnitude at the point.
+    """
+
+    xy: NDArray[np.float64]
+    normal: NDArray[np.float64]
+    strength: NDArray[np.float64]
+
+    def __len__(self) -> int:
+        return int(self.xy.shape[0])
+
+    def select(self, mask: NDArray[np.bool_]) -> EdgePoints:
+        return EdgePoints(self.xy[mask], self.normal[mask], self.strength[mask])
+
+
+def _sobel(img: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    import cv2
+
+    gx = cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=3, borderType=cv2.BORDER_REPLICATE) / 8.0
+    gy = cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE) / 8.0
+    return gx, gy
+
+
+def combined_gradient(
+    s0: NDArray, dolp: NDArray, aop_deg: NDArray, *, smooth_px: float = 1.0
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Gradient ``(gx, gy, magnitude)`` combining log S0, DoLP and axial AoP (see the module notes).
+
+    NaN pixels (saturated) are filled with their neighbourhood's values
+    first; ``smooth_px`` is a Gaussian pre-smoothing (pixels, 0 for none).
+    """
+    import cv2
+
+    s0 = np.asarray(s0, float)
+    if s0.ndim != 2 or np.shape(dolp) != s0.shape or np.shape(aop_deg) != s0.shape:
+        raise PihimInputError("S0, DoLP and AoP must be 2-D images of one shape")
+    scale = float(np.nanmedian(s0))
+    if not scale > 0:
+        scale = float(np.nanmax(s0)) if np.nanmax(s0) > 0 else 1.0
+    with np.errstate(invalid="ignore"):
+        ls0 = s0 / scale
+        p = np.clip(np.asarray(dolp, float), 0.0, 1.0)
+        a = np.radians(np.asarray(aop_deg, float))
+        chans = [ls0, p, p * np.cos(2 * a), p * np.sin(2 * a)]
+    weights = [1.0, 4.0, 2.0, 2.0]
+    gx_t = np.zeros_like(s0)
+    gy_t = np.zeros_like(s0)
+    mag2 = np.zeros_like(s0)
+    for c, w in zip(chans, weights):
+        c = np.where(np.isfinite(c), c, np.nanmedian(c))
+        if smooth_px > 0:
+            c = cv2.GaussianBlur(c, (0, 0), smooth_px)
+        gx, gy = _sobel(c)
+        # orient the channel's gradient along the summed one so that signs do not cancel
+        sign = np.where(gx * gx_t + gy * gy_t < 0, -1.0, 1.0)
+        gx_t += w * sign * gx
+        gy_t += w * sign * gy
+        mag2 += (w * w) * (gx * gx + gy * gy)
+    return gx_t, gy_t, np.sqrt(mag2)
+
+
+def edge_points(
+    s0: NDArray,
+    dolp: NDArray,
+    aop_deg: NDArray,
+    *,
+    smooth_px: float = 1.0,
+    threshold: float | None = None,
+    mask: NDArray[np.bool_] | None = None,
+) -> EdgePoints:
+    """Sub-pixel edge points of a polarimetric image (non-maximum suppression along the gradient).
+
+    Parameters
+    ----------
+    s0, dolp, aop_deg : ndarray, shape (H, W)
+    smooth_px : float
+        Gaussian pre-smoothing, pixels.
+    threshold : float, optional
+        Minimum gradient magnitude; default five times the median absolute
+        gradient (a noise estimate) or the 90th percentile, whichever is
+        larger.
+    mask : ndarray of bool, optional
+        Only pixels where ``mask`` is True.
+
+    Returns
+    -------
+    EdgePoints
+    """
+    _gx, _gy, mag = combined_gradient(s0, dolp, aop_deg, smooth_px=smooth_px)
+    gx, gy = _gx, _gy
+    norm = np.hypot(gx, gy)
+    if threshold is None:
+        sel = mag if mask is None else mag[mask]
+        if sel.size == 0:
+            raise PihimInputError("no pixels to look for edges in")
+        threshold = max(5.0 * float(np.median(sel)), float(np.percentile(sel, 90)))
+    h, w = mag.shape
+    with np.errstate(invalid="ignore", divide="ignore"):
+        nx = np.where(norm > 0, gx / norm, 0.0)
+        ny = np.where(norm > 0, gy / norm, 0.0)
+    # quantised gradient direction -> the two neighbours across the edge
+    ox = np.rint(nx).astype(int)
+    oy = np.rint(ny).astype(int)
+    ii, jj = np.mgrid[1:h - 1, 1:w - 1]
+    c = mag[1:-1, 1:-1]
+    oxi = ox[1:-1, 1:-1]
+    oyi = oy[1:-1, 1:-1]
+    fwd = mag[ii + oyi, jj + oxi]
+    bwd = mag[ii - oyi, jj - oxi]
+    keep = (c >= threshold) & (c >= fwd) & (c > bwd) & ((oxi != 0) | (oyi != 0))
+    if mask is not None:
+        keep &= np.asarray(mask, bool)[1:-1, 1:-1]
+    i, j = np.nonzero(keep)
+    cc, ff, bb = c[i, j], fwd[i, j], bwd[i, j]
+    den = ff - 2 * cc + bb
+    with np.errstate(invalid="ignore", divide="ignore"):
+        off = np.where(den < 0, 0.5 * (bb - ff) / den, 0.0)
+    off = np.clip(off, -0.5, 0.5)
+    # the parabola's samples are at -/+ (ox, oy): its peak is off * (ox, oy) from the pixel
+    x = (j + 1) + off * oxi[i, j]
+    y = (i + 1) + off * oyi[i, j]
+    nrm = np.column_stack([nx[i + 1, j + 1], ny[i + 1, j + 1]])
+    return EdgePoints(np.column_stack([x, y]).astype(float), nrm, cc)
