@@ -280,3 +280,22 @@ def test_ground_and_mirror_tables_match_direct_evaluation():
     mt = MirrorTable(env.mirror)
     c = rng.random(200)
     np.testing.assert_allclose(mt.mueller(c), env.mirror.mueller(c), atol=1e-6)
+
+
+def test_rising_rays_see_the_sky_over_a_rising_ground():
+    # a plane rising eastward (as the NSTTF ground does) must not catch rays that go up
+    far = _square([0.0, 500.0, -50.0], [0, -1, 0], 1.0)
+    scene = rectangle_scene(far[0][None], far[1][None], far[2][None], STRUCTURE, ground=(-0.3, 0.02, 0.005))
+    env = Environment.clear_sky(SUN)
+    cam = CameraModel(width_px=31, height_px=31, focal_length_mm=20.0)
+    # looking East, 0.05 deg above the horizon: every ray rises, the plane rises faster
+    pose = CameraPose.from_attitude([0.0, 0.0, 2.0], 90.0, 0.3)
+    fr = render_frame(scene, cam, pose, env, RenderSettings(supersample=1))
+    up = cam.pixel_rays(np.arange(31.0), np.zeros(31) + 15.0) @ pose.rotation
+    assert np.all(up[:, 2] > 0)
+    assert np.all(fr.labels[15, :, 0] == SKY)
+    assert np.all(fr.s0[15] > 0)
+    # and looking down the same plane is ground
+    down = render_frame(scene, cam, CameraPose.from_attitude([0.0, 0.0, 2.0], 90.0, -30.0), env,
+                        RenderSettings(supersample=1))
+    assert np.all(down.labels[..., 0] == 2)

@@ -146,7 +146,9 @@ def _kernel(prim, order, box, node_first, node_count, node_right, normal,
                 tg = np.inf
                 if has_ground:
                     den = dz - gb * dx - gc * dy
-                    if den < 0.0:
+                    # only rays going down reach the ground: the fitted plane is local to the field, and a
+                    # slightly rising ray would otherwise meet it kilometres away where the ground rises
+                    if den < 0.0 and dz < 0.0:
                         tt = (ga + gb * ox + gc * oy - oz) / den
                         if tt > 0.0:
                             tg = tt

@@ -96,7 +96,7 @@ class Paths:
 def _ground_t(ox, oy, oz, dx, dy, dz, ga, gb, gc):  # pragma: no cover - compiled
     # plane z = a + b x + c y  <=>  -b x - c y + z = a; normal (-b, -c, 1)
     den = dz - gb * dx - gc * dy
-    if den >= 0.0:  # moving away from (or along) the ground
+    if den >= 0.0 or dz >= 0.0:  # moving away from the ground, or level/rising (see render.kernel)
         return np.inf
     t = (ga + gb * ox + gc * oy - oz) / den
     if t <= 0.0:
