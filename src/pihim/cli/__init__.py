@@ -17,7 +17,7 @@ try:  # typer >= 0.2x vendors click; its exceptions live there
 except ImportError:  # pragma: no cover - older typer uses click itself
     from click import exceptions as _click_exc
 
-from pihim.cli import calibrate, demo, edges, ground, plan, polar, simulate, sky, windows
+from pihim.cli import calibrate, calibrate_camera, demo, edges, ground, plan, polar, simulate, sky, windows
 from pihim.errors import PihimInputError
 
 app = typer.Typer(
@@ -29,6 +29,7 @@ app = typer.Typer(
 )
 app.command("polar")(polar.polar)
 app.command("calibrate-polarizer")(calibrate.calibrate_polarizer)
+app.command("calibrate-camera")(calibrate_camera.calibrate_camera)
 app.command("sky")(sky.sky)
 app.command("ground")(ground.ground)
 app.command("plan")(plan.plan)
