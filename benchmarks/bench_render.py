@@ -445,6 +445,7 @@ def bench_side(side: dict[str, Any], quick: bool, spp_list: Sequence[int], use_m
             "rays_per_second": fr.stats["rays"] / median,
             "ray_casts_estimate": fr.stats["rays"] * (1.0 + float(labels[..., 6].mean())),
             "supersampled_pixels": int(fr.stats["supersampled_pixels"]),
+            "supersample": int(fr.stats["supersample"]),
         },
         "facet_pixel_fraction": f_mirror,
         "mitsuba": None,
@@ -584,6 +585,7 @@ def markdown_report(rep: dict[str, Any]) -> str:
     ]
     b = rep["side_by_side"]
     p = b["pihim"]
+    n = p.get("supersample", 3)
     info = b["info"]
     lines += [
         "",
@@ -593,7 +595,7 @@ def markdown_report(rep: dict[str, Any]) -> str:
         "",
         "| Renderer | spp | Seconds | Camera samples | Samples/s | Ray casts (est.) | Casts/s | Other CPU % |",
         "|---|--:|--:|--:|--:|--:|--:|--:|",
-        (f"| pihim `render_frame` (supersample 4 at edges; median of {p['repeat']}) | 1 (16 at edges) "
+        (f"| pihim `render_frame` ({n}x{n} rays at edge pixels; median of {p['repeat']}) | 1 ({n * n} at edges) "
          f"| {p['median_s']:.3f} | {p['rays']:,} | {p['rays_per_second']:,.0f} | {p['ray_casts_estimate']:,.0f} "
          f"| {p['ray_casts_per_second']:,.0f} | {harness.other_pct(p['other_cpu_load'])} |"),
     ]
