@@ -13,6 +13,11 @@
   DoLP and axial AoP gradient) for model fitting.
 * :mod:`pihim.inspection.pose` -- camera pose refinement on the HUA's facet
   outlines (coarse FFT search, point-to-line ICP with Levenberg-Marquardt).
+* :mod:`pihim.inspection.canting` -- per-facet canting from the target's
+  outlines mirrored in each facet (the paper's grid search and a continuous
+  refinement), relative to the best-fit heliostat orientation.
+* :mod:`pihim.inspection.calibration` -- camera calibration on checkerboards
+  (OpenCV).
 """
 
 from __future__ import annotations
