@@ -18,6 +18,8 @@
   refinement), relative to the best-fit heliostat orientation.
 * :mod:`pihim.inspection.calibration` -- camera calibration on checkerboards
   (OpenCV).
+* :mod:`pihim.inspection.pipeline` -- one frame and its log to a refined
+  pose and per-facet canting; several frames combined (``pihim canting``).
 """
 
 from __future__ import annotations
