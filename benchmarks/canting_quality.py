@@ -1,0 +1,453 @@
+"""Accuracy study of per-facet canting on rendered UFACET frames (issue 9, "the headline").
+
+Over ``N`` rendered frames of different HUA-target pairs, times and seeds,
+the estimator runs on what a user of real data has (the raw frame and the
+``log``) and is scored against the simulation's ``truth``.
+
+Frames. Pairs come from the planner: :func:`pihim.planning.pipeline.build_plan`
+(whole NSTTF-like field, ``UFACET_AIM_POINT``, no contrast shift) at
+2021-05-13 10:00, 13:00 and 15:00 -06:00; the (HUA, target) predictions of
+feasible passes whose waypoint exists and that the planner marks usable
+(reflection DoLP > 0.2 and a usable contrast scenario) are shuffled with a
+fixed seed and taken round-robin over the three times, one pair per HUA.
+Frame ``k`` is :func:`pihim.render.simulate.simulate_frame` of that pair
+(:class:`PairPose`: the planner's waypoint of the pair), the default
+:class:`CameraModel` (Triton 2448 x 2048, 35 mm), facet canting
+``N(0, 3 mrad)`` on both axes, no tracking error, the default sensor (39 dB,
+12 bit, shot and read noise), seed ``k``. A pair the single-HUA plan of
+``simulate_frame`` refuses is replaced by the next candidate of the same time.
+
+Estimation (per frame, per prior setting), from ``raw`` and ``log`` only:
+
+1. **polar**: ``polar_image(raw, demosaic="full", bit_depth=12)``;
+2. **edges**: S0-only sub-pixel edge points ``edge_points(s0, 0, 0)`` (the
+   DoLP of the dark target back is too noisy at 39 dB to add unweighted);
+3. **field**: the logged field: sun from the log's time and site,
+   ``track_field`` toward the log's aim point, the drive angles of the
+   heliostats listed in ``log["heliostats"]`` overwritten with the logged
+   ones (``FieldPose.with_drive``); design canting;
+4. **pose**: ``refine_pose`` from the logged camera pose against the HUA's
+   facet outlines;
+5. **canting**: ``estimate_canting(camera, refined pose, logged field, hua,
+   target, edges, dolp=..., saturated=...)`` with its default gates.
+
+Two prior settings (the logged pose's noise):
+
+* (i) the issue's priors, GPS 1.5 m and attitude 1 deg
+  (``max_shift_px=700, range_m=4``);
+* (ii) good priors, GPS 0.15 m and attitude 0.15 deg
+  (``max_shift_px=200, range_m=0.5``).
+
+Scores:
+
+* **true pose error**: the HUA's 100 facet corners (design canting, logged
+  field) projected with the refined and the true camera pose; max and RMS
+  distance, px. A frame whose max exceeds 2 px (or whose refinement raised)
+  is a **pose failure**; canting is scored over the frames with good poses
+  only;
+* **canting error**: for the facets the estimator used, its deviations
+  (relative to the mean over the used facets) minus the true deviations
+  (``truth["heliostats"]`` of the HUA) re-referenced to the mean over the same
+  facets; per-axis RMS over all used facets of all good frames, for the
+  refined estimate and for the paper's grid search (``grid_*``, same
+  reference) side by side;
+* facets used per frame, a histogram of the skip reasons, the pose fit's
+  RMS residual, and wall seconds per step (render excluded from the
+  per-frame estimation time).
+
+Anchors: the paper's grid step 0.1 deg = 1.75 mrad; Sandia's H-FACET
+1.17 mrad; issue 9's targets <= 0.5 mrad per axis and <= 3 s per frame.
+
+Run time: each frame is rendered twice (once per prior setting; the raw
+bytes are the same, only the logged pose differs), ~10 s each, and estimated
+twice, ~45-65 s each (the canting step runs also on the frames whose pose
+failed), so ~2.5 min per frame on a 2-core machine. The default of 6 frames
+takes ~15 min, ``--quick`` (4 frames) ~10 min; ``--frames 20`` is the
+issue's full study (~50 min).
+"""
+
+from __future__ import annotations
+
+import math
+import platform
+import random
+import sys
+import time
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as harness  # noqa: E402
+
+RESULTS_PATH = Path(__file__).resolve().parent / "results" / "canting.json"
+
+TIMES = ("2021-05-13T10:00-06:00", "2021-05-13T13:00-06:00", "2021-05-13T15:00-06:00")
+DEFAULT_FRAMES = 6
+QUICK_FRAMES = 4
+CANTING_SIGMA_MRAD = 3.0
+POSE_FAIL_PX = 2.0
+PAIR_SHUFFLE_SEED = 9
+
+#: (key, label, gps sigma m, attitude sigma deg, refine_pose keywords)
+SETTINGS = (
+    ("issue_priors", "(i) issue's priors: GPS 1.5 m, attitude 1 deg", 1.5, 1.0,
+     {"max_shift_px": 700.0, "range_m": 4.0}),
+    ("good_priors", "(ii) good priors: GPS 0.15 m, attitude 0.15 deg", 0.15, 0.15,
+     {"max_shift_px": 200.0, "range_m": 0.5}),
+)
+
+GRID_STEP_MRAD = math.radians(0.1) * 1e3
+HFACET_MRAD = 1.17
+TARGET_MRAD = 0.5
+TARGET_S = 3.0
+
+COUNTS = harness.Counts(repeat=1, warmup=0, quick_repeat=1, quick_warmup=0)
+
+
+# ---------------------------------------------------------------------------
+# Frames
+# ---------------------------------------------------------------------------
+def candidate_pairs(field: Any) -> list[list[tuple[str, str, str]]]:
+    """(time, hua, target) candidates from the planner, one shuffled list per time of :data:`TIMES`."""
+    from pihim.field import UFACET_AIM_POINT
+    from pihim.planning.pipeline import build_plan
+    from pihim.sky.sun import NSTTF, parse_time
+
+    per_time = []
+    for t in TIMES:
+        plan = build_plan(field, parse_time(t), NSTTF, aim_point=UFACET_AIM_POINT, shift=False)
+        preds = sorted({(q.hua, q.target) for p in plan.passes if p.feasible for q in p.predictions
+                        if 0 <= q.waypoint_index < len(p.waypoints) and q.usable})
+        random.Random(f"{PAIR_SHUFFLE_SEED}{t}").shuffle(preds)
+        per_time.append([(t, h, g) for h, g in preds])
+    return per_time
+
+
+def logged_field(field: Any, log: dict[str, Any]) -> Any:
+    """The field as the log describes it: tracked from the log's time, site and aim point, logged drive angles."""
+    from pihim.field import drive_angles, track_field
+    from pihim.sky.sun import Site, parse_time, sun_position
+
+    site = Site(**{k: log["site"][k] for k in ("name", "latitude_deg", "longitude_deg", "height_m", "timezone")
+                   if k in log["site"]})
+    sun = sun_position(site, parse_time(log["time"]))
+    fp = track_field(field, sun.vector, np.asarray(log["aim_point_m"], float))
+    d = drive_angles(fp.normals)
+    az = np.mod(np.asarray(d.azimuth_deg, float), 360.0)
+    el = np.asarray(d.elevation_deg, float).copy()
+    for h in log["heliostats"]:
+        i = field.index(h["name"])
+        az[i], el[i] = h["az_deg"], h["el_deg"]
+    return fp.with_drive(az, el)
+
+
+def _reason_key(reason: str, target: str) -> str:
+    r = reason.replace(target, "target")
+    return r.split(" (")[0].split(":")[0].strip()
+
+
+def estimate_frame(field: Any, sim: Any, refine_kw: dict[str, Any]) -> dict[str, Any]:
+    """Run the estimator on ``sim.raw`` and ``sim.log``; score against ``sim.truth``."""
+    from pihim.camera import CameraModel, CameraPose, polar_image, project_points
+    from pihim.errors import PihimInputError
+    from pihim.inspection.canting import estimate_canting
+    from pihim.inspection.features import edge_points
+    from pihim.inspection.pose import facet_outline_segments, refine_pose
+
+    log, truth = sim.log, sim.truth
+    hua, target = log["hua"], log["target"]
+    camera = CameraModel.from_dict(log["camera"])
+    sec: dict[str, float] = {}
+    t0 = time.perf_counter()
+    pim = polar_image(sim.raw, demosaic="full", bit_depth=12)
+    sec["polar"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    zeros = np.zeros_like(pim.s0)
+    edges = edge_points(pim.s0, zeros, zeros)
+    sec["edges"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    fp = logged_field(field, log)
+    h = field.index(hua)
+    corners = fp.facet_corners()[h]
+    prior = CameraPose.from_dict(log["pose"])
+    sec["field"] = time.perf_counter() - t0
+    out: dict[str, Any] = {"hua": hua, "target": target, "time": log["time"], "edge_points": len(edges)}
+    true_pose = CameraPose.from_dict(truth["pose"])
+    uv_true = project_points(camera, true_pose, corners.reshape(-1, 3))
+    uv_prior = project_points(camera, prior, corners.reshape(-1, 3))
+    out["prior_corner_error_px"] = float(np.nanmax(np.linalg.norm(uv_prior - uv_true, axis=1)))
+    t0 = time.perf_counter()
+    try:
+        fit = refine_pose(camera, prior, facet_outline_segments(corners), edges, **refine_kw)
+    except PihimInputError as exc:
+        fit = None
+        out["pose_error"] = str(exc)
+    sec["pose"] = time.perf_counter() - t0
+    if fit is None:
+        out.update(pose_ok=False, pose_rms_px=None, corner_error_max_px=None, corner_error_rms_px=None,
+                   facets=[], used=0, reasons={}, seconds=sec)
+        sec["canting"] = 0.0
+        sec["estimation"] = sum(sec.values())
+        return out
+    d = np.linalg.norm(project_points(camera, fit.pose, corners.reshape(-1, 3)) - uv_true, axis=1)
+    out["pose_rms_px"] = float(fit.rms_px)
+    out["corner_error_max_px"] = float(np.nanmax(d))
+    out["corner_error_rms_px"] = float(np.sqrt(np.nanmean(d**2)))
+    out["pose_ok"] = bool(np.all(np.isfinite(d)) and out["corner_error_max_px"] <= POSE_FAIL_PX)
+    t0 = time.perf_counter()
+    res = estimate_canting(camera, fit.pose, fp, hua, target, edges, dolp=pim.dolp, saturated=pim.saturated)
+    sec["canting"] = time.perf_counter() - t0
+    sec["estimation"] = sum(v for k, v in sec.items())
+    true_h = next(e for e in truth["heliostats"] if e["name"] == hua)
+    tf = {f["id"]: (f["az_mrad"], f["el_mrad"]) for f in true_h["facets"]}
+    used = [f for f in res.facets if f.used]
+    facets = []
+    if used:
+        ta = np.array([tf[f.id][0] for f in used])
+        te = np.array([tf[f.id][1] for f in used])
+        ta, te = ta - ta.mean(), te - te.mean()
+        for f, a, e in zip(used, ta, te, strict=True):
+            facets.append({"id": f.id, "true_az_mrad": float(a), "true_el_mrad": float(e),
+                           "err_az_mrad": float(f.az_mrad - a), "err_el_mrad": float(f.el_mrad - e),
+                           "grid_err_az_mrad": float(f.grid_az_mrad - a), "grid_err_el_mrad": float(f.grid_el_mrad - e),
+                           "rms_px": float(f.rms_px), "points": int(f.points)})
+    out["facets"] = facets
+    out["used"] = len(used)
+    out["reasons"] = dict(Counter(_reason_key(f.reason or "", target) for f in res.facets if not f.used))
+    out["seconds"] = sec
+    return out
+
+
+def _rms(v: Sequence[float]) -> float | None:
+    return float(np.sqrt(np.mean(np.square(v)))) if len(v) else None
+
+
+def summarise(frames: list[dict[str, Any]]) -> dict[str, Any]:
+    good = [f for f in frames if f["pose_ok"]]
+    facets = [x for f in good for x in f["facets"]]
+    reasons: Counter = Counter()
+    for f in good:
+        reasons.update(f["reasons"])
+    pose_failures = [f for f in frames if not f["pose_ok"]]
+
+    def col(key: str, fr: list[dict[str, Any]]) -> list[float]:
+        return [f[key] for f in fr if f.get(key) is not None]
+
+    def med(v: list[float]) -> float | None:
+        return float(np.median(v)) if v else None
+
+    sec_keys = ("polar", "edges", "field", "pose", "canting", "estimation")
+    return {
+        "frames": len(frames),
+        "good_pose_frames": len(good),
+        "pose_failures": len(pose_failures),
+        "facets_scored": len(facets),
+        "rms_az_mrad": _rms([x["err_az_mrad"] for x in facets]),
+        "rms_el_mrad": _rms([x["err_el_mrad"] for x in facets]),
+        "grid_rms_az_mrad": _rms([x["grid_err_az_mrad"] for x in facets]),
+        "grid_rms_el_mrad": _rms([x["grid_err_el_mrad"] for x in facets]),
+        "max_abs_err_mrad": max((max(abs(x["err_az_mrad"]), abs(x["err_el_mrad"])) for x in facets), default=None),
+        "facets_used_per_good_frame": [f["used"] for f in good],
+        "skip_reasons_good_frames": dict(reasons.most_common()),
+        "pose_rms_px_median": med(col("pose_rms_px", frames)),
+        "corner_error_max_px_median_all": med(col("corner_error_max_px", frames)),
+        "corner_error_max_px_median_good": med(col("corner_error_max_px", good)),
+        "prior_corner_error_px_median": med(col("prior_corner_error_px", frames)),
+        "seconds_median": {k: med([f["seconds"][k] for f in frames if k in f["seconds"]]) for k in sec_keys},
+    }
+
+
+def run_benchmark(n_frames: int) -> dict[str, Any]:
+    from pihim.camera import CameraModel
+    from pihim.errors import PihimInputError
+    from pihim.field import nsttf_like_field
+    from pihim.render.simulate import PairPose, simulate_frame
+
+    field = nsttf_like_field()
+    t0 = time.perf_counter()
+    cands = candidate_pairs(field)
+    plan_s = time.perf_counter() - t0
+    camera = CameraModel()
+    results: dict[str, list[dict[str, Any]]] = {s[0]: [] for s in SETTINGS}
+    frames_info: list[dict[str, Any]] = []
+    refused: list[str] = []
+    used_huas: set[str] = set()
+    load_start = harness.cpu_times()
+    k = 0
+    slot = 0
+    while k < n_frames and any(cands):
+        lst = cands[slot % len(cands)]
+        slot += 1
+        while lst and lst[0][1] in used_huas:
+            lst.pop(0)
+        if not lst:
+            continue
+        t, hua, tgt = lst.pop(0)
+        sims = []
+        try:
+            for _key, _label, gps, att, _kw in SETTINGS:
+                t1 = time.perf_counter()
+                sim = simulate_frame(field, t, camera=camera, pose_request=PairPose(hua, tgt),
+                                     canting_sigma_mrad=CANTING_SIGMA_MRAD, gps_sigma_m=gps,
+                                     attitude_sigma_deg=att, seed=k)
+                sims.append((sim, time.perf_counter() - t1))
+        except PihimInputError as exc:
+            refused.append(f"{t} {hua}/{tgt}: {exc}")
+            slot -= 1  # the next candidate of the same time
+            continue
+        used_huas.add(hua)
+        frames_info.append({"seed": k, "time": t, "hua": hua, "target": tgt,
+                            "render_s": [s for _, s in sims]})
+        for (key, _label, _gps, _att, kw), (sim, render_s) in zip(SETTINGS, sims, strict=True):
+            r = estimate_frame(field, sim, kw)
+            r["seed"] = k
+            r["render_s"] = render_s
+            results[key].append(r)
+            print(f"[frame {k}] {key} {hua}/{tgt} {t[11:16]}: pose ok={r['pose_ok']} "
+                  f"corner err={r['corner_error_max_px']} used={r['used']} "
+                  f"est={r['seconds']['estimation']:.1f}s", file=sys.stderr, flush=True)
+        k += 1
+    load = harness.other_cpu_load(load_start, harness.cpu_times())
+    summary = {key: summarise(results[key]) for key, *_ in SETTINGS}
+    targets = []
+    for key, label, *_ in SETTINGS:
+        s = summary[key]
+        short = label.split(":")[0]
+        targets += [
+            harness.target(f"{short} canting RMS, azimuth", s["rms_az_mrad"], TARGET_MRAD, "mrad"),
+            harness.target(f"{short} canting RMS, elevation", s["rms_el_mrad"], TARGET_MRAD, "mrad"),
+            harness.target(f"{short} estimation per frame, median", s["seconds_median"]["estimation"], TARGET_S, "s"),
+        ]
+    import numba
+
+    return {
+        "benchmark": "canting",
+        "settings": {"frames": n_frames, "times": list(TIMES), "canting_sigma_mrad": CANTING_SIGMA_MRAD,
+                     "pose_fail_px": POSE_FAIL_PX,
+                     "priors": [{"key": k_, "label": lb, "gps_sigma_m": g, "attitude_sigma_deg": a, **kw}
+                                for k_, lb, g, a, kw in SETTINGS]},
+        "plan_s": plan_s,
+        "frames": frames_info,
+        "refused_pairs": refused,
+        "results": results,
+        "summary": summary,
+        "targets": targets,
+        "other_cpu_load": load,
+        "machine": {"cpu_model": harness.cpu_model(), "cpu_count": __import__("os").cpu_count(),
+                    "numba": numba.__version__, "numba_threads": numba.get_num_threads(),
+                    "numpy": np.__version__, "python": platform.python_version()},
+    }
+
+
+# ---------------------------------------------------------------------------
+# Report
+# ---------------------------------------------------------------------------
+def _f(x: Any, spec: str = ".2f") -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "-"
+    return format(x, spec)
+
+
+def markdown_report(rep: dict[str, Any]) -> str:
+    fr = rep["frames"]
+    lines = [
+        (f"{len(fr)} rendered UFACET frames (Triton 2448 x 2048, 35 mm; canting N(0, "
+         f"{rep['settings']['canting_sigma_mrad']:g} mrad); sensor 39 dB, 12 bit): "
+         + ", ".join(f"{f['hua']}/{f['target']} {f['time'][11:16]} (seed {f['seed']})" for f in fr) + "."),
+    ]
+    if rep["refused_pairs"]:
+        lines.append(f"Pairs refused by simulate_frame and replaced: {len(rep['refused_pairs'])}.")
+    for key, label, *_ in SETTINGS:
+        s = rep["summary"][key]
+        sec = s["seconds_median"]
+        lines += [
+            "",
+            f"**{label}** ({s['frames']} frames; pose failures (true corner error > {POSE_FAIL_PX:g} px or no fit): "
+            f"{s['pose_failures']}; canting scored over the {s['good_pose_frames']} good-pose frames, "
+            f"{s['facets_scored']} facets)",
+            "",
+            "| Quantity | Refined (LM) | Paper grid search | Anchor |",
+            "|---|--:|--:|---|",
+            (f"| canting RMS azimuth, mrad | {_f(s['rms_az_mrad'], '.3f')} | {_f(s['grid_rms_az_mrad'], '.3f')} "
+             f"| target <= {TARGET_MRAD:g}; paper grid step {GRID_STEP_MRAD:.2f}; H-FACET {HFACET_MRAD:.2f} |"),
+            (f"| canting RMS elevation, mrad | {_f(s['rms_el_mrad'], '.3f')} | {_f(s['grid_rms_el_mrad'], '.3f')} "
+             f"| target <= {TARGET_MRAD:g}; paper grid step {GRID_STEP_MRAD:.2f}; H-FACET {HFACET_MRAD:.2f} |"),
+            f"| largest facet error (either axis), mrad | {_f(s['max_abs_err_mrad'], '.3f')} | | |",
+            (f"| facets used per good frame (of 25) | {', '.join(map(str, s['facets_used_per_good_frame'])) or '-'} "
+             f"| | |"),
+            (f"| prior corner error, median px | {_f(s['prior_corner_error_px_median'], '.0f')} | | |"),
+            (f"| pose fit RMS residual, median px | {_f(s['pose_rms_px_median'], '.2f')} | | |"),
+            (f"| true corner error after refinement (max over corners), median px: all / good frames "
+             f"| {_f(s['corner_error_max_px_median_all'], '.2f')} / {_f(s['corner_error_max_px_median_good'], '.2f')} "
+             f"| | <= {POSE_FAIL_PX:g} px = good pose |"),
+            (f"| seconds per frame, median: polar / edges / field / pose / canting "
+             f"| {_f(sec['polar'])} / {_f(sec['edges'])} / {_f(sec['field'])} / {_f(sec['pose'], '.1f')} / "
+             f"{_f(sec['canting'], '.1f')} | | |"),
+            (f"| seconds per frame, estimation total (median) | {_f(sec['estimation'], '.1f')} | "
+             f"| target <= {TARGET_S:g} s |"),
+        ]
+        if s["skip_reasons_good_frames"]:
+            lines += ["", "Skipped facets (good-pose frames): "
+                      + "; ".join(f"{n} x {r}" for r, n in s["skip_reasons_good_frames"].items()) + "."]
+    lines += harness.target_table(rep["targets"], spec=".2f", unit_spec={"mrad": ".3f", "s": ".1f"})
+    lines += harness.busy_warning([rep["other_cpu_load"]])
+    lines += ["", f"Other CPU % during the run: {harness.other_pct(rep['other_cpu_load'])}."]
+    m = rep["machine"]
+    render = [s for f in fr for s in f["render_s"]]
+    render_s = float(np.median(render)) if render else None
+    lines += ["", (f"Render (not in the estimation time): median {_f(render_s, '.1f')} s per frame."
+                   f" Machine: {m['cpu_model']}, {m['cpu_count']} cores, numba {m['numba']} with "
+                   f"{m['numba_threads']} threads, numpy {m['numpy']}, Python {m['python']}.")]
+    return "\n".join(lines)
+
+
+def _configure(parser: Any) -> None:
+    parser.add_argument("--frames", type=int, default=None, metavar="N",
+                        help=f"frames (default {DEFAULT_FRAMES}, --quick {QUICK_FRAMES}; 20 for the issue's study)")
+
+
+def main(
+    argv: Sequence[str] | None = None,
+    *,
+    quick: bool = False,
+    frames: int | None = None,
+    json_path: Path | None = RESULTS_PATH,
+    echo: bool = True,
+) -> dict[str, Any]:
+    """Run the study, print the markdown report and write the JSON.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        ``--frames N``, ``--quick``, ``--json PATH``; ``None`` or empty reads nothing.
+    quick : bool
+        4 frames instead of 6.
+    frames : int, optional
+        Number of frames (overrides ``quick``).
+    json_path : pathlib.Path or None
+        Where to write the JSON report; ``None`` writes nothing.
+    echo : bool
+        Print the markdown report.
+    """
+    o = harness.options(argv, description=__doc__.split("\n\n")[0], counts=COUNTS, repeat=None, warmup=None,
+                        quick=quick, json_path=json_path, configure=_configure)
+    if o.args is not None and o.args.frames is not None:
+        frames = o.args.frames
+    n = frames if frames is not None else (QUICK_FRAMES if o.quick else DEFAULT_FRAMES)
+    if n < 1:
+        raise ValueError("--frames must be >= 1")
+    report = run_benchmark(n)
+    harness.write_json(report, o.json_path)  # before the report, so a long run is never lost
+    if echo:
+        print(markdown_report(report))
+        if o.json_path is not None:
+            print(f"\nJSON written to {o.json_path}")
+    return report
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
