@@ -269,7 +269,7 @@ class CameraModel:
         with np.errstate(divide="ignore", invalid="ignore"):
             xn = np.where(front, p[..., 0] / z, np.nan)
             yn = np.where(front, p[..., 1] / z, np.nan)
-        xd, yd = self.distort_normalized(xn, yn)
+        xd, yd = self.distort_normalized(xn, yn) if any(self.distortion) else (xn, yn)
         return np.stack([self.fx_px * xd + self.cx_px, self.fy_px * yd + self.cy_px], axis=-1)
 
     def pixel_rays(self, u: ArrayLike, v: ArrayLike) -> NDArray[np.float64]:

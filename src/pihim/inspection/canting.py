@@ -194,6 +194,13 @@ class _FacetModel:
         return _FacetModel(self.camera, self.pose, self.rot, self.centre, self.normal_local, self.pts[::k],
                            self.seg[::k])
 
+    def project_many(self, az_mrad: NDArray, el_mrad: NDArray) -> NDArray:
+        """Projected points (G, N, 2) for G candidate angle pairs at once (no normals)."""
+        n = apply_canting_deviation(self.normal_local, az_mrad, el_mrad) @ self.rot.T  # (G, 3)
+        d = (self.pts - self.centre) @ n.T  # (N, G)
+        virt = self.pts[None, :, :] - 2.0 * d.T[:, :, None] * n[:, None, :]
+        return project_points(self.camera, self.pose, virt.reshape(-1, 3)).reshape(len(n), -1, 2)
+
     def project(self, az_mrad: float, el_mrad: float) -> tuple[NDArray, NDArray]:
         n = self.rot @ apply_canting_deviation(self.normal_local, az_mrad, el_mrad)
         virt = self.pts - 2.0 * ((self.pts - self.centre) @ n)[:, None] * n
@@ -229,18 +236,22 @@ def _fit_facet(model: _FacetModel, mask: NDArray, obs: NDArray, dt: NDArray, spa
     #    outline (inside the facet) within ``grid_tol_px`` of an image edge; the peak is narrow
     #    (a few px per mrad), so no coarser pre-search
     grid = np.arange(-span_mrad, span_mrad + 1e-9, step_mrad)
-    g_best = (-1.0, 0.0, 0.0)
-    coarse_model = model.subsampled(3)
-    for az in grid:
-        for el in grid:
-            uv, _ = coarse_model.project(az, el)
-            ins = _inside(mask, uv)
-            if ins.sum() < 10:
-                continue
-            q = np.rint(uv[ins]).astype(int)
-            score = float(np.mean(dt[q[:, 1], q[:, 0]] <= grid_tol_px))
-            if score > g_best[0]:
-                g_best = (score, az, el)
+    gaz, gel = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
+    coarse_model = model.subsampled(6)  # every 6 cm of outline: the score is a share, not a sum
+    uv = coarse_model.project_many(gaz, gel)  # (G, N, 2), every node at once
+    hgt, wid = mask.shape
+    fin = np.all(np.isfinite(uv), axis=2)
+    ii = np.where(fin, np.rint(np.nan_to_num(uv[..., 1])), -1).astype(np.int64)
+    jj = np.where(fin, np.rint(np.nan_to_num(uv[..., 0])), -1).astype(np.int64)
+    ok = fin & (ii >= 0) & (ii < hgt) & (jj >= 0) & (jj < wid)
+    ii_c = np.clip(ii, 0, hgt - 1)
+    jj_c = np.clip(jj, 0, wid - 1)
+    ins = ok & mask[ii_c, jj_c]
+    near = ins & (dt[ii_c, jj_c] <= grid_tol_px)
+    n_in = ins.sum(axis=1)
+    score = np.where(n_in >= 10, near.sum(axis=1) / np.maximum(n_in, 1), -1.0)
+    k = int(np.argmax(score))  # first maximum: the same node the loop over az, then el, kept
+    g_best = (float(score[k]), float(gaz[k]), float(gel[k]))
     if g_best[0] < 0:
         raise PihimInputError("no reflected target outline falls inside this facet")
     grid_az, grid_el = g_best[1], g_best[2]
