@@ -64,7 +64,7 @@ from pihim.camera.pose import CameraPose, project_points
 from pihim.errors import PihimInputError
 from pihim.field.kinematics import FieldPose, apply_canting_deviation
 from pihim.inspection.features import EdgePoints
-from pihim.inspection.pose import facet_outline_segments, sample_segments
+from pihim.inspection.pose import facet_outline_segments, line_normals, match_edge_points, sample_segments
 from pihim.render.scene import StructureSizes
 
 __all__ = ["CantingResult", "FacetCanting", "PAPER_GRID_STEP_MRAD", "estimate_canting", "target_outline_segments"]
@@ -205,12 +205,7 @@ class _FacetModel:
         n = self.rot @ apply_canting_deviation(self.normal_local, az_mrad, el_mrad)
         virt = self.pts - 2.0 * ((self.pts - self.centre) @ n)[:, None] * n
         uv = project_points(self.camera, self.pose, virt)
-        tangent = np.roll(uv, -1, axis=0) - np.roll(uv, 1, axis=0)
-        same = (np.roll(self.seg, -1) == self.seg) & (np.roll(self.seg, 1) == self.seg)
-        tangent = np.where(same[:, None], tangent, np.nan)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-        return uv, np.column_stack([-tangent[:, 1], tangent[:, 0]])
+        return uv, line_normals(uv, self.seg)
 
 
 def _inside(mask: NDArray[np.bool_], uv: NDArray) -> NDArray[np.bool_]:
@@ -230,7 +225,6 @@ def _fit_facet(model: _FacetModel, mask: NDArray, obs: NDArray, dt: NDArray, spa
                step_mrad: float, gates_px: tuple[float, ...], grid_tol_px: float = 5.0) -> tuple:
     """(grid az, grid el, az, el, sigma az, sigma el, points, rms) for one facet (raw, not relative)."""
     from scipy.optimize import least_squares
-    from scipy.spatial import cKDTree
 
     # 1. the paper's grid search: every node of the grid, scored by the share of the reflected
     #    outline (inside the facet) within ``grid_tol_px`` of an image edge; the peak is narrow
@@ -267,13 +261,7 @@ def _fit_facet(model: _FacetModel, mask: NDArray, obs: NDArray, dt: NDArray, spa
         ins = _inside(mask, uv) & np.all(np.isfinite(nrm), axis=1)
         if ins.sum() < 20:
             raise PihimInputError("the reflected target leaves the facet")
-        tree = cKDTree(uv[ins])
-        d, j = tree.query(ob, distance_upper_bound=gate)
-        hit = np.isfinite(d)
-        if hit.sum() < 15:
-            raise PihimInputError(f"only {int(hit.sum())} edge points match the reflected target")
-        idx = np.flatnonzero(ins)[j[hit]]
-        q = ob[hit]
+        idx, q = match_edge_points(uv, ins, ob, gate, 15, "the reflected target")
 
         def residuals(p: NDArray, q=q, idx=idx, gate=gate) -> NDArray:
             uvc, nc = model.project(p[0], p[1])

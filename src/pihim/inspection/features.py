@@ -135,8 +135,7 @@ def edge_points(
     -------
     EdgePoints
     """
-    _gx, _gy, mag = combined_gradient(s0, dolp, aop_deg, smooth_px=smooth_px)
-    gx, gy = _gx, _gy
+    gx, gy, mag = combined_gradient(s0, dolp, aop_deg, smooth_px=smooth_px)
     norm = np.hypot(gx, gy)
     if threshold is None:
         sel = mag if mask is None else mag[mask]

@@ -47,7 +47,7 @@ from pihim.camera.pose import CameraPose, project_points
 from pihim.errors import PihimInputError
 from pihim.inspection.features import EdgePoints
 
-__all__ = ["PoseFit", "facet_outline_segments", "refine_pose", "sample_segments"]
+__all__ = ["PoseFit", "facet_outline_segments", "line_normals", "match_edge_points", "refine_pose", "sample_segments"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,10 +113,13 @@ def sample_segments(segments: ArrayLike, spacing_m: float) -> tuple[NDArray[np.f
     return np.concatenate(pts), np.concatenate(seg)
 
 
-def _project_lines(camera: CameraModel, pose: CameraPose, pts: NDArray, seg: NDArray) -> tuple[NDArray, NDArray]:
-    """Projected sample points and unit 2-D normals of the projected lines at them."""
-    uv = project_points(camera, pose, pts)
-    tangent = np.zeros_like(uv)
+def line_normals(uv: NDArray, seg: NDArray) -> NDArray:
+    """Unit 2-D normals of projected polylines at their sample points ``uv`` (N, 2).
+
+    ``seg`` (N,) says which segment each sample belongs to; the tangent is the
+    central difference of neighbours on the same segment (one-sided at its
+    ends).
+    """
     same_next = np.append(seg[1:] == seg[:-1], False)
     same_prev = np.insert(seg[1:] == seg[:-1], 0, False)
     nxt = np.where(same_next[:, None], np.roll(uv, -1, axis=0), uv)
@@ -125,8 +128,30 @@ def _project_lines(camera: CameraModel, pose: CameraPose, pts: NDArray, seg: NDA
     ln = np.linalg.norm(tangent, axis=1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         tangent = tangent / ln
-    normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
-    return uv, normal
+    return np.column_stack([-tangent[:, 1], tangent[:, 0]])
+
+
+def match_edge_points(uv: NDArray, usable: NDArray[np.bool_], obs: NDArray, gate: float, min_hits: int,
+                      what: str) -> tuple[NDArray[np.int64], NDArray]:
+    """Pair image edge points with their nearest usable model sample within ``gate`` pixels.
+
+    Returns the model sample index of each matched edge point and the matched
+    points; raises :class:`PihimInputError` (naming ``what``) when fewer than
+    ``min_hits`` match.
+    """
+    from scipy.spatial import cKDTree
+
+    d, j = cKDTree(uv[usable]).query(obs, distance_upper_bound=gate)
+    hit = np.isfinite(d)
+    if hit.sum() < min_hits:
+        raise PihimInputError(f"{what} matches only {int(hit.sum())} edge points")
+    return np.flatnonzero(usable)[j[hit]], obs[hit]
+
+
+def _project_lines(camera: CameraModel, pose: CameraPose, pts: NDArray, seg: NDArray) -> tuple[NDArray, NDArray]:
+    """Projected sample points and unit 2-D normals of the projected lines at them."""
+    uv = project_points(camera, pose, pts)
+    return uv, line_normals(uv, seg)
 
 
 def _rotation_from_vector(r: NDArray) -> NDArray:
@@ -225,7 +250,6 @@ def refine_pose(
     spacing_m: float = 0.02,
     gates_px: tuple[float, ...] = (40.0, 15.0, 6.0, 3.0, 3.0),
     n_starts: int = 1,
-    prior_sigma: tuple[float, float] | None = None,
 ) -> PoseFit:
     """Refine a camera pose so that projected 3-D segments fall on image edge points.
 
@@ -251,12 +275,6 @@ def refine_pose(
     n_starts : int
         ICP runs from the best coarse candidates; the one whose final pose
         puts the most edge points within 1.5 px of the model wins.
-    prior_sigma : (float, float) or None
-        Accuracy of the prior (position m, attitude deg), used as soft
-        priors that hold the directions the image barely constrains (a
-        camera shift and a camera turn look alike for a distant plane).
-        Experimental: with the weights tried so far it pulls good fits off.
-
     Notes
     -----
     Measured on a rendered 2448 x 2048 UFACET frame (20 mm lens, whole HUA in
@@ -264,7 +282,9 @@ def refine_pose(
     the truth the refinement converges to 0.2 px (0.01 deg, 2 mm); from the
     issue's GPS 1.5 m / attitude 1 deg priors (200-600 px) it often stops in
     a wrong minimum of the periodic facet grid (tests/inspection/test_pose.py
-    holds the first case; the second is open).
+    holds the first case; the second is open). Soft priors holding the
+    position and attitude near the log, several starting points and the
+    neighbouring heliostats' outlines were tried and did not close it.
 
     Returns
     -------
@@ -282,7 +302,7 @@ def refine_pose(
     best = None
     for _, start in starts:
         try:
-            fit = _icp(camera, start, prior, pts, seg, edges.xy, gates_px, prior_sigma)
+            fit = _icp(camera, start, pts, seg, edges.xy, gates_px)
         except PihimInputError:
             continue
         if best is None or fit[3] > best[3]:
@@ -297,8 +317,8 @@ def refine_pose(
     return PoseFit(pose, prior, rms, n_used, (dx, dy), pose.position_m - prior.position_m, ang)
 
 
-def _icp(camera: CameraModel, start: CameraPose, prior: CameraPose, pts: NDArray, seg: NDArray, obs: NDArray,
-         gates_px: tuple[float, ...], prior_sigma: tuple[float, float] | None) -> tuple[CameraPose, float, int, int]:
+def _icp(camera: CameraModel, start: CameraPose, pts: NDArray, seg: NDArray, obs: NDArray,
+         gates_px: tuple[float, ...]) -> tuple[CameraPose, float, int, int]:
     """Point-to-line ICP from ``start``; returns (pose, rms px, matched points, support within 1.5 px)."""
     from scipy.optimize import least_squares
     from scipy.spatial import cKDTree
@@ -313,33 +333,18 @@ def _icp(camera: CameraModel, start: CameraPose, prior: CameraPose, pts: NDArray
             & (uv[:, 1] > -gate) & (uv[:, 1] < camera.height_px + gate)
         if inside.sum() < 30:
             raise PihimInputError("the heliostat is not in view")
-        tree = cKDTree(uv[inside])
-        d, j = tree.query(obs, distance_upper_bound=gate)
-        hit = np.isfinite(d)
-        if hit.sum() < 30:
-            raise PihimInputError(f"the heliostat's outline matches only {int(hit.sum())} edge points")
-        idx = np.flatnonzero(inside)[j[hit]]
-        q = obs[hit]
-        k_prior = 0.5 * np.sqrt(hit.sum())
+        idx, q = match_edge_points(uv, inside, obs, gate, 30, "the heliostat's outline")
 
-        def residuals(params: NDArray, q=q, idx=idx, pose=pose, gate=gate, k_prior=k_prior) -> NDArray:
-            cand = _perturbed(pose, params)
-            uvc, nc = _project_lines(camera, cand, pts, seg)
-            r = np.nan_to_num(np.einsum("ij,ij->i", q - uvc[idx], nc[idx]), nan=gate)
-            if prior_sigma is None:
-                return r
-            # soft priors: the logged position and attitude within their stated accuracy
-            dpos = (cand.position_m - prior.position_m) / prior_sigma[0]
-            rot = cand.rotation @ prior.rotation.T
-            ang = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]]) * 0.5
-            return np.concatenate([r, k_prior * dpos, k_prior * ang / np.radians(prior_sigma[1])])
+        def residuals(params: NDArray, q=q, idx=idx, pose=pose, gate=gate) -> NDArray:
+            uvc, nc = _project_lines(camera, _perturbed(pose, params), pts, seg)
+            return np.nan_to_num(np.einsum("ij,ij->i", q - uvc[idx], nc[idx]), nan=gate)
 
         sol = least_squares(residuals, np.zeros(6), loss="soft_l1", f_scale=1.0,
                             x_scale=np.array([1e-3, 1e-3, 1e-3, 0.1, 0.1, 0.1]), max_nfev=50)
         pose = _perturbed(pose, sol.x)
-        r = residuals(np.zeros(6))[: len(q)]
+        r = residuals(np.zeros(6))
         rms = float(np.sqrt(np.mean(r**2)))
-        n_used = int(hit.sum())
+        n_used = len(q)
     uv, _ = _project_lines(camera, pose, pts, seg)
     ok = np.all(np.isfinite(uv), axis=1)
     d, _ = cKDTree(uv[ok]).query(obs, distance_upper_bound=1.5)
