@@ -36,6 +36,7 @@ from pihim.render.paths import (
     TOWER_HIT,
 )
 from pihim.render.scene import FACET, TOWER
+from pihim.sky.table import sample_table
 
 __all__ = ["render_rays"]
 
@@ -109,7 +110,6 @@ def _kernel(prim, order, box, node_first, node_count, node_right, normal,
     n = px_u.shape[0]
     n_blocks = (n + BLOCK - 1) // BLOCK
     nb_max = max(max_bounces, 1)
-    m_size = sky_table.shape[0]
     gz_n = g_sky.shape[0]
     ga_n = g_sky.shape[1]
     gnx, gny, gnz = -gb, -gc, 1.0
@@ -209,30 +209,8 @@ def _kernel(prim, order, box, node_first, node_count, node_right, normal,
             ex, ey, ez = _perp(ldx, ldy, ldz, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0)
             if tk == SKY or tk == SUN:
                 if dz > 0.0:
-                    kk = math.sqrt(2.0 / (1.0 + dz))
-                    fxi = (dx * kk + sky_radius) / sky_step
-                    fyi = (dy * kk + sky_radius) / sky_step
-                    ix = min(max(int(fxi), 0), m_size - 2)
-                    iy = min(max(int(fyi), 0), m_size - 2)
-                    tx = fxi - ix
-                    ty = fyi - iy
-                    w00 = (1 - tx) * (1 - ty)
-                    w10 = tx * (1 - ty)
-                    w01 = (1 - tx) * ty
-                    w11 = tx * ty
-                    s0 = (w00 * sky_table[ix, iy, 0] + w10 * sky_table[ix + 1, iy, 0]
-                          + w01 * sky_table[ix, iy + 1, 0] + w11 * sky_table[ix + 1, iy + 1, 0])
-                    s1 = (w00 * sky_table[ix, iy, 1] + w10 * sky_table[ix + 1, iy, 1]
-                          + w01 * sky_table[ix, iy + 1, 1] + w11 * sky_table[ix + 1, iy + 1, 1])
-                    s2 = (w00 * sky_table[ix, iy, 2] + w10 * sky_table[ix + 1, iy, 2]
-                          + w01 * sky_table[ix, iy + 1, 2] + w11 * sky_table[ix + 1, iy + 1, 2])
-                    s3 = (w00 * sky_table[ix, iy, 3] + w10 * sky_table[ix + 1, iy, 3]
-                          + w01 * sky_table[ix, iy + 1, 3] + w11 * sky_table[ix + 1, iy + 1, 3])
-                    # e_T(l) = x - l_x / (1 + l_z) (l + z), l = ray direction (toward the sky)
-                    f = dx / (1.0 + dz)
-                    ex, ey, ez = 1.0 - f * dx, -f * dy, -f * dz - f
-                    el = math.sqrt(ex * ex + ey * ey + ez * ez)
-                    ex, ey, ez = ex / el, ey / el, ez / el
+                    # sky Stokes in the table's frame e_T(l), l = the ray direction (toward the sky)
+                    s0, s1, s2, s3, ex, ey, ez = sample_table(sky_table, sky_radius, sky_step, dx, dy, dz)
                 if tk == SUN:
                     s0 += sun_radiance
             elif tk == GROUND:

@@ -10,11 +10,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from pihim.polarimetry.frames import as_stokes4, change_reference, normalize
 
-__all__ = ["SkyTable", "table_axis"]
+__all__ = ["SkyTable", "sample_table", "table_axis"]
 
 
 def table_axis(l: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -73,3 +74,35 @@ class SkyTable:
         s = (1 - tx) * (1 - ty) * t[ix, iy] + tx * (1 - ty) * t[ix + 1, iy] + (1 - tx) * ty * t[ix, iy + 1]
         s = s + tx * ty * t[ix + 1, iy + 1]
         return s, table_axis(l)
+
+
+@njit(inline="always", cache=True)
+def sample_table(table, radius, step, lx, ly, lz):  # pragma: no cover - compiled
+    """Compiled :meth:`SkyTable.sample` for one direction ``l`` (``lz > -1``).
+
+    Returns ``(s0, s1, s2, s3, ex, ey, ez)``: the bilinearly interpolated
+    Stokes vector and its axis ``e_T(l)``. Used inside the numba kernels of the
+    ground model and the renderer.
+    """
+    m = table.shape[0]
+    k = math.sqrt(2.0 / (1.0 + lz))
+    fx = (lx * k + radius) / step
+    fy = (ly * k + radius) / step
+    ix = min(max(int(fx), 0), m - 2)
+    iy = min(max(int(fy), 0), m - 2)
+    tx = fx - ix
+    ty = fy - iy
+    w00 = (1.0 - tx) * (1.0 - ty)
+    w10 = tx * (1.0 - ty)
+    w01 = (1.0 - tx) * ty
+    w11 = tx * ty
+    a = table[ix, iy]
+    b = table[ix + 1, iy]
+    c = table[ix, iy + 1]
+    d = table[ix + 1, iy + 1]
+    s0 = w00 * a[0] + w10 * b[0] + w01 * c[0] + w11 * d[0]
+    s1 = w00 * a[1] + w10 * b[1] + w01 * c[1] + w11 * d[1]
+    s2 = w00 * a[2] + w10 * b[2] + w01 * c[2] + w11 * d[2]
+    s3 = w00 * a[3] + w10 * b[3] + w01 * c[3] + w11 * d[3]
+    f = lx / (1.0 + lz)
+    return s0, s1, s2, s3, 1.0 - f * lx, -f * ly, -f * (lz + 1.0)

@@ -133,6 +133,7 @@ from numpy.typing import ArrayLike, NDArray
 from pihim.errors import PihimInputError
 from pihim.sky.model import horizontal_irradiance
 from pihim.sky.table import SkyTable as _SkyTable
+from pihim.sky.table import sample_table
 from pihim.polarimetry.frames import (
     aop4_deg,
     change_reference,
@@ -387,7 +388,6 @@ def _sky_kernel(views, e_out, nodes, weights, table, radius, step, n, shadowing,
     """
     n_views = views.shape[0]
     n_nodes = nodes.shape[0]
-    m = table.shape[0]
     inv_n2 = 1.0 / (n * n)
     for i in prange(n_views):
         vx = views[i, 0]
@@ -417,47 +417,8 @@ def _sky_kernel(views, e_out, nodes, weights, table, radius, step, n, shadowing,
                 if shadowing:
                     g = min(1.0, 2.0 * hz * vz / c, 2.0 * hz * lz / c)
                 w = weights[j] * g * c / vz
-                # sky Stokes at l: bilinear in Lambert azimuthal coordinates
-                k = math.sqrt(2.0 / (1.0 + lz))
-                fx = (lx * k + radius) / step
-                fy = (ly * k + radius) / step
-                ix = min(max(int(fx), 0), m - 2)
-                iy = min(max(int(fy), 0), m - 2)
-                tx = fx - ix
-                ty = fy - iy
-                w00 = (1.0 - tx) * (1.0 - ty)
-                w10 = tx * (1.0 - ty)
-                w01 = (1.0 - tx) * ty
-                w11 = tx * ty
-                s0 = (
-                    w00 * table[ix, iy, 0]
-                    + w10 * table[ix + 1, iy, 0]
-                    + w01 * table[ix, iy + 1, 0]
-                    + w11 * table[ix + 1, iy + 1, 0]
-                )
-                s1 = (
-                    w00 * table[ix, iy, 1]
-                    + w10 * table[ix + 1, iy, 1]
-                    + w01 * table[ix, iy + 1, 1]
-                    + w11 * table[ix + 1, iy + 1, 1]
-                )
-                s2 = (
-                    w00 * table[ix, iy, 2]
-                    + w10 * table[ix + 1, iy, 2]
-                    + w01 * table[ix, iy + 1, 2]
-                    + w11 * table[ix + 1, iy + 1, 2]
-                )
-                s3 = (
-                    w00 * table[ix, iy, 3]
-                    + w10 * table[ix + 1, iy, 3]
-                    + w01 * table[ix, iy + 1, 3]
-                    + w11 * table[ix + 1, iy + 1, 3]
-                )
-                # table frame axis e_T(l)
-                f = lx / (1.0 + lz)
-                tex = 1.0 - f * lx
-                tey = -f * ly
-                tez = -f * (lz + 1.0)
+                # sky Stokes at l and the table's axis e_T(l)
+                s0, s1, s2, s3, tex, tey, tez = sample_table(table, radius, step, lx, ly, lz)
                 # s axis of the facet's plane of incidence: normalize(d_in x h) = normalize(v x h)
                 sx = vy * hz - vz * hy
                 sy = vz * hx - vx * hz
