@@ -34,9 +34,9 @@ Estimation (per frame, per prior setting), from ``raw`` and ``log`` only:
 Two prior settings (the logged pose's noise):
 
 * (i) the issue's priors, GPS 1.5 m and attitude 1 deg
-  (``max_shift_px=700, range_m=4``);
+  (``refine_pose``'s defaults: starting positions 1.5 m apart);
 * (ii) good priors, GPS 0.15 m and attitude 0.15 deg
-  (``max_shift_px=200, range_m=0.5``).
+  (starting positions 0.15 m apart, ``search_m=(0.15, 0.15, 0.2)``).
 
 Scores:
 
@@ -95,9 +95,9 @@ PAIR_SHUFFLE_SEED = 9
 #: (key, label, gps sigma m, attitude sigma deg, refine_pose keywords)
 SETTINGS = (
     ("issue_priors", "(i) issue's priors: GPS 1.5 m, attitude 1 deg", 1.5, 1.0,
-     {"max_shift_px": 700.0, "range_m": 4.0}),
+     {}),
     ("good_priors", "(ii) good priors: GPS 0.15 m, attitude 0.15 deg", 0.15, 0.15,
-     {"max_shift_px": 200.0, "range_m": 0.5}),
+     {"search_m": (0.15, 0.15, 0.2)}),
 )
 
 GRID_STEP_MRAD = math.radians(0.1) * 1e3

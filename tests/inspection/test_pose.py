@@ -82,7 +82,7 @@ def test_refine_pose_converges_from_a_nearby_prior_on_a_rendered_frame():
                                                 true.roll_deg).rotation)
     c = corners.reshape(-1, 3)
     before = np.abs(project_points(cam, prior, c) - project_points(cam, true, c)).max()
-    fit = refine_pose(cam, prior, segs, ep, max_shift_px=150, range_m=0.5)
+    fit = refine_pose(cam, prior, segs, ep)
     after = np.abs(project_points(cam, fit.pose, c) - project_points(cam, true, c)).max()
     assert before > 15.0
     assert after < 0.3

@@ -52,12 +52,9 @@ from pihim.inspection.pose import facet_outline_segments, refine_pose
 from pihim.polarimetry.analyser import AnalyserMatrix
 from pihim.sky.sun import Site, sun_position
 
-__all__ = ["InspectionResult", "MAX_SHIFT_PX", "RANGE_M", "SIGMA_FLOOR_MRAD", "combine_results",
+__all__ = ["InspectionResult", "SIGMA_FLOOR_MRAD", "combine_results",
            "field_pose_from_log", "inspect_frame"]
 
-#: Coarse pose search half-window, pixels, and along-axis range, metres (see the module notes).
-MAX_SHIFT_PX = 200.0
-RANGE_M = 0.5
 #: Floor of the per-facet standard errors used as inverse-variance weights, mrad.
 SIGMA_FLOOR_MRAD = 0.05
 
@@ -246,7 +243,7 @@ def inspect_frame(
     z = np.zeros_like(pol.s0)
     ep = edge_points(pol.s0, z, z)  # S0 only: see the notes of pihim.inspection.canting
     t3 = _time.perf_counter()
-    fit = refine_pose(camera, prior, facet_outline_segments(corners), ep, max_shift_px=MAX_SHIFT_PX, range_m=RANGE_M)
+    fit = refine_pose(camera, prior, facet_outline_segments(corners), ep)
     t4 = _time.perf_counter()
     res = estimate_canting(camera, fit.pose, fp, hua, target, ep, dolp=pol.dolp, saturated=pol.saturated)
     t5 = _time.perf_counter()
