@@ -1,0 +1,87 @@
+"""``pihim demo``: the whole chain (plan, render, inspect, score, report) on a small centre crop."""
+
+import io
+import json
+import re
+import sys
+
+import numpy as np
+import pytest
+
+from pihim.cli import main
+
+
+def _run(args):
+    cap = pytest.MonkeyPatch()
+    so, se = io.StringIO(), io.StringIO()
+    cap.setattr(sys, "stdout", so)
+    cap.setattr(sys, "stderr", se)
+    try:
+        rc = main(args)
+    finally:
+        cap.undo()
+    return rc, so.getvalue(), se.getvalue()
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo") / "DIR"
+    rc, so, se = _run(["demo", "--out", str(out), "--pairs", "1", "--size", "1224x1024", "--json"])
+    return rc, json.loads(so) if rc == 0 else None, out, se
+
+
+def test_demo_writes_a_report_whose_every_link_resolves(demo_run):
+    rc, doc, out, err = demo_run
+    assert rc == 0, err
+    assert json.loads((out / "demo.json").read_text()) == doc
+    page = (out / "report.html").read_text()
+    links = re.findall(r'(?:src|href)="([^"]+)"', page)
+    assert any(s.endswith("plan.png") for s in links)
+    assert sum(s.endswith(".png") for s in links) >= 8  # plan map, 6 previews and edge maps, canting figure
+    for link in links:
+        assert (out / link).is_file(), link
+    assert not list(out.rglob("*.part*"))  # no temporary file left behind
+
+
+def test_demo_scores_against_the_truth_it_never_gave_the_estimator(demo_run):
+    rc, doc, out, err = demo_run
+    assert rc == 0, err
+    (pair,) = doc["pairs"]
+    truth = json.loads((out / pair["dir"] / "frame.json").read_text())["truth"]
+    true_h = next(h for h in truth["heliostats"] if h["name"] == pair["hua"])
+    true_f = {f["id"]: f for f in true_h["facets"]}
+    rows = pair["score"]["facets"]
+    assert [r["id"] for r in rows] == list(range(1, 26))
+    for r in rows:  # the table's truth is the frame's truth
+        assert r["true_az_mrad"] == true_f[r["id"]]["az_mrad"] and r["true_el_mrad"] == true_f[r["id"]]["el_mrad"]
+    used = [r for r in rows if r["used"]]
+    if used:  # relative truth: the mean over the facets used is removed
+        assert np.mean([r["true_rel_az_mrad"] for r in used]) == pytest.approx(0.0, abs=1e-9)
+        for r in used:
+            assert r["err_az_mrad"] == pytest.approx(r["est_az_mrad"] - r["true_rel_az_mrad"])
+    pose = pair["score"]["pose"]
+    assert pose["prior_corner_error_px"] > 20  # the logged pose was really off (GPS 1.5 m, attitude 1 deg) ...
+    assert pose["refined_corner_error_px"] < 2.0  # ... and the estimator found the true pose from the image
+    assert set(pair["score"]["edge_success"]) == {"S0", "DoLP", "AoP"}
+    assert doc["summary"]["pairs"] == 1
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--size", "10x10"], "width_px"),
+    (["--size", "big"], "--size"),
+    (["--pairs", "0"], "pairs"),
+    (["--seed", "-1"], "seed"),
+])
+def test_demo_bad_input_is_one_line_and_exit_2(tmp_path, args, words):
+    rc, so, se = _run(["demo", "--out", str(tmp_path / "o"), *args])
+    assert rc == 2
+    lines = [ln for ln in se.splitlines() if ln.strip()]
+    assert len(lines) == 1 and words in lines[0], se
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+def test_demo_out_is_a_file(tmp_path):
+    f = tmp_path / "afile"
+    f.write_text("x")
+    rc, so, se = _run(["demo", "--out", str(f)])
+    assert rc == 2 and "not a directory" in se
