@@ -194,6 +194,25 @@ class _FacetModel:
         return _FacetModel(self.camera, self.pose, self.rot, self.centre, self.normal_local, self.pts[::k],
                            self.seg[::k])
 
+    def near(self, mask: NDArray[np.bool_], span_mrad: float, margin_px: float = 20.0) -> _FacetModel:
+        """The model restricted to the points that can reach the facet's mask within the search span.
+
+        A point is kept if, at the centre or at any corner of the ``+-span_mrad`` grid, it
+        projects inside the mask's bounding box grown by ``margin_px`` (the reflection moves
+        almost affinely with the angles, so the box of those five covers every node).
+        """
+        rows = np.flatnonzero(mask.any(axis=1))
+        cols = np.flatnonzero(mask.any(axis=0))
+        if rows.size == 0:
+            return self
+        lo = np.array([cols[0], rows[0]]) - margin_px
+        hi = np.array([cols[-1], rows[-1]]) + margin_px
+        s = float(span_mrad)
+        uv = self.project_many(np.array([0.0, -s, -s, s, s]), np.array([0.0, -s, s, -s, s]))  # (5, N, 2)
+        keep = np.any(np.all((uv >= lo) & (uv <= hi), axis=2), axis=0)
+        return _FacetModel(self.camera, self.pose, self.rot, self.centre, self.normal_local, self.pts[keep],
+                           self.seg[keep])
+
     def project_many(self, az_mrad: NDArray, el_mrad: NDArray) -> NDArray:
         """Projected points (G, N, 2) for G candidate angle pairs at once (no normals)."""
         n = apply_canting_deviation(self.normal_local, az_mrad, el_mrad) @ self.rot.T  # (G, 3)
@@ -388,7 +407,7 @@ def estimate_canting(
                 raw.append((fid, f"DoLP <= {min_dolp:g} on the reflection (paper sec. 4.1)"))
                 continue
         model = _FacetModel(camera, pose, field_pose.rotations[h], field_pose.facet_centres[h, f],
-                            field_pose.facet_normals_local[h, f], pts, seg)
+                            field_pose.facet_normals_local[h, f], pts, seg).near(mask, span_mrad)
         try:
             fit = _fit_facet(model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px)
         except PihimInputError as exc:
