@@ -298,12 +298,22 @@ def _fit_facet(model: _FacetModel, mask: NDArray, obs: NDArray, dt: NDArray, spa
         if ins.sum() < 20:
             raise PihimInputError("the reflected target leaves the facet")
         idx, q = match_edge_points(uv, ins, ob, gate, 15, "the reflected target")
+        # only the matched model points move; their line normals are held for the round (the
+        # outline barely turns over a round's few mrad) and re-taken at the next re-match
+        used_pts, inv = np.unique(idx, return_inverse=True)
+        sub, nq = model.pts[used_pts], nrm[idx]
 
-        def residuals(p: NDArray, q=q, idx=idx, gate=gate) -> NDArray:
-            uvc, nc = model.project(p[0], p[1])
-            return np.nan_to_num(np.einsum("ij,ij->i", q - uvc[idx], nc[idx]), nan=gate)
+        def residuals(p: NDArray, q=q, inv=inv, sub=sub, nq=nq, gate=gate) -> NDArray:
+            uvc = model.project_many(np.array([p[0]]), np.array([p[1]]), sub)[0][inv]
+            return np.nan_to_num(np.einsum("ij,ij->i", q - uvc, nq), nan=gate)
 
-        sol = least_squares(residuals, np.array([az, el]), loss="soft_l1", f_scale=0.5, x_scale=0.1)
+        def jacobian(p: NDArray, inv=inv, sub=sub, nq=nq) -> NDArray:
+            h = 1e-3  # mrad
+            uvs = model.project_many(np.array([p[0], p[0] + h, p[0]]), np.array([p[1], p[1], p[1] + h]), sub)
+            d = (uvs[1:] - uvs[:1])[:, inv] / h  # (2, M, 2)
+            return -np.nan_to_num(np.einsum("kij,ij->ik", d, nq))
+
+        sol = least_squares(residuals, np.array([az, el]), jac=jacobian, loss="soft_l1", f_scale=0.5, x_scale=0.1)
         az, el = float(sol.x[0]), float(sol.x[1])
         r = residuals(sol.x)
     assert sol is not None
