@@ -20,7 +20,7 @@ Frame ``k`` is :func:`pihim.render.simulate.simulate_frame` of that pair
 Estimation (per frame, per prior setting), from ``raw`` and ``log`` only:
 
 1. **polar**: ``polar_image(raw, demosaic="full", bit_depth=12)``;
-2. **edges**: S0-only sub-pixel edge points ``edge_points(s0, 0, 0)`` (the
+2. **edges**: S0-only sub-pixel edge points ``edge_points(s0)`` (the
    DoLP of the dark target back is too noisy at 39 dB to add unweighted);
 3. **field**: the logged field: sun from the log's time and site,
    ``track_field`` toward the log's aim point, the drive angles of the
@@ -167,8 +167,7 @@ def estimate_frame(field: Any, sim: Any, refine_kw: dict[str, Any]) -> dict[str,
     pim = polar_image(sim.raw, demosaic="full", bit_depth=12)
     sec["polar"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    zeros = np.zeros_like(pim.s0)
-    edges = edge_points(pim.s0, zeros, zeros)
+    edges = edge_points(pim.s0)
     sec["edges"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     fp = logged_field(field, log)
