@@ -45,7 +45,8 @@ Scores:
   distance, px. A frame whose max exceeds 2 px (or whose refinement raised)
   is a **pose failure**; canting is scored over the frames with good poses
   only;
-* **canting error**: for the facets the estimator used, its deviations
+* **canting error** (frames with at least two facets used; one facet alone
+  is its own reference): for the facets the estimator used, its deviations
   (relative to the mean over the used facets) minus the true deviations
   (``truth["heliostats"]`` of the HUA) re-referenced to the mean over the same
   facets; per-axis RMS over all used facets of all good frames, for the
@@ -240,7 +241,8 @@ def _rms(v: Sequence[float]) -> float | None:
 
 def summarise(frames: list[dict[str, Any]]) -> dict[str, Any]:
     good = [f for f in frames if f["pose_ok"]]
-    facets = [x for f in good for x in f["facets"]]
+    # a frame with one facet used has nothing to be relative to (its error is 0 by construction)
+    facets = [x for f in good if len(f["facets"]) >= 2 for x in f["facets"]]
     reasons: Counter = Counter()
     for f in good:
         reasons.update(f["reasons"])
@@ -258,6 +260,7 @@ def summarise(frames: list[dict[str, Any]]) -> dict[str, Any]:
         "good_pose_frames": len(good),
         "pose_failures": len(pose_failures),
         "facets_scored": len(facets),
+        "frames_scored": sum(1 for f in good if len(f["facets"]) >= 2),
         "rms_az_mrad": _rms([x["err_az_mrad"] for x in facets]),
         "rms_el_mrad": _rms([x["err_el_mrad"] for x in facets]),
         "grid_rms_az_mrad": _rms([x["grid_err_az_mrad"] for x in facets]),
@@ -384,8 +387,8 @@ def markdown_report(rep: dict[str, Any]) -> str:
         lines += [
             "",
             f"**{label}** ({s['frames']} frames; pose failures (true corner error > {POSE_FAIL_PX:g} px or no fit): "
-            f"{s['pose_failures']}; canting scored over the {s['good_pose_frames']} good-pose frames, "
-            f"{s['facets_scored']} facets)",
+            f"{s['pose_failures']}; canting scored over the {s.get('frames_scored', '?')} good-pose frames with "
+            f">= 2 facets used, {s['facets_scored']} facets)",
             "",
             "| Quantity | Refined (LM) | Paper grid search | Anchor |",
             "|---|--:|--:|---|",
