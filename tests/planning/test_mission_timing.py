@@ -275,3 +275,41 @@ def test_interpreter_catches_px4_photos_in_the_acceptance_radius(nsttf):
     flown = fly(qgc_plan_document(plan, flight=f.index, autopilot="px4", capture_hold_s=0.0), "px4")
     pos, _, _, _ = _errors(plan, f, flown)
     assert np.median(pos) == pytest.approx(2.0, abs=0.3)  # taken on entering NAV_ACC_RAD, before the point
+
+
+# --------------------------------------------------------------------------- one heading along a run
+
+
+def test_heading_constant_along_runs_where_the_field_of_view_allows(nsttf):
+    from pihim.camera.model import CameraModel
+    from pihim.planning.attitude import steady_headings
+    from pihim.planning.sightlines import gaze_angles, in_fov, optical_axis
+    from pihim.planning.ufacet import track_at
+
+    plan, field_ = nsttf
+    _, pose = track_at(field_, parse_time(TIME), aim_point=plan.aim_point, site=NSTTF)
+    camera = CameraModel()
+    names = {n: k for k, n in enumerate(field_.names)}
+    exact = steady_headings(plan.passes, pose, max_offset_deg=0.0)  # every capture aimed at its own HUA: unchanged
+    assert exact == plan.passes
+    captures = changes = 0
+    for p in plan.passes:
+        caps = [w for w in p.waypoints if w.capture]
+        captures += len(caps)
+        changes += sum(abs(_wrap(b.heading_deg - a.heading_deg)) > 1e-6 for a, b in zip(caps, caps[1:]))
+        for w in caps:
+            h = names[w.hua]
+            cam = np.array([w.x_m, w.y_m, w.z_m])
+            gaze, _ = gaze_angles(cam, pose.mirror_centres[h])
+            d = pose.mirror_centres[h] - cam
+            cos = float(optical_axis(w.heading_deg, w.gimbal_pitch_deg) @ d / np.linalg.norm(d))
+            off = math.degrees(math.acos(min(1.0, cos)))
+            assert off <= 0.25 * camera.horizontal_fov_deg + 0.01  # the HUA stays near the middle of the frame
+            flown = in_fov(pose.facet_centres[h], cam, np.float64(w.heading_deg), np.float64(w.gimbal_pitch_deg),
+                           camera).sum()
+            aimed = in_fov(pose.facet_centres[h], cam, gaze, np.float64(w.gimbal_pitch_deg), camera).sum()
+            assert flown >= aimed  # no capture frames fewer facets than aiming it at its HUA would
+        first = next(k for k, w in enumerate(p.waypoints) if w.capture)
+        assert p.waypoints[0].heading_deg == p.waypoints[first].heading_deg  # the lead-in already faces the run
+    n_passes = sum(any(w.capture for w in p.waypoints) for p in plan.passes)
+    assert changes < captures - n_passes  # some consecutive captures share a heading
