@@ -313,3 +313,74 @@ def test_heading_constant_along_runs_where_the_field_of_view_allows(nsttf):
         assert p.waypoints[0].heading_deg == p.waypoints[first].heading_deg  # the lead-in already faces the run
     n_passes = sum(any(w.capture for w in p.waypoints) for p in plan.passes)
     assert changes < captures - n_passes  # some consecutive captures share a heading
+
+
+# --------------------------------------------------------------------------- facets showing the target
+
+
+def _facet_oracle(pose, hua: int, target: int, cam, heading: float, pitch: float, camera) -> list[bool]:
+    """Plain loops: a facet shows the target if one of its 3x3 sample points, in view from the front, reflects
+    the camera ray onto the target's mirror rectangle (plane intersection, then the point in the rectangle's
+    own frame within its half sizes)."""
+    spec = pose.field.spec
+    corners = pose.facet_corners()[hua]
+    n_t, c_t, r_t = pose.normals[target], pose.mirror_centres[target], pose.rotations[target]
+    h, p = math.radians(heading), math.radians(pitch)
+    axis = np.array([math.cos(p) * math.sin(h), math.cos(p) * math.cos(h), math.sin(p)])
+    right = np.array([math.cos(h), -math.sin(h), 0.0])
+    up = np.cross(right, axis)
+    tx = 0.5 * camera.width_px / camera.focal_length_px
+    ty = 0.5 * camera.height_px / camera.focal_length_px
+    out = []
+    for f in range(corners.shape[0]):
+        tl, tr, br, bl = corners[f]
+        n = pose.facet_normals[hua, f]
+        shows = False
+        for i in range(3):
+            for j in range(3):
+                u, v = (i + 0.5) / 3, (j + 0.5) / 3
+                q = (tl + u * (tr - tl)) + v * ((bl + u * (br - bl)) - (tl + u * (tr - tl)))
+                d = (q - cam) / np.linalg.norm(q - cam)
+                z = float((q - cam) @ axis)
+                if d @ n >= 0 or z <= 0 or abs((q - cam) @ right) > tx * z or abs((q - cam) @ up) > ty * z:
+                    continue
+                r = d - 2 * (d @ n) * n
+                den = float(r @ n_t)
+                if abs(den) < 1e-12:
+                    continue
+                s = float((c_t - q) @ n_t) / den
+                x = q + s * r - c_t
+                if s > 0 and abs(x @ r_t[:, 0]) <= spec.mirror_half_width_m \
+                        and abs(x @ r_t[:, 1]) <= spec.mirror_half_height_m:
+                    shows = True
+        out.append(shows)
+    return out
+
+
+def test_facets_showing_the_target_match_a_brute_force_oracle(nsttf):
+    from pihim.camera.model import CameraModel
+    from pihim.planning.facets import facets_showing_target
+    from pihim.planning.ufacet import track_at
+
+    plan, field_ = nsttf
+    _, pose = track_at(field_, parse_time(TIME), aim_point=plan.aim_point, site=NSTTF)
+    names = {n: k for k, n in enumerate(field_.names)}
+    camera = CameraModel()
+    shots = [(p, pr) for p in plan.passes for pr in p.predictions]
+    centre_seen = 0
+    for k, (p, pr) in enumerate(shots):
+        w = p.waypoints[pr.waypoint_index]
+        cam = np.array([w.x_m, w.y_m, w.z_m])
+        got = facets_showing_target(pose, names[pr.hua], names[pr.target], cam, w.heading_deg, w.gimbal_pitch_deg)
+        if k % 25 == 0:
+            want = _facet_oracle(pose, names[pr.hua], names[pr.target], cam, w.heading_deg, w.gimbal_pitch_deg,
+                                 camera)
+            assert got.tolist() == want
+        centre_seen += bool(got[12])  # the facet at the mirror centre, where the planner aims the reflection
+        assert 0 < got.sum() < 25
+    assert centre_seen >= 0.9 * len(shots)
+    report = plan.summary["facet_coverage"]
+    assert report["huas"] == len({pr.hua for _, pr in shots}) and report["facets"] == 25 * report["huas"]
+    per = report["per_hua"]
+    assert report["facets_covered"] == sum(len(v["covered"]) for v in per.values())
+    assert 0.0 < report["fraction"] < 0.95  # one capture per HUA shows the target in a part of its facets only

@@ -87,7 +87,16 @@ def _human_summary(summary: dict, files: dict[str, Path], out: Path) -> str:
     return (
         f"pihim plan: {summary['passes']} passes, {summary['usable_images']}/{summary['images']} images predicted "
         f"usable; coverage {100 * cov['either']:.0f} % (heliostats of the field with at least one usable image; "
-        f"{100 * cov['planned']:.0f} % imaged); {summary['flights']} flights, longest {longest:.1f} min\n"
+        f"{100 * cov['planned']:.0f} % imaged){_facet_text(summary)}; {summary['flights']} flights, longest "
+        f"{longest:.1f} min\n"
         f"wrote {len(files)} files to {out}: plan.json, plan.kml, plan.png and {n_flight_files} flight missions "
         f"(flight_NN.plan / .waypoints / _litchi*.csv)"
     )
+
+
+def _facet_text(summary: dict) -> str:
+    fc = summary.get("facet_coverage")
+    if not fc:
+        return ""
+    return (f"; {100 * fc['fraction']:.0f} % of the imaged HUAs' facets show the target's reflection "
+            f"({fc['huas_complete']} of {fc['huas']} HUAs complete)")

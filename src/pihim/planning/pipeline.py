@@ -59,6 +59,7 @@ def build_plan(
     max_mission_items: int | None = 700,
     mission_options: dict[str, Any] | None = None,
     steady_heading: bool = True,
+    facet_report: bool = True,
 ) -> Plan:
     """Plan, score and split an inspection of ``field`` at ``time``.
 
@@ -95,6 +96,10 @@ def build_plan(
     steady_heading : bool
         Fly runs of captures at one heading where the field of view allows
         (:func:`pihim.planning.attitude.steady_headings`).
+    facet_report : bool
+        Report which facets of each imaged HUA show the target's reflection
+        in at least one capture (``summary["facet_coverage"]``,
+        :func:`pihim.planning.facets.facet_coverage`).
 
     Returns
     -------
@@ -160,6 +165,13 @@ def build_plan(
         "fleet": {"working_hours": fleet_hours, **_record(fleet)},
         "seconds": {"track_and_plan": round(t_plan - t0, 4), "scoring": round(t_score - t_plan, 4)},
     }
+    if facet_report:
+        from pihim.planning.facets import coverage_summary, facet_coverage
+
+        per_hua = facet_coverage(scored, pose, camera=camera)
+        summary["facet_coverage"] = {**coverage_summary(per_hua),
+                                     "per_hua": {h: {"covered": list(c.covered), "captures": c.captures}
+                                                 for h, c in per_hua.items()}}
     return Plan(
         time_iso=time.isoformat(),
         site=site.as_dict(),
