@@ -41,3 +41,14 @@ def test_bad_input_one_line_exit_2(tmp_path, capsys, args, needle):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and needle in err.lower()
     assert not out.exists()
+
+
+def test_success_says_what_was_written(tmp_path, capsys):
+    out = tmp_path / "g"
+    assert main(["ground", "--sun-zenith", "30", "--sun-azimuth", "235", "--resolution", "5", "--out", str(out)]) == 0
+    cap = capsys.readouterr()
+    lines = cap.err.strip().splitlines()
+    assert cap.out == "" and len(lines) == 2
+    assert lines[0].startswith("pihim ground: sun zenith 30.0 deg, azimuth 235.0 deg; the mirror shows ground in")
+    assert "ground-vs-ground usable in" in lines[0]
+    assert lines[1].startswith(f"wrote 5 files to {out}: ground-dolp.png") and lines[1].endswith("ground-maps.npz")

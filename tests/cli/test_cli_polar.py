@@ -76,6 +76,7 @@ def test_batch_continues_after_bad_items(frame, tmp_path, capsys):
         (["--demosaic", "nearest"], "demosaic"),
         (["--calibration", "nope.json"], "calibration"),
         (["--bogus-option"], "bogus"),
+        (["--dark-level", "-10"], "--dark-level must be a finite number of raw units >= 0, got -10"),
     ],
 )
 def test_bad_options_one_line_exit_2(frame, tmp_path, capsys, extra, needle):
@@ -115,3 +116,24 @@ def test_calibration_changes_result(frame, tmp_path, capsys):
     assert recs[0]["calibrated"] is True
     # a 20% gain on the 45 deg channel that the frame does not have biases the result
     assert abs(recs[0]["dolp"]["median"] - 0.35) > 0.02
+
+
+def test_success_is_reported_and_png_adds_a_captioned_figure(frame, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["polar", str(frame), "--out", str(out), "--png"]) == 0
+    cap = capsys.readouterr()
+    assert cap.out == ""
+    err = cap.err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"pihim polar: 1 of 1 frames -> {out}")
+    assert "median DoLP 0.350-0.350" in err[0] and "polar.png" in err[0]
+    fig = out / "frame_a.polar.png"
+    data = fig.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000  # three panels, colour bars and the AoP key
+
+
+def test_a_directory_is_reported_as_a_directory(frame, tmp_path, capsys):
+    folder = tmp_path / "frames"  # no extension: used to be "unsupported file type '(no extension)'"
+    folder.mkdir()
+    assert main(["polar", str(folder), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "is a directory" in err and "unsupported" not in err

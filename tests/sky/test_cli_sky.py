@@ -96,3 +96,14 @@ def test_out_is_a_file(tmp_path, capsys):
     f.write_text("x")
     assert main(["sky", "--sun-zenith", "30", "--sun-azimuth", "10", "--out", str(f)]) == 2
     assert "not a directory" in capsys.readouterr().err
+
+
+def test_success_says_what_was_written(tmp_path, capsys):
+    out = tmp_path / "sky"
+    assert main(["sky", "--sun-zenith", "30", "--sun-azimuth", "235", "--resolution", "2", "--out", str(out)]) == 0
+    cap = capsys.readouterr()
+    lines = cap.err.strip().splitlines()
+    assert cap.out == "" and len(lines) == 2
+    assert lines[0].startswith("pihim sky: sun zenith 30.0 deg, azimuth 235.0 deg, rayleigh; DoLP max 0.80")
+    assert "(90 deg from the sun)" in lines[0]
+    assert lines[1] == f"wrote 3 files to {out}: sky-dolp.png, sky-aop.png, sky-maps.npz"

@@ -29,7 +29,7 @@ import numpy as np
 import typer
 
 from pihim._atomic import atomic_path
-from pihim.cli._common import emit_json
+from pihim.cli._common import emit_json, stderr_console
 from pihim.cli.sky import resolve_sun
 from pihim.errors import PihimInputError
 from pihim.polarimetry.frames import normalize
@@ -134,7 +134,8 @@ def ground(
     if out.exists() and not out.is_dir():
         raise PihimInputError(f"{out}: exists and is not a directory")
     normal = normalize(direction_from_angles(mirror_normal_zenith, mirror_normal_azimuth))
-    maps = _maps(ground_model, sky, mirror_obj, sun.vector, normal, resolution)
+    with stderr_console.status("pihim ground: computing the ground and mirror maps ..."):
+        maps = _maps(ground_model, sky, mirror_obj, sun.vector, normal, resolution)
     out.mkdir(parents=True, exist_ok=True)
     title = f"sun zen {float(sun.zenith_deg):.1f} az {float(sun.azimuth_deg):.1f}, sigma {sigma:g}"
     sun_marker = ((float(sun.azimuth_deg), float(sun.zenith_deg), "*", "sun"),)
@@ -153,7 +154,8 @@ def ground(
     }
     arrays = dict(maps)
     if monte_carlo:
-        mc = ground_model.monte_carlo(sun.vector, sky, n_facets=facets, bin_deg=resolution, seed=seed)
+        with stderr_console.status(f"pihim ground: Monte Carlo over {facets:,} microfacets ..."):
+            mc = ground_model.monte_carlo(sun.vector, sky, n_facets=facets, bin_deg=resolution, seed=seed)
         arrays.update(mc_counts=mc.counts, mc_stokes=mc.stokes, mc_stderr=mc.stderr,
                       mc_dolp=mc.dolp, mc_aop_local_meridian_deg=mc.aop_deg)
         files["mc_dolp_png"] = polar_map_png(mc.dolp, out / "ground-dolp-mc.png", style="dolp",
@@ -179,4 +181,16 @@ def ground(
             "aop_reference": AOP_REFERENCE,
             "files": {k: str(p) for k, p in files.items()},
         })
+    else:
+        summ = _summary(maps)
+        best = summ["max_aop_difference"]
+        best_text = "" if best is None else (f", largest AoP difference {best['value_deg']:.0f} deg (camera zenith "
+                                             f"{best['camera_zenith_deg']:.0f}, azimuth "
+                                             f"{best['camera_azimuth_deg']:.0f} deg)")
+        stderr_console.print(
+            f"pihim ground: sun zenith {float(sun.zenith_deg):.1f} deg, azimuth {float(sun.azimuth_deg):.1f} deg; "
+            f"the mirror shows ground in {100 * summ['fraction_mirror_shows_ground']:.0f} % of camera directions, "
+            f"ground-vs-ground usable in {100 * summ['fraction_usable']:.0f} %{best_text}\n"
+            f"wrote {len(files)} files to {out}: {', '.join(Path(v).name for v in files.values())}",
+            highlight=False, soft_wrap=True)
     return 0

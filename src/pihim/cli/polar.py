@@ -14,10 +14,10 @@ from pihim._atomic import atomic_path
 from pihim.camera.frames import read_frame
 from pihim.camera.layout import MosaicLayout
 from pihim.camera.pipeline import DEMOSAIC_METHODS, PolarImage, polar_image
-from pihim.cli._common import emit_json, parse_layout, progress, report_error, unique_stems
+from pihim.cli._common import emit_json, parse_layout, progress, report_error, stderr_console, unique_stems
 from pihim.errors import PihimInputError
 from pihim.polarimetry.analyser import AnalyserMatrix
-from pihim.visualize import aop_to_rgb, dolp_to_rgb, s0_to_gray, write_png
+from pihim.visualize import aop_to_rgb, dolp_to_rgb, polar_figure_png, s0_to_gray, write_png
 
 SCHEMA_ID = "pihim.polar-frame/1"
 
@@ -40,6 +40,8 @@ def write_polar_outputs(result: PolarImage, out_dir: Path, stem: str, *, png: bo
         written["S0_png"] = write_png(out_dir / f"{stem}.S0.png", s0_to_gray(result.s0))
         written["DoLP_png"] = write_png(out_dir / f"{stem}.DoLP.png", dolp_to_rgb(result.dolp))
         written["AoP_png"] = write_png(out_dir / f"{stem}.AoP.png", aop_to_rgb(result.aop_deg, result.dolp))
+        written["figure_png"] = polar_figure_png(result.s0, result.dolp, result.aop_deg,
+                                                 out_dir / f"{stem}.polar.png", title=f"{stem}: S0, DoLP and AoP")
     return {k: str(v) for k, v in written.items()}
 
 
@@ -106,13 +108,14 @@ def polar(
         raise PihimInputError(f"unknown demosaic method {demosaic!r}; choose one of {', '.join(DEMOSAIC_METHODS)}")
     lay = parse_layout(layout)
     analyser = AnalyserMatrix.load(calibration) if calibration is not None else None
-    if dark_level is not None and not math.isfinite(dark_level):
-        raise PihimInputError("--dark-level must be finite")
+    if dark_level is not None and not (math.isfinite(dark_level) and dark_level >= 0):
+        raise PihimInputError(f"--dark-level must be a finite number of raw units >= 0, got {dark_level:g}")
     unique_stems(frames)
     if out.exists() and not out.is_dir():
         raise PihimInputError(f"{out}: exists and is not a directory")
     out.mkdir(parents=True, exist_ok=True)
     status = 0
+    done: list[dict[str, Any]] = []
     for path in progress(frames, "polar"):
         try:
             record = process_one(
@@ -130,4 +133,12 @@ def polar(
             record = {"schema": SCHEMA_ID, "file": str(path), "status": "error", "error": str(exc)}
         if json_out:
             emit_json(record)
+        elif record["status"] == "ok":
+            done.append(record)
+    if done:
+        med = [r["dolp"]["median"] for r in done if r["dolp"]["median"] is not None]
+        stderr_console.print(
+            f"pihim polar: {len(done)} of {len(frames)} frames -> {out}: <stem>.S0/.DoLP/.AoP.tiff (float32, AoP in "
+            f"deg)" + (", PNG previews and <stem>.polar.png (captioned)" if png else "")
+            + (f"; median DoLP {min(med):.3f}-{max(med):.3f}" if med else ""), highlight=False, soft_wrap=True)
     return status
