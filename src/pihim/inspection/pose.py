@@ -341,7 +341,7 @@ def refine_pose(
     search_rings: int = 2,
     max_shift_px: float = 1400.0,
     accept_support: float = 0.8,
-    n_peaks: int = 1,
+    n_peaks: int = 2,
     spacing_m: float = 0.02,
     sigmas_px: tuple[float, ...] = (48.0, 24.0, 12.0, 6.0, 3.0),
     gates_px: tuple[float, ...] = (6.0, 3.0, 3.0),

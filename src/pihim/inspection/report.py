@@ -163,7 +163,8 @@ def render_report(doc: dict[str, Any]) -> str:
     plan_html = (
         "<h2>Flight plan</h2>"
         f"<p>{plan['passes']} UFACET passes ({plan['feasible_passes']} feasible), {plan['waypoints']} waypoints, "
-        f"{plan['usable_images']} of {plan['images']} captures predicted usable, {plan['flights']} flight(s); "
+        f"{plan['usable_images']} of {plan['images']} captures predicted usable by the paper's edge-contrast "
+        f"criteria (sky-vs-sky or ground-vs-ground), {plan['flights']} flight(s); "
         f"heliostats covered: {_f(100 * cov.get('either', 0.0), '.0f')} %. Planned in "
         f"{_f(plan['seconds'], '.1f')} s. Autopilot files: "
         + ", ".join(f"<a href=\"{e(str(v))}\">{e(Path(str(v)).name)}</a>" for v in files.values()) + ".</p>"
