@@ -70,6 +70,45 @@ def report_error(message: str) -> None:
     print(f"pihim: error: {message}", file=sys.stderr)
 
 
+def check_out_dir(out: "Path", *, option: str = "--out") -> None:
+    """Refuse an output directory that cannot be one, before any work is done.
+
+    ``out`` must be a directory or not exist yet; its nearest existing
+    ancestor must be a directory. Nothing is created (see
+    :func:`make_out_dir`).
+    """
+    from pathlib import Path
+
+    p = Path(out)
+    if p.exists() and not p.is_dir():
+        raise PihimInputError(f"{option} {out}: exists and is not a directory")
+    for parent in p.absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise PihimInputError(f"{option} {out}: {parent} is not a directory")
+            break
+
+
+def make_out_dir(out: "Path", *, option: str = "--out") -> "Path":
+    """Create the output directory (one-line error if impossible) and clean stale temporaries in it.
+
+    Temporary files that killed runs left behind (see
+    :func:`pihim._atomic.clean_stale_temporaries`) are removed.
+    """
+    from pathlib import Path
+
+    from pihim._atomic import clean_stale_temporaries
+
+    p = Path(out)
+    check_out_dir(p, option=option)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PihimInputError(f"{option} {out}: cannot create the directory ({exc.strerror or exc})") from None
+    clean_stale_temporaries(p)
+    return p
+
+
 def unique_stems(paths: Iterable[Any]) -> None:
     """Refuse batches in which two inputs would write the same output names."""
     seen: dict[str, Any] = {}

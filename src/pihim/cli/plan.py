@@ -12,8 +12,7 @@ from typing import Annotated
 
 import typer
 
-from pihim.cli._common import emit_json, load_field_option, parse_point, stderr_console
-from pihim.errors import PihimInputError
+from pihim.cli._common import check_out_dir, emit_json, load_field_option, make_out_dir, parse_point, stderr_console
 from pihim.planning.endurance import DroneEndurance
 from pihim.planning.export import export_all
 from pihim.planning.pipeline import build_plan
@@ -47,15 +46,14 @@ def plan(
     when = parse_time(time)
     site_obj = parse_site(site)
     aim_point = parse_point(aim, name="--aim")
-    if out.exists() and not out.is_dir():
-        raise PihimInputError(f"{out}: exists and is not a directory")
+    check_out_dir(out)
     fld = load_field_option(field, facets, nsttf_tower=site.strip().lower() == "nsttf")
     names = None if heliostats is None else [h for h in heliostats.split(",") if h.strip()]
     scoring = ScoringModel(sky=SkyModel(kind=sky_model, dmax=dmax), mirror=mirror_model(mirror))  # type: ignore[arg-type]
     the_plan = build_plan(fld, when, site_obj, aim_point=aim_point, max_altitude_m=max_altitude, heliostats=names,
                           scoring=scoring, shift=not no_shift, endurance=DroneEndurance(battery_min=battery_min),
                           fleet_hours=fleet_hours)
-    files = export_all(the_plan, out, field=fld)
+    files = export_all(the_plan, make_out_dir(out), field=fld)
     summary = the_plan.summary
     summary["seconds"]["total_with_export"] = round(_time.perf_counter() - t0, 4)
     if json_out:
