@@ -16,6 +16,7 @@ References
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import cv2
@@ -98,14 +99,18 @@ def s0_to_gray(s0: ArrayLike, *, percentiles: tuple[float, float] = (0.5, 99.5))
     return _to_u8(np.clip(np.nan_to_num(scale), 0.0, 1.0))
 
 
-def write_png(path: str | Path, image: NDArray[np.uint8]) -> Path:
-    """Write an RGB ``(H, W, 3)`` or grey ``(H, W)`` uint8 image as PNG, atomically."""
+def write_png(path: str | Path, image: NDArray[np.uint8], *, atomic: bool = True) -> Path:
+    """Write an RGB ``(H, W, 3)`` or grey ``(H, W)`` uint8 image as PNG, atomically.
+
+    ``atomic=False`` writes ``path`` directly (for a caller that already
+    writes under a temporary name).
+    """
     img = np.asarray(image)
     if img.dtype != np.uint8 or img.ndim not in (2, 3):
         raise PihimInputError("PNG previews must be uint8 grey or RGB images")
     if img.ndim == 3:
         img = img[..., ::-1]  # OpenCV writes BGR
-    with atomic_path(path) as tmp:
+    with atomic_path(path) if atomic else contextlib.nullcontext(Path(path)) as tmp:
         if not cv2.imwrite(str(tmp), np.ascontiguousarray(img)):
             raise OSError(f"{path}: could not write PNG")
     return Path(path)
