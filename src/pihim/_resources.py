@@ -29,9 +29,9 @@ def format_bytes(n: float) -> str:
     >>> format_bytes(512)
     '512 B'
     """
-    if n > 1e15:
-        return "more than 1000 TB"
-    for unit, scale in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+    if not n < 1e21:
+        return f"{n:.3g} B"
+    for unit, scale in (("EB", 1e18), ("PB", 1e15), ("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
         if abs(n) >= scale:
             return f"{n / scale:.3g} {unit}"
     return f"{n:.0f} B"
