@@ -38,20 +38,31 @@ def _host_tag() -> str:
     return hashlib.sha1(socket.gethostname().encode("utf-8", "replace")).hexdigest()[:4]
 
 
-def temp_sibling(path: str | os.PathLike[str]) -> Path:
+def temp_sibling(path: str | os.PathLike[str], register: list[Path] | None = None) -> Path:
     """Create an empty temporary file next to ``path`` and return its path.
 
     The name keeps the final suffix, so writers that dispatch on the
     extension (OpenCV, tifffile) behave as for the final name, and records
     the host and process id of the writer. The file gets the permissions of
-    an ordinary new file (``0666 & ~umask``).
+    an ordinary new file (``0666 & ~umask``). With ``register``, the path is
+    appended to it before anything else can happen, so that a caller cleaning
+    up after an interruption (SIGTERM raises in the main thread) knows every
+    temporary it made; an interruption inside this function removes the file.
     """
     final = Path(path)
     fd, tmp_name = tempfile.mkstemp(
         prefix=f".{final.stem}.pihim-{_host_tag()}-{os.getpid()}-", suffix=f".part{final.suffix}", dir=final.parent
     )
-    os.close(fd)
-    os.chmod(tmp_name, 0o666 & ~_UMASK)  # mkstemp creates 0600; give outputs the usual permissions
+    try:
+        os.close(fd)
+        if register is not None:
+            register.append(Path(tmp_name))
+        os.chmod(tmp_name, 0o666 & ~_UMASK)  # mkstemp creates 0600; give outputs the usual permissions
+    except BaseException:
+        if register is None or Path(tmp_name) not in register:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp_name)
+        raise
     return Path(tmp_name)
 
 
@@ -116,13 +127,15 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it onto ``path`` on success."""
     final = Path(path)
     final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temp_sibling(final)
+    made: list[Path] = []
     try:
-        yield tmp
-        os.replace(tmp, final)
+        temp_sibling(final, made)
+        yield made[0]
+        os.replace(made[0], final)
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
+        for tmp in made:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
         raise
 
 
@@ -142,7 +155,7 @@ def atomic_group(paths: Sequence[str | os.PathLike[str]]) -> Iterator[list[Path]
     try:
         for final in finals:
             final.parent.mkdir(parents=True, exist_ok=True)
-            tmps.append(temp_sibling(final))
+            temp_sibling(final, tmps)
         yield list(tmps)
         for tmp, final in zip(tmps, finals, strict=True):
             os.replace(tmp, final)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import math
 import sys
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from rich.console import Console
@@ -107,15 +107,6 @@ def make_out_dir(out: "Path", *, option: str = "--out") -> "Path":
         raise PihimInputError(f"{option} {out}: cannot create the directory ({exc.strerror or exc})") from None
     clean_stale_temporaries(p)
     return p
-
-
-def unique_stems(paths: Iterable[Any]) -> None:
-    """Refuse batches in which two inputs would write the same output names."""
-    seen: dict[str, Any] = {}
-    for p in paths:
-        if p.stem in seen:
-            raise PihimInputError(f"{p} and {seen[p.stem]} share the name {p.stem!r}; outputs would collide")
-        seen[p.stem] = p
 
 
 def load_field_option(spec: str, facets: "Path | None", *, nsttf_tower: bool = True) -> "Field":

@@ -20,7 +20,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from pihim._atomic import write_json_atomic
+from pihim._atomic import clean_stale_temporaries, write_json_atomic
 from pihim.camera import calibration
 from pihim.camera.frames import read_frame
 from pihim.camera.layout import MosaicLayout
@@ -189,6 +189,8 @@ def calibrate_polarizer(
     )
     record = cal.to_dict()
     try:
+        if out.parent.is_dir():
+            clean_stale_temporaries(out.parent)  # left by a killed run
         write_json_atomic(out, record)
     except OSError as exc:
         raise PihimInputError(f"{out}: cannot write the calibration ({exc.strerror or exc})") from None

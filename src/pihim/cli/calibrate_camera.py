@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from rich.console import Console
 from rich.table import Table
 
-from pihim._atomic import write_json_atomic
+from pihim._atomic import clean_stale_temporaries, write_json_atomic
 from pihim.camera.frames import read_frame
 from pihim.camera.layout import MosaicLayout
 from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
@@ -220,6 +220,8 @@ def calibrate_camera(
         "files": [str(p) for p in images],
     }
     try:
+        if out.parent.is_dir():
+            clean_stale_temporaries(out.parent)  # left by a killed run
         write_json_atomic(out, record)
     except OSError as exc:
         raise PihimInputError(f"{out}: cannot write the calibration ({exc.strerror or exc})") from None

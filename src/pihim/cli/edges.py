@@ -92,18 +92,19 @@ def sensor_settings(log: Mapping[str, Any], meta: Path) -> dict[str, Any]:
 def _write_all(out_dir: Path, writers: dict[Path, Callable[[Path], None]]) -> None:
     """Write every file under a temporary name, then rename them all; on failure remove everything written."""
     created = not out_dir.exists()
+    made: list[Path] = []
     tmps: dict[Path, Path] = {}
     done: list[Path] = []
     try:
         make_out_dir(out_dir)
         for final, writer in writers.items():
-            tmps[final] = temp_sibling(final)
+            tmps[final] = temp_sibling(final, made)
             writer(tmps[final])
         for final, tmp in tmps.items():
             os.replace(tmp, final)
             done.append(final)
     except BaseException:
-        for path in [*tmps.values(), *done]:
+        for path in [*made, *done]:
             with contextlib.suppress(OSError):
                 path.unlink()
         if created:
