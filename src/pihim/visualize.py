@@ -17,6 +17,7 @@ References
 from __future__ import annotations
 
 import contextlib
+import io
 from pathlib import Path
 
 import cv2
@@ -183,4 +184,111 @@ def polar_map_png(
         cb.set_ticks([0, 45, 90, 135, 180])
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
+    return Path(path)
+
+
+def _aop_wheel(ax: object, dolp_weighted: bool) -> None:
+    """A hue wheel keyed to AoP (axial: opposite directions share a colour), angles counter-clockwise."""
+    n = 256
+    y, x = np.mgrid[-1.0:1.0:n * 1j, -1.0:1.0:n * 1j]
+    r = np.hypot(x, y)
+    ang = np.mod(np.degrees(np.arctan2(y, x)), 180.0)  # image up = +y: counter-clockwise from the right
+    v = np.clip(r, 0.0, 1.0) if dolp_weighted else np.ones_like(r)
+    rgb = _hsv_to_rgb(ang / 180.0, np.ones_like(r), v)
+    rgba = np.concatenate([rgb, (r <= 1.0)[..., None].astype(float)], axis=-1)
+    ax.imshow(rgba, origin="lower", extent=(-1, 1, -1, 1))  # type: ignore[attr-defined]
+    for deg in (0, 45, 90, 135):
+        t = np.radians(deg)
+        ax.text(1.3 * np.cos(t), 1.3 * np.sin(t), f"{deg}", ha="center", va="center", fontsize=8)  # type: ignore[attr-defined]
+    ax.set_xlim(-1.6, 1.6)  # type: ignore[attr-defined]
+    ax.set_ylim(-1.6, 1.6)  # type: ignore[attr-defined]
+    ax.set_aspect("equal")  # type: ignore[attr-defined]
+    ax.axis("off")  # type: ignore[attr-defined]
+    ax.set_title("AoP key, deg\n(counter-clockwise\nfrom image right)" + ("\nbrightness = DoLP" if dolp_weighted else ""),
+                 fontsize=8)  # type: ignore[attr-defined]
+
+
+def polar_figure_png(
+    s0: ArrayLike,
+    dolp: ArrayLike,
+    aop_deg: ArrayLike,
+    path: str | Path,
+    *,
+    title: str = "",
+    max_side: int = 900,
+    dpi: float = 110.0,
+    atomic: bool = True,
+) -> Path:
+    """S0, DoLP and AoP side by side with titles, colour bars and an AoP hue wheel, as one PNG.
+
+    The captioned companion of the bare previews (:func:`s0_to_gray`,
+    :func:`dolp_to_rgb`, :func:`aop_to_rgb`): S0 in grey with its raw-unit
+    colour bar (0.5-99.5 percentile stretch), DoLP on viridis 0..1 with a
+    colour bar, AoP as DoLP-weighted cyclic hue with a wheel giving the angle
+    (degrees counter-clockwise from image right, 0 and 180 the same colour;
+    ``docs/conventions.md``). NaN (saturated) pixels are black. Images larger
+    than ``max_side`` are shown decimated (every k-th pixel).
+
+    Parameters
+    ----------
+    s0, dolp, aop_deg : array_like, shape (H, W)
+    path : str or path-like
+        Output PNG, written atomically unless ``atomic`` is false.
+    title : str
+        Figure title (e.g. the frame name).
+    max_side : int
+        Largest image side drawn, pixels.
+    dpi : float
+        Resolution of the PNG.
+    atomic : bool
+        ``False`` writes ``path`` directly, for a caller that already writes
+        under a temporary name (``pihim polar``'s per-frame group).
+
+    Returns
+    -------
+    Path
+    """
+    from matplotlib import colormaps
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    a_s0, a_d, a_a = (np.asarray(v) for v in (s0, dolp, aop_deg))
+    if not (a_s0.ndim == 2 and a_s0.shape == a_d.shape == a_a.shape):
+        raise PihimInputError(f"S0, DoLP and AoP must be 2-D images of one shape, got {a_s0.shape}, "
+                              f"{a_d.shape}, {a_a.shape}")
+    k = max(1, int(np.ceil(max(a_s0.shape) / max_side)))
+    # decimate before converting: a full-size float64 copy of a large frame is not needed for the figure
+    a_s0, a_d, a_a = (v[::k, ::k].astype(np.float64) for v in (a_s0, a_d, a_a))
+    finite = a_s0[np.isfinite(a_s0)]
+    lo, hi = (np.percentile(finite, (0.5, 99.5)) if finite.size else (0.0, 1.0))
+    hi = hi if hi > lo else lo + 1.0
+    fig = Figure(figsize=(16.0, 4.4), dpi=dpi, layout="constrained")
+    FigureCanvasAgg(fig)
+    grid = fig.add_gridspec(1, 4, width_ratios=(1.0, 1.0, 1.0, 0.4))
+    ax0, ax1, ax2 = (fig.add_subplot(grid[0, j]) for j in range(3))
+    im0 = ax0.imshow(np.where(np.isfinite(a_s0), a_s0, np.nan), cmap=colormaps["gray"].with_extremes(bad="black"),
+                     vmin=lo, vmax=hi, interpolation="nearest")
+    cb0 = fig.colorbar(im0, ax=ax0, fraction=0.046, pad=0.02)
+    cb0.set_label("S0 (raw units)", fontsize=8)
+    cb0.ax.tick_params(labelsize=7)
+    ax0.set_title("S0: total intensity", fontsize=10)
+    im1 = ax1.imshow(a_d, cmap=colormaps["viridis"].with_extremes(bad="black"), vmin=0.0, vmax=1.0,
+                     interpolation="nearest")
+    cb1 = fig.colorbar(im1, ax=ax1, fraction=0.046, pad=0.02)
+    cb1.set_label("DoLP", fontsize=8)
+    cb1.ax.tick_params(labelsize=7)
+    ax1.set_title("DoLP: degree of linear polarization", fontsize=10)
+    ax2.imshow(aop_to_rgb(a_a, a_d), interpolation="nearest")
+    ax2.set_title("AoP: angle of polarization", fontsize=10)
+    # the hue wheel beside it is the key: a linear colour bar would hide that 0 and 180 deg meet
+    for ax in (ax0, ax1, ax2):
+        ax.set_xlabel("x (px)" + (f", every {k}th" if k > 1 else ""), fontsize=8)
+        ax.tick_params(labelsize=7)
+    _aop_wheel(fig.add_subplot(grid[0, 3]), dolp_weighted=True)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    with atomic_path(path) if atomic else contextlib.nullcontext(Path(path)) as tmp:
+        Path(tmp).write_bytes(buf.getvalue())
     return Path(path)

@@ -349,7 +349,8 @@ def test_bad_options_raise_one_line():
         (dict(roi=(3, 3, 2, 2)), "no whole 2x2 super-pixel"),
         (dict(roi=(0, 0, 16)), "X,Y,WIDTH,HEIGHT"),
         (dict(fit_frame_scale=True), "at least 5 distinct"),
-        (dict(dark_level=float("inf")), "dark level must be finite"),
+        (dict(dark_level=float("inf")), "dark level must be a finite number"),
+        (dict(dark_level=-10.0), "dark level must be a finite number of raw units >= 0, got -10"),
         (dict(bit_depth=10), "exceed 10-bit"),
     ]
     for kwargs, match in cases:

@@ -102,3 +102,23 @@ def test_summary_statistics():
     assert aop_difference_deg(summ["aop"]["circular_mean_deg"], 170.0) < 1e-3
     assert summ["aop"]["resultant_length"] == pytest.approx(1.0)
     assert (summ["width"], summ["height"]) == (8, 8)
+
+
+def test_accepts_the_frame_read_frame_returns(tmp_path):
+    import tifffile
+
+    from pihim.camera.frames import read_frame
+
+    s, _ = _varying_scene()
+    path = tmp_path / "f.tiff"
+    tifffile.imwrite(path, mosaic_from_stokes(*s, bit_depth=12))
+    frame = read_frame(path)
+    a, b = polar_image(frame), polar_image(frame.data, bit_depth=frame.bit_depth)
+    assert np.array_equal(a.dolp, b.dolp, equal_nan=True) and a.bit_depth == b.bit_depth
+    with pytest.raises(PihimInputError, match=r"2-D array \(or the RawFrame read_frame returns; its array is \.data\)"):
+        polar_image(np.float64(3.0))
+
+
+def test_negative_dark_level_refused():
+    with pytest.raises(PihimInputError, match="dark level must be a finite number of raw units >= 0, got -10"):
+        polar_image(np.zeros((4, 4), np.uint16), dark_level=-10.0)

@@ -66,7 +66,7 @@ def test_writes_calibration_json(tiffs, tmp_path, capsys):
     argv = ["calibrate-polarizer", *map(str, tiffs), "--angles", "0:180:22.5", "--out", str(out)]
     assert main([*argv, "--dark-level", str(DARK)]) == 0
     cap = capsys.readouterr()
-    assert "Polarizer calibration" in cap.out and cap.err == ""
+    assert "Polarizer calibration" in cap.err and cap.out == ""  # human output goes to stderr (docs/cli.md)
     rec = json.loads(out.read_text())
     assert rec["schema"] == "pihim.analyser/1"
     check_matrix(rec["matrix"])

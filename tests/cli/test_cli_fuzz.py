@@ -244,6 +244,8 @@ def test_plan(root, capsys, budget, data):
         "--max-altitude": values(["25", "8", "1000"]),
         "--dmax": values(["0.8"]),
         "--battery-min": values(["20", "0.01"]),
+        "--max-mission-items": values(["700", "4", "3", "20"]),
+        "--autopilot": st.sampled_from(["ardupilot", "px4", "inav", ""]),
         "--fleet-hours": values(["8", "24"]),
         "--time": texts([TIME, "9999-12-31T12:00Z"]),
     }

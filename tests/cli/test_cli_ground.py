@@ -55,3 +55,14 @@ def test_out_that_cannot_be_created_is_one_line(capsys):
     rc = main(["ground", "--sun-zenith", "30", "--sun-azimuth", "0", "--resolution", "10", "--out", "/proc/x"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and err[0].startswith("pihim: error: --out /proc/x: cannot create")
+
+
+def test_success_says_what_was_written(tmp_path, capsys):
+    out = tmp_path / "g"
+    assert main(["ground", "--sun-zenith", "30", "--sun-azimuth", "235", "--resolution", "5", "--out", str(out)]) == 0
+    cap = capsys.readouterr()
+    lines = cap.err.strip().splitlines()
+    assert cap.out == "" and len(lines) == 2
+    assert lines[0].startswith("pihim ground: sun zenith 30.0 deg, azimuth 235.0 deg; the mirror shows ground in")
+    assert "ground-vs-ground usable in" in lines[0]
+    assert lines[1].startswith(f"wrote 5 files to {out}: ground-dolp.png") and lines[1].endswith("ground-maps.npz")

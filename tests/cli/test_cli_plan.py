@@ -15,33 +15,60 @@ QGC_SCHEMA = json.loads(resources.files("pihim").joinpath("schemas/qgc-plan.sche
 TIME = "2021-05-13T13:00-06:00"
 
 
-def test_plan_writes_every_format(tmp_path, capsys):
+def test_plan_writes_one_flyable_mission_per_flight(tmp_path, capsys):
     out = tmp_path / "plan"
     rc = main(["plan", "--time", TIME, "--aim", "60,8.8,28.9", "--max-altitude", "25", "--out", str(out), "--json"])
     assert rc == 0
     summary = json.loads(capsys.readouterr().out)
-    names = {"plan.json", "mission.plan", "mission.waypoints", "plan.kml", "litchi.csv", "plan.png"}
     written = {p.name for p in out.iterdir()}
-    assert names <= written
-    # the whole-plan litchi.csv exceeds Litchi's 99 waypoints: the flights are also written as missions
-    parts = sorted(n for n in written - names)
-    whole = list(csv.DictReader((out / "litchi.csv").read_text().splitlines()))
-    assert len(whole) > 99 and parts and parts[0] == "litchi_01.csv"
-    rows = [list(csv.DictReader((out / n).read_text().splitlines())) for n in parts]
-    assert all(0 < len(r) <= 99 for r in rows)
-    assert sum(len(r) for r in rows) >= len(whole)  # the flights add transits and returns
+    assert {"plan.json", "plan.kml", "plan.png"} <= written
+    n = summary["flights"]
+    assert n >= 2
+    # the plan needs several batteries: no whole-field mission, one mission per flight
+    assert not {"mission.plan", "mission.waypoints", "litchi.csv"} & written
+    assert {f"flight_{k:02d}.plan" for k in range(1, n + 1)} | {f"flight_{k:02d}.waypoints" for k in range(1, n + 1)} \
+        <= written
     plan = json.loads((out / "plan.json").read_text())
     jsonschema.validate(plan, PLAN_SCHEMA)
-    jsonschema.validate(json.loads((out / "mission.plan").read_text()), QGC_SCHEMA)
+    home = plan["home"]
+    for k, f in enumerate(plan["flights"], start=1):
+        doc = json.loads((out / f"flight_{k:02d}.plan").read_text())
+        jsonschema.validate(doc, QGC_SCHEMA)
+        items = doc["mission"]["items"]
+        assert len(items) + 1 <= 700 == summary["max_mission_items"]  # home slot included
+        assert summary["missions"][k - 1]["mission_items"] == len(items) + 1
+        assert items[0]["command"] == 22 and items[-1]["command"] == 21  # take off, land
+        assert items[-1]["params"][4:6] == [home["latitude_deg"], home["longitude_deg"]]
+        assert f["duration_s"] <= 20 * 60 * 0.8  # within the battery less its reserve
+        litchi = sorted(out.glob(f"flight_{k:02d}_litchi*.csv"))
+        rows = [list(csv.DictReader(p.read_text().splitlines())) for p in litchi]
+        assert litchi and all(0 < len(r) <= 99 for r in rows)  # never a file Litchi refuses
+        assert sum(len(r) for r in rows) == len(f["waypoints"]) - 2  # the whole flight but take-off and landing
     assert summary["passes"] == len(plan["passes"]) > 10
     assert 0.0 <= summary["coverage"]["either"] <= 1.0
     for p in plan["passes"]:
         assert plan["min_altitude_m"] <= p["altitude_m"] <= 25.0 + 1e-9
         for w in p["waypoints"]:
             assert 0.0 <= w["heading_deg"] < 360.0 and -90.0 <= w["gimbal_pitch_deg"] <= 0.0
-    flights = plan["flights"]
-    covered = sorted(i for f in flights for i in f["pass_indices"])
+    covered = sorted(i for f in plan["flights"] for i in f["pass_indices"])
     assert covered == sorted(p["index"] for p in plan["passes"] if p["feasible"])
+
+
+def test_plan_files_read_by_third_party_readers(tmp_path, capsys):
+    mavwp = pytest.importorskip("pymavlink.mavwp")
+    out = tmp_path / "plan"
+    assert main(["plan", "--time", TIME, "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "coverage" in err and "heliostats of the field with at least one usable image" in err
+    assert f"to {out}" in err and len(err.strip().splitlines()) == 2
+    for path in sorted(out.glob("flight_*.waypoints")):
+        loader = mavwp.MAVWPLoader()
+        n = loader.load(str(path))
+        items = json.loads(path.with_suffix(".plan").read_text())["mission"]["items"]
+        assert n == len(items) + 1 and [loader.wp(k).command for k in range(1, n)] == [it["command"] for it in items]
+    fastkml = pytest.importorskip("fastkml.validator")
+    etree = pytest.importorskip("lxml.etree")
+    assert fastkml.get_schema_parser().validate(etree.parse(str(out / "plan.kml")))
 
 
 @pytest.mark.parametrize(
@@ -53,6 +80,9 @@ def test_plan_writes_every_format(tmp_path, capsys):
         (["--time", TIME, "--heliostats", "8E3,99W1"], "unknown heliostat"),
         (["--time", TIME, "--max-altitude", "8"], "no feasible pass"),
         (["--time", TIME, "--heliostats", "5W1,5E2"], "no scan pass to fly: 5e2: no target heliostat in front"),
+        (["--time", TIME, "--battery-min", "-5"], "--battery-min must be a positive number of minutes"),
+        (["--time", TIME, "--max-mission-items", "30"], "mission items, more than 30"),
+        (["--time", TIME, "--autopilot", "inav"], "--autopilot must be ardupilot or px4"),
     ],
 )
 def test_impossible_requests(tmp_path, capsys, args, needle):

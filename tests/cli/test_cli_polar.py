@@ -88,6 +88,7 @@ def test_batch_continues_after_bad_items(frame, tmp_path, capsys):
         (["--bit-depth", "0"], "bit-depth"),
         (["--bit-depth", "12", "--saturation-level", "5000"], "full scale"),
         (["--pixel-format", "Mono13"], "pixel format"),
+        (["--dark-level", "-10"], "--dark-level must be a finite number of raw units >= 0, got -10"),
     ],
 )
 def test_bad_options_one_line_exit_2(frame, tmp_path, capsys, extra, needle):
@@ -366,7 +367,7 @@ def test_killed_batches_resume_without_loss(tmp_path, capsys):
         frames.append(p)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     opts = ["--demosaic", "full", "--png"]
-    outputs = ("S0.tiff", "DoLP.tiff", "AoP.tiff", "S0.png", "DoLP.png", "AoP.png")
+    outputs = ("S0.tiff", "DoLP.tiff", "AoP.tiff", "S0.png", "DoLP.png", "AoP.png", "polar.png")
     for trial, sig in enumerate((signal.SIGKILL, signal.SIGKILL, signal.SIGTERM)):
         out = tmp_path / f"o{trial}"
         proc = subprocess.Popen([sys.executable, "-m", "pihim", "polar", *map(str, frames), "--out", str(out), *opts],
@@ -396,3 +397,107 @@ def test_killed_batches_resume_without_loss(tmp_path, capsys):
                 assert (out / f"{f.stem}.{suffix}").stat().st_size > 0
         after = {n: (p.stat().st_ino, p.stat().st_mtime_ns) for n in before if (p := out / n).exists()}
         assert after == before  # frames completed before the rerun were not written again
+def test_success_is_reported_and_png_adds_a_captioned_figure(frame, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["polar", str(frame), "--out", str(out), "--png"]) == 0
+    cap = capsys.readouterr()
+    assert cap.out == ""
+    err = cap.err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"pihim polar: 1 of 1 frames -> {out}")
+    assert "median DoLP 0.350-0.350" in err[0] and "polar.png" in err[0]
+    fig = out / "frame_a.polar.png"
+    data = fig.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000  # three panels, colour bars and the AoP key
+
+
+def test_a_directory_is_reported_as_a_directory(frame, tmp_path, capsys):
+    folder = tmp_path / "frames"  # no extension: used to be "unsupported file type '(no extension)'"
+    folder.mkdir()
+    assert main(["polar", str(folder), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "is a directory" in err and "unsupported" not in err
+
+
+# -- merge of issue 10 and issue 11: the captioned figure in the frame's group, the summary with resumed frames ------
+
+
+def test_png_figure_belongs_to_the_frame_group(frame, tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["polar", str(frame), "--out", str(out), "--png", "--json"]) == 0
+    recs, _ = _records(capsys)
+    fig = out / "frame_a.polar.png"
+    assert recs[0]["outputs"]["figure_png"] == str(fig)
+    assert recs[0]["output_bytes"]["figure_png"] == fig.stat().st_size > 20_000
+    stored = json.loads((out / "frame_a.polar.json").read_text())
+    assert stored["outputs"]["figure_png"] == str(fig)
+    # the figure is checked on resume like the other outputs: a truncated figure makes the frame redone
+    fig.write_bytes(fig.read_bytes()[:100])
+    assert main(["polar", str(frame), "--out", str(out), "--png", "--json"]) == 0
+    recs, _ = _records(capsys)
+    assert not recs[0].get("resumed") and fig.stat().st_size > 20_000
+
+
+def test_png_figure_failure_leaves_none_of_the_frame(frame, tmp_path, capsys, monkeypatch):
+    import pihim.cli.polar as polar_cli
+
+    other = tmp_path / "in" / "frame_b.tiff"
+    other.write_bytes(frame.read_bytes())
+    real = polar_cli.polar_figure_png
+    seen = []
+
+    def figure(*args, **kw):
+        seen.append((args[3], kw.get("atomic")))
+        if len(seen) == 1:  # frame_a's figure, after its TIFFs and bare previews were written
+            raise OSError(28, "No space left on device")
+        return real(*args, **kw)
+
+    monkeypatch.setattr(polar_cli, "polar_figure_png", figure)
+    out = tmp_path / "o"
+    assert main(["polar", str(frame), str(other), "--out", str(out), "--png", "--json"]) == 1
+    recs, _ = _records(capsys)
+    assert [r["status"] for r in recs] == ["error", "ok"] and "no space left" in recs[0]["error"]
+    # written to the frame's temporary (not atomically again), then renamed with the others
+    assert all(atomic is False and ".part" in path.name for path, atomic in seen)
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        f"frame_b.{s}" for s in ("S0.tiff", "DoLP.tiff", "AoP.tiff", "S0.png", "DoLP.png", "AoP.png", "polar.png",
+                                 "polar.json"))
+
+
+def test_record_without_the_figure_is_redone(frame, tmp_path, capsys):
+    out = tmp_path / "o"
+    args = ["polar", str(frame), "--out", str(out), "--png", "--json"]
+    assert main(args) == 0
+    _records(capsys)
+    # a record as a version without the captioned figure wrote it: same options, no figure_png
+    record_path = out / "frame_a.polar.json"
+    rec = json.loads(record_path.read_text())
+    del rec["outputs"]["figure_png"], rec["output_bytes"]["figure_png"]
+    record_path.write_text(json.dumps(rec))
+    (out / "frame_a.polar.png").unlink()
+    assert main(args) == 0
+    recs, _ = _records(capsys)
+    assert not recs[0].get("resumed") and (out / "frame_a.polar.png").stat().st_size > 20_000
+
+
+def test_summary_counts_processed_resumed_and_failed(frame, tmp_path, capsys):
+    other = tmp_path / "in" / "frame_b.tiff"
+    other.write_bytes(frame.read_bytes())
+    missing = tmp_path / "in" / "missing.tiff"
+    out = tmp_path / "o"
+    assert main(["polar", str(frame), "--out", str(out)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"pihim polar: 1 of 1 frames -> {out}: <stem>.S0/.DoLP/.AoP.tiff (float32, AoP in deg); "
+                   "median DoLP 0.350-0.350"]
+    assert main(["polar", str(frame), str(other), str(missing), "--out", str(out)]) == 2
+    cap = capsys.readouterr()
+    err = [ln for ln in cap.err.strip().splitlines() if ln.startswith("pihim")]  # not the progress bar
+    assert cap.out == "" and len(err) == 2
+    assert err[0].startswith("pihim: error:") and "missing.tiff" in err[0]
+    assert err[1] == (f"pihim polar: 1 of 3 frames -> {out}: <stem>.S0/.DoLP/.AoP.tiff (float32, AoP in deg); "
+                      "median DoLP 0.350-0.350; 1 of 3 already complete from an earlier run, skipped "
+                      "(--overwrite redoes them); 1 failed")
+    # nothing left to do: no frame processed, both skipped
+    assert main(["polar", str(frame), str(other), "--out", str(out)]) == 0
+    err = [ln for ln in capsys.readouterr().err.strip().splitlines() if ln.startswith("pihim")]
+    assert err == [f"pihim polar: no frame processed in {out}; 2 of 2 already complete from an earlier run, "
+                   "skipped (--overwrite redoes them)"]

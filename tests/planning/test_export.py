@@ -19,7 +19,9 @@ from pihim.field.layout import NSTTF_TOWER, Field, nsttf_spec
 from pihim.planning.export import (
     LITCHI_HEADER,
     OUTPUT_NAMES,
+    count_mission_items,
     export_all,
+    flight_file_stem,
     litchi_csv_text,
     litchi_mission_texts,
     litchi_missions,
@@ -48,6 +50,8 @@ from pihim.planning.export.qgc import (
     MAV_CMD_NAV_TAKEOFF,
     MAV_CMD_NAV_WAYPOINT,
 )
+from pihim.planning.attitude import leg_speed
+from pihim.planning.endurance import DroneEndurance, split_flights
 from pihim.planning.model import (
     Flight,
     PairPrediction,
@@ -157,6 +161,11 @@ def _all_wps(plan: Plan) -> list[Waypoint]:
     return [w for p in plan.passes for w in p.waypoints]
 
 
+def _flown(plan: Plan) -> list[Waypoint]:
+    """The waypoints the mission of the plan's only flight flies between take-off and landing."""
+    return list(plan.flights[0].waypoints[1:-1])
+
+
 def _groups(items: list[dict]) -> list[tuple[dict, list[dict]]]:
     """(navigation item, DO/CONDITION items that follow it) in mission order."""
     groups: list[tuple[dict, list[dict]]] = []
@@ -231,7 +240,7 @@ def test_qgc_plan_validates_and_has_the_file_constants(plan, tmp_path):
     assert doc["geoFence"]["version"] == 2 and doc["rallyPoints"] == {"points": [], "version": 2}
     circle = doc["geoFence"]["circles"][0]
     assert circle["inclusion"] is True and circle["circle"]["center"] == [home.latitude_deg, home.longitude_deg]
-    far = max(math.hypot(w.x_m - home.x_m, w.y_m - home.y_m) for w in _all_wps(plan))
+    far = max(math.hypot(w.x_m - home.x_m, w.y_m - home.y_m) for w in plan.flights[0].waypoints)
     assert far + 30.0 - 0.05 <= circle["circle"]["radius"] <= far + 30.0 + 0.05
     for it in m["items"]:
         assert len(it["params"]) == 7 and it["type"] == "SimpleItem" and it["autoContinue"] is True
@@ -241,7 +250,11 @@ def test_qgc_plan_validates_and_has_the_file_constants(plan, tmp_path):
         else:
             assert it["frame"] == 2 and "Altitude" not in it
     assert m["items"][0]["command"] == MAV_CMD_NAV_TAKEOFF
-    assert m["items"][-1]["command"] == MAV_CMD_NAV_RETURN_TO_LAUNCH
+    assert m["items"][-1]["command"] == MAV_CMD_NAV_LAND  # the flight lands at home
+    assert m["items"][-1]["params"][4:6] == [home.latitude_deg, home.longitude_deg]
+    # reserved parameters of the capture command are 0, not null (issue 11)
+    cap = [it for it in m["items"] if it["command"] == MAV_CMD_IMAGE_START_CAPTURE]
+    assert cap and all(it["params"][4:7] == [0, 0, 0] for it in cap)
 
 
 def test_qgc_schema_rejects_what_qgc_rejects(plan):
@@ -268,10 +281,10 @@ def test_do_jump_ids_unique_and_increasing(plan):
     assert ids == list(range(1, len(items) + 1))
 
 
-def test_one_navigation_waypoint_per_plan_waypoint_with_relative_altitudes(plan):
+def test_one_navigation_waypoint_per_flight_waypoint_with_relative_altitudes(plan):
     items = qgc_plan_document(plan)["mission"]["items"]
     navs = [it for it in items if it["command"] == MAV_CMD_NAV_WAYPOINT]
-    wps = _all_wps(plan)
+    wps = _flown(plan)
     assert len(navs) == len(wps)
     for it, w in zip(navs, wps, strict=True):
         assert it["params"][4:6] == [w.latitude_deg, w.longitude_deg]
@@ -279,38 +292,46 @@ def test_one_navigation_waypoint_per_plan_waypoint_with_relative_altitudes(plan)
         assert it["params"][6] == pytest.approx(w.z_m - plan.home.z_m, abs=0.01)  # flat-earth sanity check
         assert it["params"][3] == w.heading_deg  # PX4 flies the waypoint yaw
     takeoff = items[0]
-    assert takeoff["params"][4:7] == [plan.home.latitude_deg, plan.home.longitude_deg,
+    start = plan.flights[0].waypoints[0]
+    assert takeoff["params"][4:7] == [start.latitude_deg, start.longitude_deg,
                                       pytest.approx(wps[0].height_m - plan.home.height_m)]
     assert takeoff["params"][3] == wps[0].heading_deg  # face the first waypoint's heading
 
 
-def test_condition_yaw_gimbal_and_capture_commands_follow_their_waypoint(plan):
+def test_attitude_is_commanded_on_the_leg_before_and_the_photo_first_after_its_waypoint(plan):
     items = qgc_plan_document(plan)["mission"]["items"]
-    groups = [(nav, dos) for nav, dos in _groups(items) if nav is not None and nav["command"] == MAV_CMD_NAV_WAYPOINT]
-    wps = _all_wps(plan)
-    assert len(groups) == len(wps)
+    groups = _groups(items)  # [(TAKEOFF, leg to wp 1), (wp 1, leg to wp 2), ...]
+    wps = _flown(plan)
+    assert [g[0]["command"] for g in groups] == [MAV_CMD_NAV_TAKEOFF] + [MAV_CMD_NAV_WAYPOINT] * len(wps) \
+        + [MAV_CMD_NAV_LAND]
     seq = 0
-    for (nav, dos), w in zip(groups, wps, strict=True):
-        cmds = [d["command"] for d in dos]
-        yaw = [d for d in dos if d["command"] == MAV_CMD_CONDITION_YAW]
-        assert len(yaw) == 1
-        assert yaw[0]["params"][0] == w.heading_deg  # angle
-        assert yaw[0]["params"][2:4] == [0, 0]  # shortest direction, absolute angle
-        gimbal = [d for d in dos if d["command"] == MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW]
-        assert len(gimbal) == 1 and gimbal[0]["params"][0] == w.gimbal_pitch_deg
-        assert gimbal[0]["params"][1] == 0 and gimbal[0]["params"][2:4] == [None, None]
-        assert gimbal[0]["params"][4] == 12  # ROLL_LOCK | PITCH_LOCK: pitch relative to the horizon
-        captures = [d for d in dos if d["command"] in CAPTURE_COMMANDS]
+    pitch = None
+    for k, w in enumerate(wps):
+        before = groups[k][1]  # the DO items after the previous navigation item: they prepare the leg to w
+        cmds = [d["command"] for d in before]
+        # the heading of w is commanded last on the leg to w (CONDITION_YAW holds back what follows it)
+        assert cmds[-1] == MAV_CMD_CONDITION_YAW and before[-1]["params"][:4] == [w.heading_deg, 30, 0, 0]
+        gimbal = [d for d in before if d["command"] == MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW]
+        if pitch is None or w.gimbal_pitch_deg != pitch:
+            assert len(gimbal) == 1 and gimbal[0]["params"][0] == w.gimbal_pitch_deg
+            assert gimbal[0]["params"][1] == 0 and gimbal[0]["params"][2:4] == [None, None]
+            assert gimbal[0]["params"][4] == 12  # ROLL_LOCK | PITCH_LOCK: pitch relative to the horizon
+        else:
+            assert not gimbal  # the gimbal holds its pitch
+        pitch = w.gimbal_pitch_deg
+        after = groups[k + 1]
+        captures = [d for d in after[1] if d["command"] in CAPTURE_COMMANDS]
         assert len(captures) == (1 if w.capture else 0)
         if w.capture:
             seq += 1
-            assert captures[0]["params"][:4] == [0, 0, 1, seq]  # all cameras, interval 0, one image, sequence
-            assert cmds.index(MAV_CMD_IMAGE_START_CAPTURE) > cmds.index(MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW)
-            assert nav["params"][0] == 0  # no hold by default
-    # speed changes come before the waypoint they apply to
+            assert after[1][0]["command"] == MAV_CMD_IMAGE_START_CAPTURE  # first: nothing can hold it back
+            assert captures[0]["params"] == [0, 0, 1, seq, 0, 0, 0]  # all cameras, one image, sequence, reserved 0
+            assert after[0]["params"][0] == 2.0  # a 2 s hold stops the drone on the point
+        else:
+            assert after[0]["params"][0] == 0
+    # speed changes come before the waypoint they apply to, in the group that prepares its leg
     speeds = [(k, it["params"][1]) for k, it in enumerate(items) if it["command"] == MAV_CMD_DO_CHANGE_SPEED]
-    assert speeds and all(items[k + 1]["command"] == MAV_CMD_NAV_WAYPOINT for k, _ in speeds)
-    assert [s for _, s in speeds] == [3.0, 2.0] * 3 + [3.0]  # run-past and next lead-in share 3 m/s
+    assert speeds and all(items[k - 1]["command"] in NAV | CAPTURE_COMMANDS for k, _ in speeds)
 
 
 def test_mission_options(plan):
@@ -321,21 +342,36 @@ def test_mission_options(plan):
     assert m["firmwareType"] == 12 and m["globalPlanAltitudeMode"] == 2
     cmds = [it["command"] for it in m["items"]]
     assert MAV_CMD_CONDITION_YAW not in cmds and MAV_CMD_IMAGE_START_CAPTURE not in cmds
-    assert cmds.count(MAV_CMD_DO_DIGICAM_CONTROL) == 9 and cmds.count(MAV_CMD_DO_MOUNT_CONTROL) == 15
+    assert cmds.count(MAV_CMD_DO_DIGICAM_CONTROL) == 9
+    assert cmds.count(MAV_CMD_DO_MOUNT_CONTROL) == cmds.count(MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW)
     assert cmds[-1] == MAV_CMD_NAV_LAND
     mounts = [it for it in m["items"] if it["command"] == MAV_CMD_DO_MOUNT_CONTROL]
-    assert [it["params"][0] for it in mounts] == [w.gimbal_pitch_deg for w in _all_wps(plan)]
+    gimbals = [it for it in m["items"] if it["command"] == MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW]
+    assert [it["params"][0] for it in mounts] == [it["params"][0] for it in gimbals]
     assert all(it["params"][6] == 2 for it in mounts)  # MAV_MOUNT_MODE_MAVLINK_TARGETING
-    for it, w in zip([it for it in m["items"] if it["command"] == MAV_CMD_NAV_WAYPOINT], _all_wps(plan), strict=True):
+    for it, w in zip([it for it in m["items"] if it["command"] == MAV_CMD_NAV_WAYPOINT], _flown(plan), strict=True):
         assert it["frame"] == 0 and it["AltitudeMode"] == 2
         assert it["params"][6] == pytest.approx(w.height_m - GEOID_NSTTF)  # metres above mean sea level
         assert it["params"][0] == (1.5 if w.capture else 0)
     digicam = next(it for it in m["items"] if it["command"] == MAV_CMD_DO_DIGICAM_CONTROL)
     assert digicam["params"][4] == 1  # shoot
+    with pytest.raises(PihimInputError, match="yaw_rate_deg_s"):
+        qgc_plan_document(plan, yaw_rate_deg_s=0)
+
+
+def test_legs_are_slowed_where_the_turn_needs_it(plan):
+    # a 90 deg turn over 10 m at 5 m/s (2 s) needs 3 s + 0.5 s settle at 30 deg/s: 10 / 3.5 m/s
+    a = _wp(0.0, 0.0, 30.0, 0.0, -30.0, speed=5.0)
+    b = _wp(0.0, 10.0, 30.0, 90.0, -30.0, speed=5.0, capture=True)
+    assert leg_speed(a, b) == pytest.approx(10.0 / 3.5)
+    assert leg_speed(a, replace(b, heading_deg=5.0)) == 5.0  # 0.67 s needed, 2 s available
+    assert leg_speed(a, replace(b, heading_deg=350.0, gimbal_pitch_deg=-90.0)) == pytest.approx(10.0 / 2.5)
+    assert leg_speed(a, b, yaw_rate_deg_s=90.0) == 5.0
 
 
 def test_flight_export_uses_the_flight_waypoints(plan):
     items = qgc_plan_document(plan, flight=0)["mission"]["items"]
+    assert items == qgc_plan_document(plan)["mission"]["items"]  # the plan's only flight is the default
     f = plan.flights[0]
     assert items[0]["command"] == MAV_CMD_NAV_TAKEOFF and items[-1]["command"] == MAV_CMD_NAV_LAND
     assert items[0]["params"][4:6] == [f.waypoints[0].latitude_deg, f.waypoints[0].longitude_deg]
@@ -379,7 +415,7 @@ def test_wpl_round_trip(plan, tmp_path):
         expected = [0.0 if v is None else v for v in it["params"]]  # NaN (null) is 0 in the text file
         assert r["params"] == pytest.approx(expected, abs=1e-8)
     navs = [r for r in rows if r["command"] == MAV_CMD_NAV_WAYPOINT and r["index"] > 0]
-    for r, w in zip(navs, _all_wps(plan), strict=True):
+    for r, w in zip(navs, _flown(plan), strict=True):
         assert abs(r["params"][4] - w.latitude_deg) <= 1e-8 and abs(r["params"][5] - w.longitude_deg) <= 1e-8
         assert len(r["text"][8].split(".")[1]) >= 8 and len(r["text"][9].split(".")[1]) >= 8
     assert sum(r["command"] == MAV_CMD_IMAGE_START_CAPTURE for r in rows) == 9
@@ -445,7 +481,7 @@ def test_litchi_csv_header_and_rows(plan, tmp_path):
     text = path.read_text()
     assert text.split("\n")[0] == LITCHI_HEADER_TEXT == ",".join(LITCHI_HEADER)
     rows = list(csv.DictReader(text.splitlines()))
-    wps = _all_wps(plan)
+    wps = _flown(plan)  # the plan's only flight, without take-off and landing (Litchi's own)
     assert len(rows) == len(wps)
     for r, w in zip(rows, wps, strict=True):
         assert float(r["latitude"]) == pytest.approx(w.latitude_deg, abs=1e-8)
@@ -454,7 +490,7 @@ def test_litchi_csv_header_and_rows(plan, tmp_path):
         assert float(r["heading(deg)"]) == pytest.approx(w.heading_deg, abs=1e-3)
         assert float(r["gimbalpitchangle"]) == pytest.approx(w.gimbal_pitch_deg, abs=1e-3)
         assert (r["gimbalmode"], r["altitudemode"], r["curvesize(m)"]) == ("2", "0", "0")
-        assert float(r["speed(m/s)"]) == w.speed_m_s
+        assert float(r["speed(m/s)"]) == pytest.approx(w.speed_m_s, abs=0.005)
         assert r["actiontype1"] == ("1" if w.capture else "-1")
         assert all(r[f"actiontype{k}"] == "-1" for k in range(2, 16))
         assert (r["photo_timeinterval"], r["photo_distinterval"]) == ("-1", "-1")
@@ -514,16 +550,108 @@ def test_plan_figure_png(plan, field, tmp_path):
 # --------------------------------------------------------------------------- export_all and bad input
 
 
-def test_export_all_writes_six_files(plan, field, tmp_path):
+def test_export_all_one_flight_writes_the_flight_and_the_whole_field_files(plan, field, tmp_path):
     out = export_all(plan, tmp_path / "out", field=field, geofence_margin_m=20.0)
-    assert set(out) == set(OUTPUT_NAMES)
+    per_flight = {"flight_01_plan": "flight_01.plan", "flight_01_waypoints": "flight_01.waypoints",
+                  "flight_01_litchi": "flight_01_litchi.csv"}
+    assert set(out) == set(OUTPUT_NAMES) | set(per_flight)
     for key, path in out.items():
-        assert path == tmp_path / "out" / OUTPUT_NAMES[key] and path.stat().st_size > 0
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == sorted(OUTPUT_NAMES.values())  # no temporaries
+        assert path == tmp_path / "out" / {**OUTPUT_NAMES, **per_flight}[key] and path.stat().st_size > 0
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == sorted(out[k].name for k in out)  # no temporaries
+    # one flight covers the plan: the whole-field files are that flight
+    assert out["qgc_plan"].read_text() == out["flight_01_plan"].read_text()
+    assert out["wpl"].read_text() == out["flight_01_waypoints"].read_text()
+    assert out["litchi"].read_text() == out["flight_01_litchi"].read_text()
     jsonschema.validate(json.loads(out["qgc_plan"].read_text()), load_qgc_plan_schema(),
                         cls=jsonschema.Draft202012Validator)
     jsonschema.validate(json.loads(out["plan_json"].read_text()), load_plan_schema(),
                         cls=jsonschema.Draft202012Validator)
+
+
+def _several_flights(plan: Plan) -> Plan:
+    home = plan.home
+    flights = split_flights(plan.passes, home, origin=ORIGIN, model=DroneEndurance(battery_min=3.0),
+                            include_infeasible=True)
+    assert len(flights) == 3
+    return replace(plan, flights=flights)
+
+
+def test_export_all_several_flights_one_mission_each(plan, field, tmp_path):
+    multi = _several_flights(plan)
+    out = export_all(multi, tmp_path / "out", field=field)
+    assert not {"qgc_plan", "wpl", "litchi"} & set(out)  # no whole-field mission a vehicle could not fly
+    assert not (tmp_path / "out" / "mission.plan").exists() and not (tmp_path / "out" / "litchi.csv").exists()
+    for f in multi.flights:
+        stem = flight_file_stem(f.index)
+        doc = json.loads(out[f"{stem}_plan"].read_text())
+        jsonschema.validate(doc, load_qgc_plan_schema(), cls=jsonschema.Draft202012Validator)
+        items = doc["mission"]["items"]
+        assert items[0]["command"] == MAV_CMD_NAV_TAKEOFF and items[-1]["command"] == MAV_CMD_NAV_LAND
+        assert items[-1]["params"][4:6] == [plan.home.latitude_deg, plan.home.longitude_deg]  # back home
+        captures = [it for it in items if it["command"] == MAV_CMD_IMAGE_START_CAPTURE]
+        assert len(captures) == sum(w.capture for w in f.waypoints)
+        rows = _parse_wpl(out[f"{stem}_waypoints"].read_text())
+        assert len(rows) == len(items) + 1
+        litchi = list(csv.DictReader(out[f"{stem}_litchi"].read_text().splitlines()))
+        assert len(litchi) == len(f.waypoints) - 2
+    with pytest.raises(PihimInputError, match="needs 3 flights"):
+        qgc_plan_document(multi)
+    with pytest.raises(PihimInputError, match="needs 3 flights"):
+        litchi_csv_text(multi)
+    one = export_all(multi, tmp_path / "one", flight=1)
+    assert sorted(k for k in one if k.startswith("flight")) == ["flight_02_litchi", "flight_02_plan",
+                                                               "flight_02_waypoints"]
+
+
+def test_mission_item_limit(plan, tmp_path):
+    multi = _several_flights(plan)
+    n = max(count_mission_items(f.waypoints) for f in multi.flights)
+    assert n == max(len(qgc_plan_document(multi, flight=f.index)["mission"]["items"]) + 1 for f in multi.flights)
+    with pytest.raises(PihimInputError, match=f"needs {n} mission items, more than the limit of {n - 1}"):
+        export_all(multi, tmp_path / "out", max_mission_items=n - 1)
+    assert not (tmp_path / "out").exists()
+    # the flight split closes flights before they exceed the limit
+    small = split_flights(plan.passes, plan.home, origin=ORIGIN, include_infeasible=True, max_mission_items=40,
+                          count_items=count_mission_items)
+    assert len(small) > 1 and all(count_mission_items(f.waypoints) <= 40 for f in small)
+    with pytest.raises(PihimInputError, match="mission items, more than 10"):
+        split_flights(plan.passes, plan.home, origin=ORIGIN, max_mission_items=10, count_items=count_mission_items)
+
+
+def test_kml_is_valid_against_the_ogc_schema(plan, field, tmp_path):
+    pytest.importorskip("fastkml")
+    etree = pytest.importorskip("lxml.etree")
+    from fastkml.validator import get_schema_parser
+
+    schema = get_schema_parser()  # the OGC KML 2.2 XSD that fastkml ships
+    for kwargs in ({"field": field}, {"altitude_mode": "absolute"}):
+        doc = etree.parse(str(write_kml(plan, tmp_path / "plan.kml", **kwargs)))
+        assert schema.validate(doc), "\n".join(str(e) for e in list(schema.error_log)[:5])
+    # the schema has teeth: the order of the old writer (description after styleUrl) is refused
+    bad = (tmp_path / "plan.kml").read_text()
+    root = etree.fromstring(bad.encode())
+    pm = root.find(f".//{{{KML_NS}}}Placemark")
+    desc = pm.find(f"{{{KML_NS}}}description")
+    pm.remove(desc)
+    pm.append(desc)
+    assert not schema.validate(root)
+
+
+def test_waypoints_files_read_by_pymavlink(plan, tmp_path):
+    mavwp = pytest.importorskip("pymavlink.mavwp")
+    multi = _several_flights(plan)
+    out = export_all(multi, tmp_path / "out")
+    for f in multi.flights:
+        stem = flight_file_stem(f.index)
+        loader = mavwp.MAVWPLoader()
+        n = loader.load(str(out[f"{stem}_waypoints"]))
+        items = json.loads(out[f"{stem}_plan"].read_text())["mission"]["items"]
+        assert n == loader.count() == len(items) + 1
+        for k, it in enumerate(items, start=1):
+            wp = loader.wp(k)
+            assert (wp.seq, wp.command, wp.frame) == (k, it["command"], it["frame"])
+            got = [wp.param1, wp.param2, wp.param3, wp.param4, wp.x, wp.y, wp.z]
+            assert got == pytest.approx([0.0 if v is None else v for v in it["params"]], abs=1e-6)
 
 
 def _nan_latitude_plan(plan: Plan) -> Plan:

@@ -240,6 +240,17 @@ def test_cli_writes_outputs(tmp_path, capsys):
     assert Path(rec["files"]["csv"]) == out / "windows.csv"
 
 
+def test_cli_says_what_it_found_without_json(tmp_path, capsys):
+    out = tmp_path / "w"
+    assert run_cli(["windows", "--date", "2021-05-13", "--step-min", "120", "--out", str(out)]) == 0
+    cap = capsys.readouterr()
+    lines = cap.err.strip().splitlines()
+    assert cap.out == "" and len(lines) == 2
+    assert lines[0].startswith("pihim windows 2021-05-13: ") and "times scored; favourable (coverage >= 50 % of" in lines[0]
+    assert "of the paper's windows favourable here" in lines[0]  # NSTTF: compared with the paper
+    assert lines[1] == f"wrote windows.csv and windows.png to {out}"
+
+
 @pytest.mark.parametrize("args, needle", [
     (["--date", "2021-05-32"], "date"),
     (["--date", "yesterday"], "date"),

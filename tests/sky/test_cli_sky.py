@@ -119,3 +119,14 @@ def test_resolution_too_fine_for_memory_refused_with_the_figure(tmp_path, capsys
     # 180 x 720 directions x 1.5 kB = 194 MB
     assert rc == 2 and len(err) == 1 and "needs about 194 MB of memory; 50 MB is available" in err[0]
     assert not (tmp_path / "s").exists()
+
+
+def test_success_says_what_was_written(tmp_path, capsys):
+    out = tmp_path / "sky"
+    assert main(["sky", "--sun-zenith", "30", "--sun-azimuth", "235", "--resolution", "2", "--out", str(out)]) == 0
+    cap = capsys.readouterr()
+    lines = cap.err.strip().splitlines()
+    assert cap.out == "" and len(lines) == 2
+    assert lines[0].startswith("pihim sky: sun zenith 30.0 deg, azimuth 235.0 deg, rayleigh; DoLP max 0.80")
+    assert "(90 deg from the sun)" in lines[0]
+    assert lines[1] == f"wrote 3 files to {out}: sky-dolp.png, sky-aop.png, sky-maps.npz"

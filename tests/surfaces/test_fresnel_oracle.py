@@ -8,11 +8,14 @@ normal incidence; circular entries ``M23 = -M32 = Im(r_s r_p*)`` (paper eq. 5).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pihim.errors import PihimInputError
 from pihim.surfaces.fresnel import (
     brewster_angle_deg,
     fresnel_amplitudes,
@@ -209,3 +212,23 @@ def test_mitsuba_transmission_agrees(mi, n, c):
     ours = fresnel_transmission_mueller(c, 1.0, n)
     theirs = np.array(mi.mueller.specular_transmission(c, n), dtype=float)
     assert np.allclose(ours, theirs, atol=3e-6, rtol=0)
+
+
+def test_negative_k_is_refused_and_its_conjugate_is_physical():
+    # issue 11: the n - ik form gave reflectance > 1 (1.0185 for silver-like 0.055 - 3.32i)
+    with pytest.raises(PihimInputError, match="k < 0.*numpy.conj"):
+        fresnel_reflection_mueller(1.0, 1.0, 0.055 - 3.32j)
+    with pytest.raises(PihimInputError, match="k < 0"):
+        fresnel_amplitudes(np.array([0.5, 1.0]), np.array([1.0, 1.0 - 1e-3j]), 1.5)
+    m = fresnel_reflection_mueller(np.linspace(0.0, 1.0, 11), 1.0, np.conj(0.055 - 3.32j))
+    assert np.all(m[..., 0, 0] <= 1.0) and np.all(m[..., 0, 0] > 0.9)
+
+
+def test_brewster_angle_needs_both_indices_in_order():
+    assert brewster_angle_deg(1.0, 1.5) == pytest.approx(56.3099, abs=1e-4)
+    assert brewster_angle_deg(1.5, 1.0) == pytest.approx(33.6901, abs=1e-4)  # from inside the glass
+    with pytest.raises(TypeError):
+        brewster_angle_deg(1.5)  # type: ignore[call-arg]  # used to return 45 deg (n1 = 1.5, n2 defaulted)
+    for bad in (0.0, -1.5, math.nan, 1.5 + 0.1j):
+        with pytest.raises(PihimInputError, match="finite real index"):
+            brewster_angle_deg(1.0, bad)

@@ -355,8 +355,8 @@ def measure_channel_means(
         datas.append(data)
         names.append(name)
         declared.append(bits)
-    if not math.isfinite(dark_level):
-        raise PihimInputError("dark level must be finite")
+    if not math.isfinite(dark_level) or dark_level < 0:
+        raise PihimInputError(f"dark level must be a finite number of raw units >= 0, got {dark_level:g}")
 
     depth: BitDepth | None
     if datas[0].dtype.kind == "f":

@@ -700,6 +700,8 @@ def read_frame(
         with ``path``.
     """
     label = os.fspath(path)
+    if Path(path).is_dir():
+        raise _error(label, "is a directory, not a frame file (give the frame files, e.g. DIR/*.tiff)")
     suffix = Path(path).suffix.lower()
     if suffix in RAW_SUFFIXES:
         if width is None or height is None:

@@ -166,10 +166,13 @@ def polar_image(
 
     Parameters
     ----------
-    mosaic : numpy.ndarray, shape (H, W)
+    mosaic : numpy.ndarray, shape (H, W), or RawFrame
         Raw mosaic, ``uint8`` or ``uint16`` (float arrays are accepted for
         synthetic data; they are not range-checked and saturate only at
-        ``saturation_level``). H and W must be even.
+        ``saturation_level``). H and W must be even. The
+        :class:`~pihim.camera.frames.RawFrame` of
+        :func:`~pihim.camera.frames.read_frame` is accepted as it is (its
+        ``.data``, and its ``bit_depth`` unless ``bit_depth`` is given).
     layout : MosaicLayout
         Micro-polarizer arrangement; default IMX250MZR (90, 45 / 135, 0).
     analyser : AnalyserMatrix, optional
@@ -177,7 +180,8 @@ def polar_image(
     demosaic : {"superpixel", "full"}
         ``superpixel`` gives (H/2, W/2) images; ``full`` gives (H, W).
     dark_level : float
-        Dark level in raw units (after any MSB shift), subtracted first.
+        Dark level in raw units (after any MSB shift), subtracted first;
+        >= 0.
     bit_depth : int, optional
         ADC bits; see :func:`resolve_bit_depth` for the automatic choice.
     saturation_level : float, optional
@@ -190,7 +194,17 @@ def polar_image(
     -------
     PolarImage
     """
+    data = getattr(mosaic, "data", None)
+    if isinstance(data, np.ndarray) and not isinstance(mosaic, np.ndarray):  # a RawFrame from read_frame
+        if bit_depth is None:
+            bit_depth = getattr(mosaic, "bit_depth", None)
+        mosaic = data
     raw = np.asarray(mosaic)
+    if raw.ndim != 2:
+        raise PihimInputError(
+            f"raw mosaic must be a 2-D array (or the RawFrame read_frame returns; its array is .data), "
+            f"got {type(mosaic).__name__} of shape {raw.shape}"
+        )
     check_mosaic_shape(raw)
     if demosaic not in DEMOSAIC_METHODS:
         raise PihimInputError(f"unknown demosaic method {demosaic!r}; choose one of {', '.join(DEMOSAIC_METHODS)}")
@@ -202,8 +216,8 @@ def polar_image(
         if depth.shift:
             raw = raw >> depth.shift
         sat = float(depth.full_scale if saturation_level is None else saturation_level)
-    if not math.isfinite(dark_level):
-        raise PihimInputError("dark level must be finite")
+    if not math.isfinite(dark_level) or dark_level < 0:
+        raise PihimInputError(f"dark level must be a finite number of raw units >= 0, got {dark_level:g}")
     w_pos = _position_ordered_pinv(analyser or AnalyserMatrix.ideal(), layout)
     h, w = raw.shape
     shape = (h // 2, w // 2) if demosaic == "superpixel" else (h, w)

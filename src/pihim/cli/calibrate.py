@@ -194,8 +194,7 @@ def calibrate_polarizer(
         write_json_atomic(out, record)
     except OSError as exc:
         raise PihimInputError(f"{out}: cannot write the calibration ({exc.strerror or exc})") from None
-    console = Console(file=sys.stderr if json_output else sys.stdout)
-    console.print(_summary(cal, out))
+    Console(file=sys.stderr).print(_summary(cal, out))  # a human summary: stderr, as every command's
     for w in cal.warnings:
         print(f"pihim: warning: {w}", file=sys.stderr)
     if json_output:

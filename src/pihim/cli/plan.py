@@ -6,6 +6,7 @@ A thin layer over :func:`pihim.planning.pipeline.build_plan` and
 
 from __future__ import annotations
 
+import math
 import time as _time
 from pathlib import Path
 from typing import Annotated
@@ -13,6 +14,7 @@ from typing import Annotated
 import typer
 
 from pihim.cli._common import check_out_dir, emit_json, load_field_option, make_out_dir, parse_point, stderr_console
+from pihim.errors import PihimInputError
 from pihim.planning.endurance import DroneEndurance
 from pihim.planning.export import export_all
 from pihim.planning.pipeline import build_plan
@@ -37,6 +39,9 @@ def plan(
     dmax: Annotated[float, typer.Option(help="Maximum sky DoLP, [0, 1].")] = 0.8,
     mirror: Annotated[str, typer.Option(help="Mirror model: second-surface, ideal or fresnel.")] = "second-surface",
     battery_min: Annotated[float, typer.Option(help="Battery endurance per flight, minutes.")] = 20.0,
+    max_mission_items: Annotated[int, typer.Option(
+        "--max-mission-items", help="Most mission items per flight the autopilot stores (home included).")] = 700,
+    autopilot: Annotated[str, typer.Option(help="Mission files for ardupilot (default) or px4.")] = "ardupilot",
     fleet_hours: Annotated[float, typer.Option(help="Working hours per day for the fleet estimate.")] = 8.0,
     no_shift: Annotated[bool, typer.Option("--no-shift", help="Do not shift passes to raise contrast.")] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
@@ -47,13 +52,20 @@ def plan(
     site_obj = parse_site(site)
     aim_point = parse_point(aim, name="--aim")
     check_out_dir(out)
+    if not (math.isfinite(battery_min) and battery_min > 0):
+        raise PihimInputError(f"--battery-min must be a positive number of minutes, got {battery_min:g}")
+    if max_mission_items < 4:
+        raise PihimInputError(f"--max-mission-items must be at least 4, got {max_mission_items}")
+    if autopilot not in ("ardupilot", "px4"):
+        raise PihimInputError(f"--autopilot must be ardupilot or px4, got {autopilot!r}")
     fld = load_field_option(field, facets, nsttf_tower=site.strip().lower() == "nsttf")
     names = None if heliostats is None else [h for h in heliostats.split(",") if h.strip()]
     scoring = ScoringModel(sky=SkyModel(kind=sky_model, dmax=dmax), mirror=mirror_model(mirror))  # type: ignore[arg-type]
+    options = {"autopilot": autopilot}
     the_plan = build_plan(fld, when, site_obj, aim_point=aim_point, max_altitude_m=max_altitude, heliostats=names,
                           scoring=scoring, shift=not no_shift, endurance=DroneEndurance(battery_min=battery_min),
-                          fleet_hours=fleet_hours)
-    files = export_all(the_plan, make_out_dir(out), field=fld)
+                          fleet_hours=fleet_hours, max_mission_items=max_mission_items, mission_options=options)
+    files = export_all(the_plan, make_out_dir(out), field=fld, max_mission_items=max_mission_items, **options)
     summary = the_plan.summary
     summary["seconds"]["total_with_export"] = round(_time.perf_counter() - t0, 4)
     if json_out:
@@ -61,9 +73,29 @@ def plan(
                    "aim_point": list(the_plan.aim_point), **summary,
                    "files": {k: str(v) for k, v in files.items()}})
     else:
-        stderr_console.print(
-            f"[bold]pihim plan[/bold]: {summary['passes']} passes ({summary['feasible_passes']} feasible), "
-            f"{summary['waypoints']} waypoints, {summary['usable_images']}/{summary['images']} images usable, "
-            f"{summary['flights']} flights -> {out}"
-        )
+        stderr_console.print(_human_summary(summary, files, out), highlight=False, soft_wrap=True)
     return 0
+
+
+def _human_summary(summary: dict, files: dict[str, Path], out: Path) -> str:
+    """Two lines for the console: what was planned, and what was written where."""
+    cov = summary["coverage"]
+    missions = summary.get("missions", [])
+    longest = max((m["duration_s"] for m in missions), default=0.0) / 60.0
+    n_flight_files = sum(k.endswith("_plan") and k.startswith("flight_") for k in files)
+    return (
+        f"pihim plan: {summary['passes']} passes, {summary['usable_images']}/{summary['images']} images predicted "
+        f"usable; coverage {100 * cov['either']:.0f} % (heliostats of the field with at least one usable image; "
+        f"{100 * cov['planned']:.0f} % imaged){_facet_text(summary)}; {summary['flights']} flights, longest "
+        f"{longest:.1f} min\n"
+        f"wrote {len(files)} files to {out}: plan.json, plan.kml, plan.png and {n_flight_files} flight missions "
+        f"(flight_NN.plan / .waypoints / _litchi*.csv)"
+    )
+
+
+def _facet_text(summary: dict) -> str:
+    fc = summary.get("facet_coverage")
+    if not fc:
+        return ""
+    return (f"; {100 * fc['fraction']:.0f} % of the imaged HUAs' facets show the target's reflection "
+            f"({fc['huas_complete']} of {fc['huas']} HUAs complete)")

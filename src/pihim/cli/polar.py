@@ -40,10 +40,10 @@ from pihim._resources import format_bytes, memory_error_message, require_memory
 from pihim.camera.frames import normalize_pixel_format, read_frame
 from pihim.camera.layout import MosaicLayout
 from pihim.camera.pipeline import DEMOSAIC_METHODS, PolarImage, polar_image
-from pihim.cli._common import emit_json, make_out_dir, parse_layout, progress, report_error
+from pihim.cli._common import emit_json, make_out_dir, parse_layout, progress, report_error, stderr_console
 from pihim.errors import PihimInputError
 from pihim.polarimetry.analyser import AnalyserMatrix
-from pihim.visualize import aop_to_rgb, dolp_to_rgb, s0_to_gray, write_png
+from pihim.visualize import aop_to_rgb, dolp_to_rgb, polar_figure_png, s0_to_gray, write_png
 
 SCHEMA_ID = "pihim.polar-frame/1"
 #: Suffix of the per-frame record, written after the frame's images: its completion mark.
@@ -52,6 +52,9 @@ RECORD_SUFFIX = ".polar.json"
 #: TIFF writing; tracemalloc on a 1024x1024 frame: 56-62 B, and 184-190 B with PNG previews; rounded up).
 BYTES_PER_OUTPUT_PIXEL = 96
 BYTES_PER_OUTPUT_PIXEL_PNG = 256
+#: With --png, the captioned figure on top (decimated to <= 900 px a side, so about constant: tracemalloc peak
+#: 17-18 MB on 64x64 to 1024x1224 frames, plus the Agg canvas; rounded up).
+FIGURE_BYTES = 32_000_000
 
 _IMAGE_KEYS = ("S0", "DoLP", "AoP")
 
@@ -94,15 +97,17 @@ def write_float_tiff(path: Path, image: np.ndarray) -> Path:
 
 
 def output_paths(out_dir: Path, name: str, *, png: bool) -> dict[str, Path]:
-    """The files of one frame: ``S0``, ``DoLP``, ``AoP`` TIFFs (and ``*_png`` previews); not the record."""
+    """The files of one frame: ``S0``, ``DoLP``, ``AoP`` TIFFs (with ``png``: the ``*_png`` previews and the
+    captioned ``figure_png``, ``<name>.polar.png``); not the record."""
     paths = {k: out_dir / f"{name}.{k}.tiff" for k in _IMAGE_KEYS}
     if png:
         paths.update({f"{k}_png": out_dir / f"{name}.{k}.png" for k in _IMAGE_KEYS})
+        paths["figure_png"] = out_dir / f"{name}.polar.png"
     return paths
 
 
 def write_polar_outputs(result: PolarImage, out_dir: Path, stem: str, *, png: bool) -> dict[str, str]:
-    """Write ``<stem>.S0/DoLP/AoP.tiff`` (and PNG previews) together; return the written paths.
+    """Write ``<stem>.S0/DoLP/AoP.tiff`` (and the PNG previews and figure) together; return the written paths.
 
     All files are written under temporary names first and renamed only when
     every one is complete; on failure none is left.
@@ -118,6 +123,8 @@ def write_polar_outputs(result: PolarImage, out_dir: Path, stem: str, *, png: bo
             write_png(tmp["S0_png"], s0_to_gray(result.s0), atomic=False)
             write_png(tmp["DoLP_png"], dolp_to_rgb(result.dolp), atomic=False)
             write_png(tmp["AoP_png"], aop_to_rgb(result.aop_deg, result.dolp), atomic=False)
+            polar_figure_png(result.s0, result.dolp, result.aop_deg, tmp["figure_png"],
+                             title=f"{stem}: S0, DoLP and AoP", atomic=False)
     return {k: str(v) for k, v in paths.items()}
 
 
@@ -164,7 +171,7 @@ def check_not_an_input(path: Path, outputs: Sequence[Path], inputs: dict[tuple[i
 def estimate_frame_bytes(height: int, width: int, *, demosaic: str, png: bool) -> int:
     """Peak bytes of processing and writing one ``width`` x ``height`` mosaic (raw frame excluded)."""
     n_out = height * width if demosaic == "full" else (height // 2) * (width // 2)
-    return n_out * (BYTES_PER_OUTPUT_PIXEL_PNG if png else BYTES_PER_OUTPUT_PIXEL)
+    return n_out * (BYTES_PER_OUTPUT_PIXEL_PNG if png else BYTES_PER_OUTPUT_PIXEL) + (FIGURE_BYTES if png else 0)
 
 
 # -- resume ------------------------------------------------------------------------------------
@@ -198,6 +205,8 @@ def completed_record(record_path: Path, path: Path, options: dict[str, Any]) -> 
         sizes, outputs = rec.get("output_bytes"), rec.get("outputs")
         if not isinstance(sizes, dict) or not isinstance(outputs, dict) or set(sizes) != set(outputs):
             return None
+        if set(outputs) != set(output_paths(record_path.parent, "", png=bool(options.get("png")))):
+            return None  # made by a version that wrote other files (e.g. no captioned figure yet)
         for key, out in outputs.items():
             here = record_path.parent / Path(out).name  # the record sits beside the outputs
             if os.path.getsize(here) != sizes[key]:
@@ -295,6 +304,42 @@ def _error_record(path: Path, message: str) -> dict[str, Any]:
     return {"schema": SCHEMA_ID, "file": str(path), "status": "error", "error": message}
 
 
+def _summary(processed: Sequence[dict[str, Any]], resumed: int, n_frames: int, out_dir: Path, *, png: bool) -> str:
+    """The success line: frames processed by this run, skipped as already complete, and failed.
+
+    Parameters
+    ----------
+    processed : sequence of dict
+        Records of the frames this run processed and wrote.
+    resumed : int
+        Frames skipped because an earlier run completed them.
+    n_frames : int
+        Frames in the batch (each file counted once).
+    out_dir : Path
+        Output directory.
+    png : bool
+        Whether PNG previews and the captioned figure were asked for.
+
+    Returns
+    -------
+    str
+        One line; the median DoLP range is over the processed frames only.
+    """
+    failed = n_frames - len(processed) - resumed
+    if processed:
+        med = [r["dolp"]["median"] for r in processed if r["dolp"]["median"] is not None]
+        text = (f"pihim polar: {len(processed)} of {n_frames} frames -> {out_dir}: <stem>.S0/.DoLP/.AoP.tiff "
+                f"(float32, AoP in deg)" + (", PNG previews and <stem>.polar.png (captioned)" if png else "")
+                + (f"; median DoLP {min(med):.3f}-{max(med):.3f}" if med else ""))
+    else:
+        text = f"pihim polar: no frame processed in {out_dir}"
+    if resumed:
+        text += f"; {resumed} of {n_frames} already complete from an earlier run, skipped (--overwrite redoes them)"
+    if failed:
+        text += f"; {failed} failed"
+    return text
+
+
 # -- options -----------------------------------------------------------------------------------------
 
 
@@ -356,7 +401,7 @@ def polar(
     width: Annotated[int | None, typer.Option(help="Width in pixels (.raw only).")] = None,
     height: Annotated[int | None, typer.Option(help="Height in pixels (.raw only).")] = None,
     pixel_format: Annotated[str | None, typer.Option(help="Lucid pixel format (.raw only), e.g. PolarizeMono12p.")] = None,
-    png: Annotated[bool, typer.Option("--png", help="Also write PNG previews.")] = False,
+    png: Annotated[bool, typer.Option("--png", help="Also write PNG previews and a captioned figure, <stem>.polar.png.")] = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Redo frames already done in --out by an earlier run.")] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object per frame on stdout.")] = False,
 ) -> int:
@@ -378,6 +423,7 @@ def polar(
     fingerprint = json.loads(json.dumps(options.fingerprint()))
     status = 0
     resumed = 0
+    processed: list[dict[str, Any]] = []
     for path in progress(batch, "polar"):
         name = names[path]
         record_path = out_dir / f"{name}{RECORD_SUFFIX}"
@@ -410,7 +456,13 @@ def polar(
             record = _error_record(path, message)
         if json_out:
             emit_json(record)
-    if resumed:
-        print(f"pihim: {resumed} of {len(batch)} frames were already done in {out_dir} and were skipped "
-              "(--overwrite redoes them)", file=sys.stderr)
+        if record["status"] == "ok" and not record.get("resumed"):
+            processed.append(record)
+    if json_out:
+        if resumed:  # the records say the rest (one per frame, "resumed": true for the skipped ones)
+            print(f"pihim: {resumed} of {len(batch)} frames were already done in {out_dir} and were skipped "
+                  "(--overwrite redoes them)", file=sys.stderr)
+    elif processed or resumed:
+        stderr_console.print(_summary(processed, resumed, len(batch), out_dir, png=png),
+                             highlight=False, soft_wrap=True)
     return status

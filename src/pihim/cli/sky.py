@@ -32,7 +32,7 @@ import typer
 
 from pihim._atomic import atomic_path
 from pihim._resources import require_memory
-from pihim.cli._common import check_out_dir, emit_json, make_out_dir
+from pihim.cli._common import check_out_dir, emit_json, make_out_dir, stderr_console
 from pihim.errors import PihimInputError
 from pihim.sky.berry import neutral_points
 from pihim.sky.model import SkyMap, SkyModel, _grid_size, sky_map
@@ -196,4 +196,13 @@ def sky(
                 "files": files,
             }
         )
+    else:
+        summ = _summary(result, resolution)
+        peak = summ["dolp_max"]
+        stderr_console.print(
+            f"pihim sky: sun zenith {float(sun.zenith_deg):.1f} deg, azimuth {float(sun.azimuth_deg):.1f} deg, "
+            f"{model}; DoLP max {peak['value']:.2f} at zenith {peak['zenith_deg']:.1f} deg, azimuth "
+            f"{peak['azimuth_deg']:.1f} deg ({peak['scattering_angle_deg']:.0f} deg from the sun)\n"
+            f"wrote {len(files)} files to {out}: {', '.join(Path(v).name for v in files.values())}",
+            highlight=False, soft_wrap=True)
     return 0

@@ -20,19 +20,23 @@ ground-vs-ground contrast, with contrast-raising pass shifts
 
 With ``--json`` a one-line summary goes to stdout: the windows, the best
 time, mean fractions and, at the NSTTF, the agreement with the paper's
-windows.
+windows. Without it, a progress bar on stderr follows the sweep (about 30 s
+for the NSTTF) and two lines on stderr give the windows, the best time and
+the files written.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
 import typer
 
-from pihim.cli._common import check_out_dir, emit_json, load_field_option, make_out_dir, parse_floats
+from pihim.cli._common import check_out_dir, emit_json, load_field_option, make_out_dir, parse_floats, stderr_console
 from pihim.errors import PihimInputError
 
 SCHEMA_ID = "pihim.windows/1"
@@ -77,9 +81,10 @@ def windows(
         raise PihimInputError("--aim: coordinates must be finite")
     check_out_dir(out)
     fld = load_field_option(field, facets, nsttf_tower=is_nsttf(site_obj))
-    sweep = sweep_day(day, site=site_obj, field=fld, aim_point=aim_point, step_min=step_min,
-                      min_elevation_deg=min_elevation, max_altitude_m=max_altitude,
-                      search=None if no_shift else ShiftSearch())
+    with _progress_bar(f"planning and scoring {day.isoformat()}") as tick:
+        sweep = sweep_day(day, site=site_obj, field=fld, aim_point=aim_point, step_min=step_min,
+                          min_elevation_deg=min_elevation, max_altitude_m=max_altitude,
+                          search=None if no_shift else ShiftSearch(), progress=tick)
     make_out_dir(out)
     csv_path = write_windows_csv(sweep, out / "windows.csv")
     png_path = write_windows_png(sweep, out / "windows.png", threshold=threshold, relative=relative)
@@ -89,4 +94,40 @@ def windows(
             **sweep.summary(threshold, "either", relative=relative),
             "files": {"csv": str(csv_path), "png": str(png_path)},
         })
+    else:
+        stderr_console.print(_human_summary(sweep.summary(threshold, "either", relative=relative), out),
+                             highlight=False, soft_wrap=True)
     return 0
+
+
+@contextlib.contextmanager
+def _progress_bar(description: str) -> Iterator[Callable[[int, int], None]]:
+    """A progress bar on stderr fed by ``sweep_day``'s ``progress(done, total)`` callback."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                  console=stderr_console, transient=True) as bar:
+        task = bar.add_task(description, total=None)
+
+        def tick(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        yield tick
+
+
+def _hhmm(iso: str) -> str:
+    return iso[11:16]
+
+
+def _human_summary(summary: dict[str, Any], out: Path) -> str:
+    """Two lines: the favourable windows and the best time, and what was written where."""
+    level = 100 * summary["threshold_fraction"]
+    wins = ", ".join(f"{_hhmm(w['start'])}-{_hhmm(w['end'])}" for w in summary["windows"]) or "none"
+    best = summary["best"]
+    best_text = "" if best is None else f"; best {_hhmm(best['time'])} ({100 * best['fraction']:.0f} %)"
+    paper = summary.get("paper_agreement")
+    covered = None if not paper else paper.get("paper_covered")
+    paper_text = "" if covered is None else f"; {100 * covered:.0f} % of the paper's windows favourable here"
+    return (f"pihim windows {summary['date']}: {summary['n_times']} times scored; favourable (coverage >= "
+            f"{level:.0f} % of {summary['n_heliostats']} heliostats with a usable image): {wins}{best_text}"
+            f"{paper_text}\nwrote windows.csv and windows.png to {out}")

@@ -197,27 +197,44 @@ class _FacetModel:
     def near(self, mask: NDArray[np.bool_], span_mrad: float, margin_px: float = 20.0) -> _FacetModel:
         """The model restricted to the points that can reach the facet's mask within the search span.
 
-        A point is kept if, at the centre or at any corner of the ``+-span_mrad`` grid, it
-        projects inside the mask's bounding box grown by ``margin_px`` (the reflection moves
-        almost affinely with the angles, so the box of those five covers every node).
+        A point is kept if its projection at zero deviation lies inside the mask's bounding box
+        grown by ``margin_px`` plus the largest move of any point between the centre and the
+        corners of the ``+-span_mrad`` grid (measured on every 16th point; the reflection moves
+        almost affinely with the angles).
         """
         rows = np.flatnonzero(mask.any(axis=1))
         cols = np.flatnonzero(mask.any(axis=0))
         if rows.size == 0:
             return self
-        lo = np.array([cols[0], rows[0]]) - margin_px
-        hi = np.array([cols[-1], rows[-1]]) + margin_px
         s = float(span_mrad)
-        uv = self.project_many(np.array([0.0, -s, -s, s, s]), np.array([0.0, -s, s, -s, s]))  # (5, N, 2)
-        keep = np.any(np.all((uv >= lo) & (uv <= hi), axis=2), axis=0)
+        sub = self.project_many(np.array([0.0, -s, -s, s, s]), np.array([0.0, -s, s, -s, s]), self.pts[::16])
+        reach = float(np.nanmax(np.linalg.norm(sub[1:] - sub[:1], axis=2), initial=0.0))
+        grow = margin_px + reach
+        uv = self.project_many(np.zeros(1), np.zeros(1))[0]
+        keep = (uv[:, 0] >= cols[0] - grow) & (uv[:, 0] <= cols[-1] + grow) \
+            & (uv[:, 1] >= rows[0] - grow) & (uv[:, 1] <= rows[-1] + grow)
         return _FacetModel(self.camera, self.pose, self.rot, self.centre, self.normal_local, self.pts[keep],
                            self.seg[keep])
 
-    def project_many(self, az_mrad: NDArray, el_mrad: NDArray) -> NDArray:
+    def project_linear(self, az_mrad: NDArray, el_mrad: NDArray) -> NDArray:
+        """Projected points (G, N, 2) for G angle pairs, to first order in the angles.
+
+        Exact projections at the origin and 1 mrad along each axis, combined linearly: the
+        reflected image moves by about ``2 d`` times the distance per radian of tilt ``d``, so
+        over +-17.5 mrad the second-order term is a fraction of a pixel, far below the grid
+        score's 5 px tolerance (the refinement uses :meth:`project`, exact).
+        """
+        base = self.project_many(np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]))
+        d_az, d_el = base[1] - base[0], base[2] - base[0]
+        return (base[0][None] + np.asarray(az_mrad, float)[:, None, None] * d_az[None]
+                + np.asarray(el_mrad, float)[:, None, None] * d_el[None])
+
+    def project_many(self, az_mrad: NDArray, el_mrad: NDArray, pts: NDArray | None = None) -> NDArray:
         """Projected points (G, N, 2) for G candidate angle pairs at once (no normals)."""
+        pts = self.pts if pts is None else pts
         n = apply_canting_deviation(self.normal_local, az_mrad, el_mrad) @ self.rot.T  # (G, 3)
-        d = (self.pts - self.centre) @ n.T  # (N, G)
-        virt = self.pts[None, :, :] - 2.0 * d.T[:, :, None] * n[:, None, :]
+        d = (pts - self.centre) @ n.T  # (N, G)
+        virt = pts[None, :, :] - 2.0 * d.T[:, :, None] * n[:, None, :]
         return project_points(self.camera, self.pose, virt.reshape(-1, 3)).reshape(len(n), -1, 2)
 
     def project(self, az_mrad: float, el_mrad: float) -> tuple[NDArray, NDArray]:
@@ -251,7 +268,7 @@ def _fit_facet(model: _FacetModel, mask: NDArray, obs: NDArray, dt: NDArray, spa
     grid = np.arange(-span_mrad, span_mrad + 1e-9, step_mrad)
     gaz, gel = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
     coarse_model = model.subsampled(6)  # every 6 cm of outline: the score is a share, not a sum
-    uv = coarse_model.project_many(gaz, gel)  # (G, N, 2), every node at once
+    uv = coarse_model.project_linear(gaz, gel)  # (G, N, 2), every node at once
     hgt, wid = mask.shape
     fin = np.all(np.isfinite(uv), axis=2)
     ii = np.where(fin, np.rint(np.nan_to_num(uv[..., 1])), -1).astype(np.int64)
@@ -281,12 +298,22 @@ def _fit_facet(model: _FacetModel, mask: NDArray, obs: NDArray, dt: NDArray, spa
         if ins.sum() < 20:
             raise PihimInputError("the reflected target leaves the facet")
         idx, q = match_edge_points(uv, ins, ob, gate, 15, "the reflected target")
+        # only the matched model points move; their line normals are held for the round (the
+        # outline barely turns over a round's few mrad) and re-taken at the next re-match
+        used_pts, inv = np.unique(idx, return_inverse=True)
+        sub, nq = model.pts[used_pts], nrm[idx]
 
-        def residuals(p: NDArray, q=q, idx=idx, gate=gate) -> NDArray:
-            uvc, nc = model.project(p[0], p[1])
-            return np.nan_to_num(np.einsum("ij,ij->i", q - uvc[idx], nc[idx]), nan=gate)
+        def residuals(p: NDArray, q=q, inv=inv, sub=sub, nq=nq, gate=gate) -> NDArray:
+            uvc = model.project_many(np.array([p[0]]), np.array([p[1]]), sub)[0][inv]
+            return np.nan_to_num(np.einsum("ij,ij->i", q - uvc, nq), nan=gate)
 
-        sol = least_squares(residuals, np.array([az, el]), loss="soft_l1", f_scale=0.5, x_scale=0.1)
+        def jacobian(p: NDArray, inv=inv, sub=sub, nq=nq) -> NDArray:
+            h = 1e-3  # mrad
+            uvs = model.project_many(np.array([p[0], p[0] + h, p[0]]), np.array([p[1], p[1], p[1] + h]), sub)
+            d = (uvs[1:] - uvs[:1])[:, inv] / h  # (2, M, 2)
+            return -np.nan_to_num(np.einsum("kij,ij->ik", d, nq))
+
+        sol = least_squares(residuals, np.array([az, el]), jac=jacobian, loss="soft_l1", f_scale=0.5, x_scale=0.1)
         az, el = float(sol.x[0]), float(sol.x[1])
         r = residuals(sol.x)
     assert sol is not None

@@ -71,32 +71,39 @@ def _sobel(img: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.fl
 
 
 def combined_gradient(
-    s0: NDArray, dolp: NDArray, aop_deg: NDArray, *, smooth_px: float = 1.0
+    s0: NDArray, dolp: NDArray | None, aop_deg: NDArray | None, *, smooth_px: float = 1.0
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Gradient ``(gx, gy, magnitude)`` combining log S0, DoLP and axial AoP (see the module notes).
 
     NaN pixels (saturated) are filled with their neighbourhood's values
     first; ``smooth_px`` is a Gaussian pre-smoothing (pixels, 0 for none).
+    ``dolp`` and ``aop_deg`` None: the gradient of S0 alone (the same as
+    all-zero DoLP and AoP images, without their cost).
     """
     import cv2
 
     s0 = np.asarray(s0, float)
-    if s0.ndim != 2 or np.shape(dolp) != s0.shape or np.shape(aop_deg) != s0.shape:
-        raise PihimInputError("S0, DoLP and AoP must be 2-D images of one shape")
+    if s0.ndim != 2 or (dolp is None) != (aop_deg is None) or (
+            dolp is not None and (np.shape(dolp) != s0.shape or np.shape(aop_deg) != s0.shape)):
+        raise PihimInputError("S0, DoLP and AoP must be 2-D images of one shape (or DoLP and AoP both None)")
     scale = float(np.nanmedian(s0))
     if not scale > 0:
         scale = float(np.nanmax(s0)) if np.nanmax(s0) > 0 else 1.0
     with np.errstate(invalid="ignore"):
         ls0 = s0 / scale
-        p = np.clip(np.asarray(dolp, float), 0.0, 1.0)
-        a = np.radians(np.asarray(aop_deg, float))
-        chans = [ls0, p, p * np.cos(2 * a), p * np.sin(2 * a)]
+        chans = [ls0]
+        if dolp is not None:
+            p = np.clip(np.asarray(dolp, float), 0.0, 1.0)
+            a = np.radians(np.asarray(aop_deg, float))
+            chans += [p, p * np.cos(2 * a), p * np.sin(2 * a)]
     weights = [1.0, 4.0, 2.0, 2.0]
     gx_t = np.zeros_like(s0)
     gy_t = np.zeros_like(s0)
     mag2 = np.zeros_like(s0)
-    for c, w in zip(chans, weights):
-        c = np.where(np.isfinite(c), c, np.nanmedian(c))
+    for c, w in zip(chans, weights[:len(chans)]):
+        finite = np.isfinite(c)
+        if not finite.all():
+            c = np.where(finite, c, np.nanmedian(c))
         if smooth_px > 0:
             c = cv2.GaussianBlur(c, (0, 0), smooth_px)
         gx, gy = _sobel(c)
@@ -110,8 +117,8 @@ def combined_gradient(
 
 def edge_points(
     s0: NDArray,
-    dolp: NDArray,
-    aop_deg: NDArray,
+    dolp: NDArray | None = None,
+    aop_deg: NDArray | None = None,
     *,
     smooth_px: float = 1.0,
     threshold: float | None = None,
@@ -122,6 +129,7 @@ def edge_points(
     Parameters
     ----------
     s0, dolp, aop_deg : ndarray, shape (H, W)
+        DoLP and AoP None (the default): edges of S0 alone.
     smooth_px : float
         Gaussian pre-smoothing, pixels.
     threshold : float, optional

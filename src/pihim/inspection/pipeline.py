@@ -7,7 +7,7 @@
    sensor's layout, analyser, dark level and bit depth from ``log["sensor"]``
    when present);
 2. sub-pixel edge points of **S0 only**
-   (``edge_points(s0, zeros, zeros)``): the DoLP of the dark target back is
+   (``edge_points(s0)``): the DoLP of the dark target back is
    too noisy at the sensor's 39 dB to add its edges unweighted (see
    :mod:`pihim.inspection.canting`);
 3. :func:`pihim.inspection.pose.refine_pose` of the logged camera pose on the
@@ -240,8 +240,7 @@ def inspect_frame(
     pol = polar_image(arr, layout=settings["layout"], analyser=settings["analyser"], demosaic="full",
                       dark_level=settings["dark_level"], bit_depth=settings["bit_depth"])
     t2 = _time.perf_counter()
-    z = np.zeros_like(pol.s0)
-    ep = edge_points(pol.s0, z, z)  # S0 only: see the notes of pihim.inspection.canting
+    ep = edge_points(pol.s0)  # S0 only: see the notes of pihim.inspection.canting
     t3 = _time.perf_counter()
     fit = refine_pose(camera, prior, facet_outline_segments(corners), ep)
     t4 = _time.perf_counter()

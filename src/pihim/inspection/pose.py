@@ -323,9 +323,10 @@ def _chamfer_align(camera: CameraModel, pose: CameraPose, pts: NDArray, maps: _E
     return pose
 
 
-def _start_offsets(search_m: tuple[float, float, float]) -> list[NDArray]:
-    """Camera-frame position offsets ``{-s, 0, s}`` per axis: the prior first, then by distance."""
-    grids = [(-s, 0.0, s) if s > 0 else (0.0,) for s in search_m]
+def _start_offsets(search_m: tuple[float, float, float], rings: int = 1) -> list[NDArray]:
+    """Camera-frame position offsets ``k s``, ``|k| <= rings``, per axis: the prior first, then by distance."""
+    ks = np.arange(-rings, rings + 1, dtype=float)
+    grids = [tuple(ks * s) if s > 0 else (0.0,) for s in search_m]
     offs = {(a, b, c) for a in grids[0] for b in grids[1] for c in grids[2]}
     return [np.array(o) for o in sorted(offs, key=lambda o: (float(np.linalg.norm(o)), o))]
 
@@ -337,6 +338,7 @@ def refine_pose(
     edges: EdgePoints,
     *,
     search_m: tuple[float, float, float] = (1.5, 1.5, 2.0),
+    search_rings: int = 2,
     max_shift_px: float = 1400.0,
     accept_support: float = 0.8,
     n_peaks: int = 1,
@@ -359,7 +361,12 @@ def refine_pose(
     search_m : (float, float, float)
         Starting positions: the prior's position moved by ``{-s, 0, s}`` along
         the camera's x (right), y (down) and z (forward) axes, metres (about
-        one GPS sigma); at most 27 starts, nearest first.
+        one GPS sigma), nearest first.
+    search_rings : int
+        Starting positions go out to ``search_rings`` steps per axis (2: up
+        to 3 m sideways and 4 m along the view, 125 starts at most; the
+        search stops at the first good start, so a prior within about 2 m
+        needs only the first few).
     max_shift_px : float
         Half-size of each start's image-shift search, pixels.
     accept_support : float
@@ -402,7 +409,7 @@ def refine_pose(
     sparse = pts[:: max(1, int(round(0.12 / spacing_m)))]
     best: tuple[float, CameraPose] | None = None
     tried = 0
-    for off in _start_offsets(search_m):
+    for off in _start_offsets(search_m, search_rings):
         start = CameraPose(prior.position_m + prior.rotation.T @ off, prior.rotation)
         for dx, dy, _ in _coarse_peaks(camera, start, pts, edges, max_shift_px, n_peaks, scale=16):
             tried += 1

@@ -33,8 +33,9 @@ References
 from __future__ import annotations
 
 import heapq
+import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -43,6 +44,7 @@ from numpy.typing import NDArray
 
 from pihim.errors import PihimInputError
 from pihim.field.geodesy import GeodeticOrigin, as_origin, enu_to_geodetic
+from pihim.planning.attitude import turn_limited_speed
 from pihim.planning.model import Flight, ScanPass, Waypoint
 
 __all__ = [
@@ -90,6 +92,13 @@ class DroneEndurance:
         throughput per working hour only.
     tower_clearance_m : float
         Horizontal clearance kept around the tower by transit legs, metres.
+    yaw_rate_deg_s, gimbal_rate_deg_s : float
+        Turn and gimbal-pitch rates, deg/s: a leg is flown slower where the
+        drone could not otherwise turn to the next waypoint's heading and
+        pitch before reaching it (:func:`pihim.planning.attitude.leg_speed`;
+        the mission writers use the same rule).
+    settle_s : float
+        Margin after such a turn, seconds.
     """
 
     battery_min: float = 20.0
@@ -102,13 +111,17 @@ class DroneEndurance:
     takeoff_landing_s: float = 30.0
     battery_swap_s: float = 300.0
     tower_clearance_m: float = 10.0
+    yaw_rate_deg_s: float = 30.0
+    gimbal_rate_deg_s: float = 30.0
+    settle_s: float = 0.5
 
     def __post_init__(self) -> None:
-        for label in ("battery_min", "transit_speed_m_s", "climb_rate_m_s", "descent_rate_m_s"):
+        for label in ("battery_min", "transit_speed_m_s", "climb_rate_m_s", "descent_rate_m_s", "yaw_rate_deg_s",
+                      "gimbal_rate_deg_s"):
             v = getattr(self, label)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise PihimInputError(f"DroneEndurance.{label} must be a positive number, got {v!r}")
-        for label in ("capture_s", "turn_s", "takeoff_landing_s", "battery_swap_s", "tower_clearance_m"):
+        for label in ("capture_s", "turn_s", "takeoff_landing_s", "battery_swap_s", "tower_clearance_m", "settle_s"):
             v = getattr(self, label)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise PihimInputError(f"DroneEndurance.{label} must be a number >= 0, got {v!r}")
@@ -285,23 +298,30 @@ def _heading(a: Sequence[float], b: Sequence[float], default: float) -> float:
 
 
 def _transit(a: tuple[float, float, float], b: tuple[float, float, float], z: float, keepout: Any,
-             model: DroneEndurance, kind: str = "transit") -> list[_Leg]:
-    """Transit legs from a to above b at altitude z (b itself is not included), around the tower if needed."""
+             model: DroneEndurance, kind: str = "transit", *, start_heading: float = 0.0,
+             heading: float | None = None, pitch: float = 0.0) -> list[_Leg]:
+    """Transit legs from a to above b at altitude z (b itself is not included), around the tower if needed.
+
+    A climb or descent in place keeps ``start_heading``; the horizontal legs
+    face ``heading`` (the next pass's, so that the drone turns on the way) or,
+    if None, their direction of travel. The gimbal is set to ``pitch``.
+    """
     legs: list[_Leg] = []
     pa = np.array(a, float)
     pb = np.array(b, float)
     if abs(a[2] - z) > 1e-9:
-        legs.append(_Leg((a[0], a[1], z), 0.0, 0.0, model.transit_speed_m_s, kind))
+        legs.append(_Leg((a[0], a[1], z), start_heading, pitch, model.transit_speed_m_s, kind))
     route = _detour(pa, pb, keepout) if keepout is not None and z < keepout[2] else []
     cur = (a[0], a[1], z)
     for p in route:
         nxt = (float(p[0]), float(p[1]), z)
-        legs.append(_Leg(nxt, _heading(cur, nxt, 0.0), 0.0, model.transit_speed_m_s, kind))
+        legs.append(_Leg(nxt, _heading(cur, nxt, 0.0) if heading is None else heading, pitch,
+                         model.transit_speed_m_s, kind))
         cur = nxt
-    if abs(b[2] - z) > 1e-9 or route or abs(a[2] - z) > 1e-9:
-        end = (b[0], b[1], z)
-        if math.dist(end, cur) > 1e-9:
-            legs.append(_Leg(end, _heading(cur, end, 0.0), 0.0, model.transit_speed_m_s, kind))
+    end = (b[0], b[1], z)
+    if math.dist(end, cur) > 1e-9 and math.dist(end, b) > 1e-9:
+        legs.append(_Leg(end, _heading(cur, end, 0.0) if heading is None else heading, pitch,
+                         model.transit_speed_m_s, kind))
     return legs
 
 
@@ -315,20 +335,40 @@ def _build(passes: Sequence[ScanPass], home: Waypoint, keepout: Any, model: Dron
     for k, p in enumerate(passes):
         first = p.waypoints[0]
         z = z_c if k == 0 else max(cur[2], first.z_m)
-        legs += _transit(cur, _xyz(first), z, keepout, model)
+        legs += _transit(cur, _xyz(first), z, keepout, model, start_heading=legs[-1].heading_deg,
+                         heading=first.heading_deg, pitch=first.gimbal_pitch_deg)
         for i, w in enumerate(p.waypoints):
             if i == 0:  # the pass is reached at the transit speed
                 w = replace(w, speed_m_s=model.transit_speed_m_s)
             legs.append(_Leg(_xyz(w), w.heading_deg, w.gimbal_pitch_deg, w.speed_m_s, w.kind, w.capture, w.hua, w))
         cur = _xyz(p.waypoints[-1])
-    back = _transit(cur, h, z_c, keepout, model)
+    back = _transit(cur, h, z_c, keepout, model, start_heading=legs[-1].heading_deg)
     if back:
         back[-1] = replace(back[-1], kind="return")
-    else:  # already above home at the transit altitude
-        back = [_Leg((h[0], h[1], z_c), 0.0, 0.0, model.transit_speed_m_s, "return")]
+    if not back or math.dist(back[-1].xyz, (h[0], h[1], z_c)) > 1e-9:  # above home before landing
+        back.append(_Leg((h[0], h[1], z_c), legs[-1].heading_deg if not back else back[-1].heading_deg, 0.0,
+                         model.transit_speed_m_s, "return"))
     legs += back
     legs.append(_Leg(h, legs[-1].heading_deg, 0.0, 0.0, "land"))
-    return legs
+    return _turn_speeds(legs, model)
+
+
+def _turn_speeds(legs: list[_Leg], model: DroneEndurance) -> list[_Leg]:
+    """Legs flown slower where the drone must turn or re-pitch before their end (see ``leg_speed``)."""
+    out = [legs[0]]
+    for prev, leg in itertools.pairwise(legs):
+        if leg.kind in ("takeoff", "land") or leg.speed_m_s <= 0:
+            out.append(leg)
+            continue
+        turn = abs(leg.heading_deg - prev.heading_deg) % 360.0
+        speed = turn_limited_speed(math.dist(prev.xyz, leg.xyz), min(turn, 360.0 - turn),
+                                   leg.pitch_deg - prev.pitch_deg, leg.speed_m_s, yaw_rate_deg_s=model.yaw_rate_deg_s,
+                                   gimbal_rate_deg_s=model.gimbal_rate_deg_s, settle_s=model.settle_s)
+        if speed < leg.speed_m_s:
+            wp = None if leg.waypoint is None else replace(leg.waypoint, speed_m_s=speed)
+            leg = replace(leg, speed_m_s=speed, waypoint=wp)
+        out.append(leg)
+    return out
 
 
 def _time_and_distance(legs: Sequence[_Leg], model: DroneEndurance) -> tuple[float, float]:
@@ -356,6 +396,14 @@ def flight_time_s(waypoints: Sequence[Waypoint], model: DroneEndurance = DroneEn
     legs = [_Leg(_xyz(w), w.heading_deg, w.gimbal_pitch_deg, w.speed_m_s, w.kind, w.capture, w.hua, w)
             for w in waypoints]
     return _time_and_distance(legs, model)[0]
+
+
+def _leg_waypoints(legs: Sequence[_Leg]) -> list[Waypoint]:
+    """Legs as waypoints for counting mission items (no geodetic conversion: coordinates 0)."""
+    return [leg.waypoint if leg.waypoint is not None else
+            Waypoint(leg.xyz[0], leg.xyz[1], leg.xyz[2], 0.0, 0.0, 0.0, leg.heading_deg % 360.0, leg.pitch_deg,
+                     leg.speed_m_s, kind=leg.kind, capture=leg.capture, hua=leg.hua)  # type: ignore[arg-type]
+            for leg in legs]
 
 
 def _finish(index: int, pass_indices: tuple[int, ...], legs: list[_Leg], passes: Sequence[ScanPass],
@@ -388,6 +436,8 @@ def split_flights(
     transit_altitude_m: float | None = None,
     include_infeasible: bool = False,
     max_waypoints: int | None = None,
+    max_mission_items: int | None = None,
+    count_items: Callable[[Sequence[Waypoint]], int] | None = None,
 ) -> tuple[Flight, ...]:
     """Split scan passes, in order, into flights that each fit one battery.
 
@@ -410,8 +460,14 @@ def split_flights(
     include_infeasible : bool
         Also fly passes marked infeasible (nothing to image). Default: skip.
     max_waypoints : int, optional
-        Also close a flight before it exceeds this many waypoints (Litchi
-        missions hold at most 99).
+        Also close a flight before it exceeds this many waypoints.
+    max_mission_items : int, optional
+        Also close a flight before its mission exceeds this many items, as
+        counted by ``count_items`` (e.g. 700, what Pixhawk-class ArduPilot
+        boards store; see :func:`pihim.planning.export.count_mission_items`).
+    count_items : callable, optional
+        ``count_items(waypoints) -> int``: mission items of a flight's
+        waypoints (take-off ... landing). Required with ``max_mission_items``.
 
     Returns
     -------
@@ -424,8 +480,8 @@ def split_flights(
     Raises
     ------
     PihimInputError
-        A single pass does not fit in one battery (or in ``max_waypoints``),
-        or bad input.
+        A single pass does not fit in one battery (or in ``max_waypoints`` or
+        ``max_mission_items``), or bad input.
     """
     org = as_origin(origin)
     if not isinstance(home, Waypoint):
@@ -437,36 +493,50 @@ def split_flights(
     if max_waypoints is not None and (isinstance(max_waypoints, bool) or not isinstance(max_waypoints, int)
                                       or max_waypoints < 4):
         raise PihimInputError(f"max_waypoints must be an integer >= 4, got {max_waypoints!r}")
+    if max_mission_items is not None and (isinstance(max_mission_items, bool)
+                                          or not isinstance(max_mission_items, int) or max_mission_items < 4):
+        raise PihimInputError(f"max_mission_items must be an integer >= 4, got {max_mission_items!r}")
+    if max_mission_items is not None and count_items is None:
+        raise PihimInputError("max_mission_items needs count_items (see pihim.planning.export.count_mission_items)")
+    limit = model.usable_s
     cap = math.inf if max_waypoints is None else max_waypoints
+    item_cap = math.inf if max_mission_items is None else max_mission_items
+
+    def n_items(legs: list[_Leg]) -> float:
+        return 0 if count_items is None or max_mission_items is None else count_items(_leg_waypoints(legs))
+
+    def over(legs: list[_Leg], t: float) -> str | None:
+        if t > limit:
+            return (f"{t / 60:.1f} min with take-off and return, more than the {limit / 60:.1f} min a battery "
+                    f"allows ({model.battery_min:g} min less {100 * model.reserve_fraction:g} % reserve)")
+        if len(legs) > cap:
+            return f"{len(legs)} waypoints, more than {max_waypoints}"
+        n = n_items(legs)
+        if n > item_cap:
+            return f"{n} mission items, more than {max_mission_items}"
+        return None
+
     flights: list[Flight] = []
     current: list[ScanPass] = []
     best_legs: list[_Leg] | None = None
-    limit = model.usable_s
     for p in todo:
         trial = current + [p]
         legs = _build(trial, home, keepout, model, transit_altitude_m)
         t, _ = _time_and_distance(legs, model)
-        if t <= limit and len(legs) <= cap:
+        why = over(legs, t)
+        if why is None:
             current, best_legs = trial, legs
             continue
         if not current:
-            if len(legs) > cap:
-                raise PihimInputError(f"pass {p.index} alone needs {len(legs)} waypoints, more than {max_waypoints}")
-            raise PihimInputError(
-                f"pass {p.index} alone needs {t / 60:.1f} min with take-off and return, more than the "
-                f"{limit / 60:.1f} min a battery allows ({model.battery_min:g} min less "
-                f"{100 * model.reserve_fraction:g} % reserve)"
-            )
+            raise PihimInputError(f"pass {p.index} alone needs {why}")
         assert best_legs is not None
         flights.append(_finish(len(flights), tuple(q.index for q in current), best_legs, current, org, model))
         current = [p]
         best_legs = _build(current, home, keepout, model, transit_altitude_m)
         t, _ = _time_and_distance(best_legs, model)
-        if t > limit or len(best_legs) > cap:
-            raise PihimInputError(
-                f"pass {p.index} alone needs {t / 60:.1f} min and {len(best_legs)} waypoints with take-off and "
-                f"return, more than one flight allows ({limit / 60:.1f} min, {max_waypoints} waypoints)"
-            )
+        why = over(best_legs, t)
+        if why is not None:
+            raise PihimInputError(f"pass {p.index} alone needs {why}")
     if current:
         assert best_legs is not None
         flights.append(_finish(len(flights), tuple(q.index for q in current), best_legs, current, org, model))

@@ -8,6 +8,7 @@ contrast-raising shifts, the flight split, throughput and a fleet estimate.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time as _time
 from collections.abc import Sequence
@@ -25,6 +26,7 @@ from pihim.planning.endurance import (
     split_flights,
     throughput,
 )
+from pihim.planning.attitude import steady_headings
 from pihim.planning.lines import alignment_summary
 from pihim.planning.model import Plan
 from pihim.planning.scoring import ScoringModel, ShiftSearch, coverage, score_passes
@@ -54,6 +56,10 @@ def build_plan(
     camera: CameraModel | None = None,
     endurance: DroneEndurance | None = None,
     fleet_hours: float = 8.0,
+    max_mission_items: int | None = 700,
+    mission_options: dict[str, Any] | None = None,
+    steady_heading: bool = True,
+    facet_report: bool = True,
 ) -> Plan:
     """Plan, score and split an inspection of ``field`` at ``time``.
 
@@ -79,6 +85,21 @@ def build_plan(
         Camera and drone models (Triton + 35 mm; 20 min battery with 20 % reserve).
     fleet_hours : float
         Working hours per day for the fleet estimate.
+    max_mission_items : int or None
+        Close a flight before its autopilot mission exceeds this many items
+        (default 700, what Pixhawk-class ArduPilot boards store; None: no
+        limit). Counted with :func:`pihim.planning.export.count_mission_items`
+        and ``mission_options``.
+    mission_options : dict, optional
+        The options the missions will be written with (``autopilot``,
+        ``mount_control``, ...; see :func:`pihim.planning.export.mission_items`).
+    steady_heading : bool
+        Fly runs of captures at one heading where the field of view allows
+        (:func:`pihim.planning.attitude.steady_headings`).
+    facet_report : bool
+        Report which facets of each imaged HUA show the target's reflection
+        in at least one capture (``summary["facet_coverage"]``,
+        :func:`pihim.planning.facets.facet_coverage`).
 
     Returns
     -------
@@ -110,8 +131,18 @@ def build_plan(
     scored = score_passes(passes, pose, sun.vector, model=scoring, camera=camera, aim_point=aim, origin=site,
                           search=ShiftSearch(max_altitude_m=max_altitude_m) if shift else None)
     t_score = _time.perf_counter()
+    if steady_heading:
+        scored = steady_headings(scored, pose, camera=camera)
     home = home_waypoint(field, origin=site)
-    flights = split_flights(scored, home, origin=site, model=endurance, tower=field.tower)
+    counter = None
+    if max_mission_items is not None:
+        from pihim.planning.export.qgc import count_mission_items
+
+        opts = dict(mission_options or {})
+        counter = functools.partial(count_mission_items, **opts)
+        count_mission_items([home, home], **opts)  # bad options -> one-line error before the split
+    flights = split_flights(scored, home, origin=site, model=endurance, tower=field.tower,
+                            max_mission_items=max_mission_items, count_items=counter)
     rate = throughput(flights, endurance)
     fleet = fleet_estimate(len(field.names), max(rate.heliostats_per_hour, 1e-9), fleet_hours)
     summary: dict[str, Any] = {
@@ -125,11 +156,22 @@ def build_plan(
         "alignment": {"planned": alignment_summary(passes, field, pose),
                       "flown": alignment_summary(scored, field, pose)},
         "flights": len(flights),
+        "max_mission_items": max_mission_items,
+        "missions": [{"flight": f.index, "mission_items": counter(f.waypoints) if counter else None,
+                      "waypoints": len(f.waypoints), "duration_s": round(f.duration_s, 1),
+                      "distance_m": round(f.distance_m, 1)} for f in flights],
         "heliostats_per_hour": rate.heliostats_per_hour,
         "heliostats_per_flight_hour": rate.heliostats_per_flight_hour,
         "fleet": {"working_hours": fleet_hours, **_record(fleet)},
         "seconds": {"track_and_plan": round(t_plan - t0, 4), "scoring": round(t_score - t_plan, 4)},
     }
+    if facet_report:
+        from pihim.planning.facets import coverage_summary, facet_coverage
+
+        per_hua = facet_coverage(scored, pose, camera=camera)
+        summary["facet_coverage"] = {**coverage_summary(per_hua),
+                                     "per_hua": {h: {"covered": list(c.covered), "captures": c.captures}
+                                                 for h, c in per_hua.items()}}
     return Plan(
         time_iso=time.isoformat(),
         site=site.as_dict(),

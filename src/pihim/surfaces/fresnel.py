@@ -33,6 +33,19 @@ def _cos_transmitted(cos_i: NDArray, n1: NDArray, n2: NDArray) -> NDArray[np.com
     return np.where(flip, -cos_t, cos_t)
 
 
+def _check_indices(n1: NDArray[np.complex128], n2: NDArray[np.complex128]) -> None:
+    """Refuse indices outside the ``n + i k`` convention (``n >= 0``, ``k >= 0``) with a one-line error."""
+    for name, n in (("n1", n1), ("n2", n2)):
+        if np.any(n.imag < 0.0):
+            bad = complex(n.flat[int(np.argmax(n.imag < 0.0))])
+            raise PihimInputError(
+                f"{name} = {bad} has k < 0: pihim writes N = n + ik with k >= 0 (silver ~ 0.06+3.6j); "
+                "for mitsuba's eta = n - ik pass numpy.conj(eta)"
+            )
+        if np.any(~(n.real >= 0.0)) or np.any(n == 0):
+            raise PihimInputError(f"{name}: a refractive index needs n >= 0 and N != 0, got {n}")
+
+
 def fresnel_amplitudes(
     cos_i: ArrayLike, n1: ArrayLike = 1.0, n2: ArrayLike = 1.5
 ) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
@@ -48,11 +61,20 @@ def fresnel_amplitudes(
     cos_i : array_like
         Cosine of the angle of incidence, in [0, 1].
     n1, n2 : array_like (complex allowed)
-        Refractive index of the incidence medium and of the reflecting medium.
+        Refractive index ``n + i k`` of the incidence medium and of the
+        reflecting medium: ``n >= 0``, ``k >= 0`` (absorbing media), not 0.
+
+    Raises
+    ------
+    PihimInputError
+        An index with ``k < 0`` (the ``n - i k`` form, e.g. mitsuba's: pass
+        its complex conjugate), a negative real part or 0. With ``k < 0`` the
+        formulae give a wave growing into the medium and reflectances above 1.
     """
     cos_i = np.clip(np.asarray(cos_i, float), 0.0, 1.0)
     n1 = np.asarray(n1, dtype=complex)
     n2 = np.asarray(n2, dtype=complex)
+    _check_indices(n1, n2)
     cos_t = _cos_transmitted(cos_i, n1, n2)
     with np.errstate(divide="ignore", invalid="ignore"):
         r_s = (n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)
@@ -77,8 +99,29 @@ def fresnel_reflection_mueller(cos_i: ArrayLike, n1: ArrayLike = 1.0, n2: ArrayL
     return mueller_from_amplitudes(*fresnel_amplitudes(cos_i, n1, n2))
 
 
-def brewster_angle_deg(n1: float = 1.0, n2: float = 1.5) -> float:
-    """Brewster angle ``atan(n2 / n1)`` in degrees (real indices)."""
+def brewster_angle_deg(n1: float, n2: float) -> float:
+    """Brewster angle ``atan(n2 / n1)`` in degrees, for light in medium ``n1`` meeting medium ``n2``.
+
+    Both indices are required, incidence medium first: glass seen from air is
+    ``brewster_angle_deg(1.0, 1.5)`` = 56.3 deg (a single index used to be
+    taken as ``n1``, silently returning 45 deg for ``brewster_angle_deg(1.5)``).
+
+    Parameters
+    ----------
+    n1 : float
+        Real refractive index of the medium the light comes from (air: 1.0).
+    n2 : float
+        Real refractive index of the reflecting medium.
+
+    Raises
+    ------
+    PihimInputError
+        An index that is not a finite real number > 0.
+    """
+    for name, n in (("n1", n1), ("n2", n2)):
+        if isinstance(n, (bool, complex)) or not isinstance(n, (int, float, np.integer, np.floating)) \
+                or not np.isfinite(n) or n <= 0:
+            raise PihimInputError(f"brewster_angle_deg: {name} must be a finite real index > 0, got {n!r}")
     return float(np.degrees(np.arctan2(n2, n1)))
 
 

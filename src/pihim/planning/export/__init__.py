@@ -1,36 +1,41 @@
 """Mission export: a :class:`~pihim.planning.model.Plan` as files for people and drones.
 
-=====================  ==============================  ==================================
-file                   writer                          for
-=====================  ==============================  ==================================
-``plan.json``          :func:`write_plan_json`         the whole plan, schema ``pihim.plan/1``
-``mission.plan``       :func:`write_qgc_plan`          QGroundControl (ArduPilot, PX4)
-``mission.waypoints``  :func:`write_wpl`               QGC WPL 110 text (Mission Planner, MAVProxy)
-``plan.kml``           :func:`write_kml`               Google Earth
-``litchi.csv``         :func:`write_litchi_csv`        Litchi (DJI drones)
-``plan.png``           :func:`write_plan_figure`       a map of the passes
-=====================  ==============================  ==================================
+=============================  ==============================  ==================================
+file                           writer                          for
+=============================  ==============================  ==================================
+``plan.json``                  :func:`write_plan_json`         the whole plan, schema ``pihim.plan/1``
+``flight_01.plan`` ...         :func:`write_qgc_plan`          QGroundControl (ArduPilot, PX4)
+``flight_01.waypoints`` ...    :func:`write_wpl`               QGC WPL 110 text (Mission Planner, MAVProxy)
+``flight_01_litchi.csv`` ...   :func:`write_litchi_csv`        Litchi (DJI drones)
+``plan.kml``                   :func:`write_kml`               Google Earth
+``plan.png``                   :func:`write_plan_figure`       a map of the passes and flights
+=============================  ==============================  ==================================
 
-:func:`export_all` writes all six (and, when ``litchi.csv`` is longer than
-Litchi's 99 waypoints, the flights as ``litchi_01.csv`` ... missions,
-:func:`litchi_missions`). Every writer validates the plan first (a
-plan without passes or a waypoint with a non-finite number raises
-:class:`~pihim.errors.PihimInputError` with a one-line message) and writes
-atomically (temporary sibling, then rename), so a failure never leaves a
-partial file. Formats, frames and the ``plan.json`` schema are documented in
-``docs/plan-formats.md``.
+:func:`export_all` writes ``plan.json``, ``plan.kml``, ``plan.png`` and one
+mission per flight (one battery): ``flight_NN.plan`` and
+``flight_NN.waypoints``, each starting and ending at home and holding at most
+``max_mission_items`` mission items (700 by default, what Pixhawk-class
+ArduPilot boards store), and the flight as Litchi missions of at most 99
+waypoints (``flight_NN_litchi.csv``, or ``flight_NN_litchi_1.csv``, ``_2`` ...
+when the flight needs several). The whole-field ``mission.plan``,
+``mission.waypoints`` and ``litchi.csv`` are written only when one flight
+covers the plan (and ``litchi.csv`` only within Litchi's 99 waypoints). Every
+writer validates the plan first (a plan without passes or a waypoint with a
+non-finite number raises :class:`~pihim.errors.PihimInputError` with a
+one-line message) and writes atomically (temporary sibling, then rename), so
+a failure never leaves a partial file. Formats, frames and the ``plan.json``
+schema are documented in ``docs/plan-formats.md``.
 """
 
 from __future__ import annotations
 
 import contextlib
-import warnings
 from pathlib import Path
 from typing import Any, Literal
 
 from pihim._atomic import atomic_path
 from pihim.errors import PihimInputError
-from pihim.planning.export._common import check_plan, write_data
+from pihim.planning.export._common import check_plan, mission_waypoints, write_data
 from pihim.planning.export.figure import plan_figure, plan_png_bytes, write_plan_figure
 from pihim.planning.export.kml import kml_text, write_kml
 from pihim.planning.export.litchi import (
@@ -51,6 +56,7 @@ from pihim.planning.export.plan_json import (
 from pihim.planning.export.qgc import (
     Mission,
     MissionItem,
+    count_mission_items,
     mission_items,
     qgc_plan_document,
     qgc_plan_text,
@@ -60,11 +66,14 @@ from pihim.planning.export.wpl import wpl_text, write_wpl
 from pihim.planning.model import Plan
 
 __all__ = [
+    "DEFAULT_MAX_MISSION_ITEMS",
     "LITCHI_HEADER",
     "OUTPUT_NAMES",
     "Mission",
     "MissionItem",
+    "count_mission_items",
     "export_all",
+    "flight_file_stem",
     "kml_text",
     "litchi_csv_text",
     "litchi_mission_texts",
@@ -88,7 +97,8 @@ __all__ = [
     "write_wpl",
 ]
 
-#: Keys of :func:`export_all`'s result and the file names it writes.
+#: Keys of :func:`export_all`'s result and the file names it writes for the whole plan
+#: (``qgc_plan``, ``wpl`` and ``litchi`` only when one flight covers the plan).
 OUTPUT_NAMES: dict[str, str] = {
     "plan_json": "plan.json",
     "qgc_plan": "mission.plan",
@@ -98,6 +108,14 @@ OUTPUT_NAMES: dict[str, str] = {
     "figure": "plan.png",
 }
 
+#: Default mission-item limit: Pixhawk-class (STM32F4/F7) ArduPilot boards store about 700 items.
+DEFAULT_MAX_MISSION_ITEMS = 700
+
+
+def flight_file_stem(index: int) -> str:
+    """File-name stem of a flight's missions: ``flight_01`` for :attr:`Flight.index` 0."""
+    return f"flight_{index + 1:02d}"
+
 
 def load_qgc_plan_schema() -> dict[str, Any]:
     """The JSON Schema of QGroundControl plan files (``pihim/schemas/qgc-plan.schema.json``)."""
@@ -105,6 +123,40 @@ def load_qgc_plan_schema() -> dict[str, Any]:
     from importlib import resources
 
     return json.loads(resources.files("pihim").joinpath("schemas/qgc-plan.schema.json").read_text(encoding="utf-8"))
+
+
+def _check_limit(value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 4:
+        raise PihimInputError(f"max_mission_items must be an integer >= 4, got {value!r}")
+    return value
+
+
+def _mission_files(plan: Plan, flight: int | None, stem: str, *, max_items: int, geofence_margin_m: float | None,
+                   litchi_hover_ms: int, opts: dict[str, Any]) -> dict[str, tuple[str, str | bytes]]:
+    """``{key: (file name, content)}`` of one flight's missions (or of a plan without flights)."""
+    mission = mission_items(plan, flight=flight, **opts)
+    n_items = len(mission.items) + 1
+    if n_items > max_items:
+        which = "the plan" if flight is None else f"flight {flight + 1}"
+        raise PihimInputError(
+            f"{which} needs {n_items} mission items, more than the limit of {max_items}: plan with "
+            f"max_mission_items={max_items} and the same mission options, or raise the limit"
+        )
+    key = stem.replace(".", "_")
+    out: dict[str, tuple[str, str | bytes]] = {
+        f"{key}_plan": (f"{stem}.plan", qgc_plan_text(plan, flight=flight, geofence_margin_m=geofence_margin_m,
+                                                      **opts)),
+        f"{key}_waypoints": (f"{stem}.waypoints", wpl_text(plan, flight=flight, **opts)),
+    }
+    if flight is None:  # a plan without flights: its passes, if Litchi takes them
+        if len(litchi_waypoints(plan)) <= LITCHI_MAX_WAYPOINTS:
+            out[f"{key}_litchi"] = (f"{stem}_litchi.csv", litchi_csv_text(plan, hover_ms=litchi_hover_ms))
+        return out
+    parts = litchi_mission_texts(plan, hover_ms=litchi_hover_ms, flight=flight)
+    for k, text in enumerate(parts, start=1):
+        suffix = "" if len(parts) == 1 else f"_{k}"
+        out[f"{key}_litchi{suffix}"] = (f"{stem}_litchi{suffix}.csv", text)
+    return out
 
 
 def export_all(
@@ -117,14 +169,14 @@ def export_all(
     kml_altitude_mode: Literal["relativeToGround", "absolute"] = "relativeToGround",
     geofence_margin_m: float | None = None,
     litchi_hover_ms: int = 0,
-    litchi_max_waypoints: int | None = None,
+    max_mission_items: int = DEFAULT_MAX_MISSION_ITEMS,
     figsize: tuple[float, float] = (10.0, 8.0),
     dpi: float = 120.0,
     **mission_options: Any,
 ) -> dict[str, Path]:
-    """Write ``plan.json``, ``mission.plan``, ``mission.waypoints``, ``plan.kml``, ``litchi.csv`` and ``plan.png``.
+    """Write ``plan.json``, ``plan.kml``, ``plan.png`` and one set of mission files per flight.
 
-    All six are rendered in memory first and then renamed into ``out_dir``
+    Everything is rendered in memory first and then renamed into ``out_dir``
     together: invalid input writes nothing, and no file is ever partial.
 
     Parameters
@@ -135,71 +187,79 @@ def export_all(
     field : Field, optional
         Heliostats and tower for the KML and the map.
     flight : int, optional
-        Mission files (``.plan``, ``.waypoints``, Litchi) for this flight
-        only; default all passes. ``plan.json``, the KML and the map always
-        show the whole plan.
+        Mission files for this flight (:attr:`Flight.index`) only; default
+        every flight. ``plan.json``, the KML and the map always show the
+        whole plan.
     geoid_undulation_m : float, optional
         EGM96 geoid height at the site for the sea-level altitudes (QGC home
         position, ``altitude_frame="amsl"``, absolute KML).
     kml_altitude_mode : {"relativeToGround", "absolute"}
         See :func:`write_kml`.
     geofence_margin_m : float, optional
-        Inclusion geofence for the ``.plan`` (see :func:`qgc_plan_document`).
+        Inclusion geofence for the ``.plan`` files (see :func:`qgc_plan_document`).
     litchi_hover_ms : int
         Hover before each Litchi photo, milliseconds.
-    litchi_max_waypoints : int or None
-        Refuse Litchi missions longer than this. Default None: write
-        ``litchi.csv`` whole and, when it is longer than Litchi's 99
-        waypoints (and ``flight`` is None), also every flight cut into
-        missions of at most 99 waypoints at pass boundaries
-        (:func:`litchi_missions`) as ``litchi_01.csv``, ``litchi_02.csv``
-        ..., in flight order; a :class:`UserWarning` says so.
+    max_mission_items : int
+        Refuse a flight whose mission holds more items than this (home slot
+        included; default 700). :func:`pihim.planning.pipeline.build_plan`
+        splits flights under the same limit.
     figsize, dpi
         Map size (inches) and resolution.
     **mission_options
-        Passed to :func:`mission_items` for both mission files
-        (``autopilot``, ``altitude_frame``, ``condition_yaw``,
-        ``mount_control``, ``camera``, ``capture_hold_s``, ``end``, ...).
+        Passed to :func:`mission_items` for the mission files (``autopilot``,
+        ``altitude_frame``, ``condition_yaw``, ``mount_control``, ``camera``,
+        ``capture_hold_s``, ``yaw_rate_deg_s``, ``end``, ...).
 
     Returns
     -------
     dict of str to Path
-        Keys of :data:`OUTPUT_NAMES`, plus ``litchi_01``, ``litchi_02`` ...
-        for the Litchi missions when they are written.
+        ``plan_json``, ``kml``, ``figure``; per flight ``flight_01_plan``,
+        ``flight_01_waypoints`` and ``flight_01_litchi`` (or
+        ``flight_01_litchi_1``, ``_2`` ...); ``qgc_plan``, ``wpl`` and
+        ``litchi`` (the whole-field files) when one flight covers the plan.
 
     Raises
     ------
     PihimInputError
-        Invalid plan or option; nothing is written.
+        Invalid plan or option, or a flight over ``max_mission_items``;
+        nothing is written.
     """
     check_plan(plan)
-    opts = dict(mission_options, flight=flight, geoid_undulation_m=geoid_undulation_m)
-    contents: dict[str, str | bytes] = {
-        "plan_json": plan_json_text(plan),
-        "qgc_plan": qgc_plan_text(plan, geofence_margin_m=geofence_margin_m, **opts),
-        "wpl": wpl_text(plan, **opts),
-        "kml": kml_text(plan, field=field, altitude_mode=kml_altitude_mode, geoid_undulation_m=geoid_undulation_m),
-        "litchi": litchi_csv_text(plan, flight=flight, hover_ms=litchi_hover_ms, max_waypoints=litchi_max_waypoints),
-        "figure": plan_png_bytes(plan, field=field, figsize=figsize, dpi=dpi),
+    limit = _check_limit(max_mission_items)
+    opts = dict(mission_options, geoid_undulation_m=geoid_undulation_m)
+    contents: dict[str, tuple[str, str | bytes]] = {
+        "plan_json": ("plan.json", plan_json_text(plan)),
+        "kml": ("plan.kml", kml_text(plan, field=field, altitude_mode=kml_altitude_mode,
+                                     geoid_undulation_m=geoid_undulation_m)),
+        "figure": ("plan.png", plan_png_bytes(plan, field=field, figsize=figsize, dpi=dpi)),
     }
-    n_litchi = len(litchi_waypoints(plan, flight))
-    names = dict(OUTPUT_NAMES)
-    if litchi_max_waypoints is None and n_litchi > LITCHI_MAX_WAYPOINTS:
-        if flight is None and plan.flights:
-            parts = litchi_mission_texts(plan, hover_ms=litchi_hover_ms)
-            for k, text in enumerate(parts, start=1):
-                contents[f"litchi_{k:02d}"] = text
-                names[f"litchi_{k:02d}"] = f"litchi_{k:02d}.csv"
-            hint = f"the flights are also written as {len(parts)} missions litchi_01.csv ... litchi_{len(parts):02d}.csv"
-        else:
-            hint = "export one flight at a time"
-        warnings.warn(f"litchi.csv has {n_litchi} waypoints; Litchi accepts at most {LITCHI_MAX_WAYPOINTS} per "
-                      f"mission: {hint}", UserWarning, stacklevel=2)
+    if flight is not None:
+        mission_waypoints(plan, flight)  # unknown index -> one-line error
+    flights = [f.index for f in plan.flights if flight is None or f.index == flight]
+    per_flight = [_mission_files(plan, k, flight_file_stem(k), max_items=limit,
+                                 geofence_margin_m=geofence_margin_m, litchi_hover_ms=litchi_hover_ms, opts=opts)
+                  for k in flights]
+    if not plan.flights:
+        per_flight.append(_mission_files(plan, None, "mission", max_items=limit, geofence_margin_m=geofence_margin_m,
+                                         litchi_hover_ms=litchi_hover_ms, opts=opts))
+    for files in per_flight:
+        contents.update(files)
+    if len(plan.flights) == 1 and flight is None:  # one flight covers the plan: the whole-field files too
+        only = per_flight[0]
+        stem = flight_file_stem(plan.flights[0].index)
+        contents["qgc_plan"] = ("mission.plan", only[f"{stem}_plan"][1])
+        contents["wpl"] = ("mission.waypoints", only[f"{stem}_waypoints"][1])
+        if f"{stem}_litchi" in only:
+            contents["litchi"] = ("litchi.csv", only[f"{stem}_litchi"][1])
+    if not plan.flights:  # the plan-wide files keep their usual names
+        for key, name in (("qgc_plan", "mission_plan"), ("wpl", "mission_waypoints"), ("litchi", "mission_litchi")):
+            if name in contents:
+                contents[key] = (OUTPUT_NAMES[key], contents.pop(name)[1])
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise PihimInputError(f"{out} exists and is not a directory")
-    paths = {key: out / name for key, name in names.items()}
+    paths = {key: out / name for key, (name, _) in contents.items()}
     with contextlib.ExitStack() as stack:
-        for key, data in contents.items():
+        for key, (_, data) in contents.items():
             write_data(stack.enter_context(atomic_path(paths[key])), data, newline="\n")
     return paths

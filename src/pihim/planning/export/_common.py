@@ -125,6 +125,25 @@ def mission_waypoints(plan: Plan, flight: int | None = None) -> tuple[Waypoint, 
     return tuple(matches[0].waypoints)
 
 
+def resolve_flight(plan: Plan, flight: int | None) -> int | None:
+    """The flight a mission file flies: ``flight``, else the plan's only flight.
+
+    Raises
+    ------
+    PihimInputError
+        ``flight`` is None and the plan has several flights: one mission file
+        per battery (``flight=k``).
+    """
+    if flight is not None:
+        return flight
+    if len(plan.flights) > 1:
+        raise PihimInputError(
+            f"the plan needs {len(plan.flights)} flights (batteries): write one mission per flight "
+            f"(flight=0 ... {len(plan.flights) - 1})"
+        )
+    return plan.flights[0].index if plan.flights else None
+
+
 def heading_0_360(deg: float) -> float:
     """A heading folded into [0, 360) degrees."""
     h = float(deg) % 360.0

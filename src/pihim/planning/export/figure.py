@@ -2,10 +2,14 @@
 
 A top view in field East-North-Up metres: heliostat pivots as grey dots and
 the tower footprint (when a :class:`~pihim.field.layout.Field` is given),
-each scan pass as a line through its waypoints ending in an arrow, coloured
-by its predicted usable fraction (colour bar; infeasible passes dashed),
-capture waypoints as small open circles, pass indices at the pass starts,
-the home position, and a title with the time and the counts. Drawn with
+each flight as a dashed line (one colour per flight: take-off, transits
+between passes, return), each scan pass on top as a line through its
+waypoints ending in an arrow, coloured by its predicted usable fraction
+(colour bar; infeasible passes dashed), capture waypoints as small open
+circles, pass numbers in boxes placed next to the pass starts so that none
+overlap (with a leader line), the home position, and a title with the time,
+the counts and the coverage as ``pihim plan`` defines it (heliostats of the
+field with at least one usable image). Drawn with
 matplotlib's object-oriented API on an Agg canvas: no ``pyplot``, no global
 state, safe in threads and servers [1]_.
 
@@ -23,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from pihim.errors import PihimInputError
 from pihim.planning.export._common import check_plan, plan_counts, write_export
@@ -94,11 +99,19 @@ def plan_figure(
         ax.add_patch(Rectangle((t.x_min_m, t.y_min_m), t.x_max_m - t.x_min_m, t.y_max_m - t.y_min_m,
                                facecolor="0.35", edgecolor="black", label="tower", zorder=2))
 
+    flight_colours = colormaps["tab10"]
+    for f in plan.flights:  # under the passes: the whole flight, so the transits between passes show
+        fxy = np.array([(w.x_m, w.y_m) for w in f.waypoints])
+        if len(fxy) >= 2:
+            ax.plot(fxy[:, 0], fxy[:, 1], ls=(0, (4, 2)), lw=1.1, color=flight_colours(f.index % 10), zorder=2.5,
+                    label=f"flight {f.index + 1}: {f.duration_s / 60:.1f} min, {f.distance_m / 1000:.2f} km")
+
+    starts = []
     for p in plan.passes:
         xy = np.array([(w.x_m, w.y_m) for w in p.waypoints])
         colour = cmap(norm(p.usable_fraction))
         style = "-" if p.feasible else "--"
-        ax.plot(xy[:, 0], xy[:, 1], style, color=colour, lw=1.5, zorder=3)
+        ax.plot(xy[:, 0], xy[:, 1], style, color=colour, lw=1.8, zorder=3)
         if len(xy) >= 2 and np.hypot(*(xy[-1] - xy[0])) > 0:
             ax.annotate("", xy=xy[-1], xytext=xy[-2], zorder=4,
                         arrowprops={"arrowstyle": "-|>", "color": colour, "lw": 1.5, "mutation_scale": 14})
@@ -106,23 +119,74 @@ def plan_figure(
         if len(cap):
             ax.scatter(cap[:, 0], cap[:, 1], s=14, facecolors="white", edgecolors=[colour], linewidths=1.0,
                        marker="o", zorder=4)
-        ax.annotate(str(p.index), xy=xy[0], fontsize=7, xytext=(-3, 3), textcoords="offset points", ha="right",
-                    zorder=5)
+        starts.append((p.index, xy))
     ax.plot([plan.home.x_m], [plan.home.y_m], marker="*", ms=12, color="crimson", ls="none", label="home", zorder=6)
 
     counts = plan_counts(plan)
     ax.set_title(f"pihim plan {plan.time_iso}\n{counts['passes']} passes ({counts['feasible_passes']} feasible), "
-                 f"{counts['heliostats']} heliostats, {counts['capture_waypoints']} images, "
-                 f"{100 * counts['usable_fraction']:.0f} % predicted usable", fontsize=10)
+                 f"{counts['flights']} flights, {counts['capture_waypoints']} images; {_coverage_text(plan)}",
+                 fontsize=10)
     ax.set_xlabel("East (m)")
     ax.set_ylabel("North (m)")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, lw=0.3, alpha=0.5)
-    ax.legend(loc="lower right", fontsize=8)
+    ax.legend(loc="lower right", fontsize=7, framealpha=0.9)
     sm = ScalarMappable(norm=norm, cmap=cmap)
     sm.set_array([])
     fig.colorbar(sm, ax=ax, label="predicted usable fraction of the pass's images", shrink=0.8)
+    _place_pass_labels(fig, ax, starts)
     return fig
+
+
+def _coverage_text(plan: Plan) -> str:
+    """The plan's coverage, with its definition (the same number as ``pihim plan`` prints and ``plan.json`` holds)."""
+    cov = plan.summary.get("coverage") if isinstance(plan.summary, dict) else None
+    n = plan.summary.get("heliostats_in_field") if isinstance(plan.summary, dict) else None
+    if isinstance(cov, dict) and "either" in cov and n:
+        return (f"coverage {100 * cov['either']:.0f} % of {n} heliostats have a usable image "
+                f"({100 * cov.get('planned', 0.0):.0f} % imaged)")
+    counts = plan_counts(plan)
+    return f"{100 * counts['usable_fraction']:.0f} % of the images predicted usable"
+
+
+def _place_pass_labels(fig: Any, ax: Any, starts: list[tuple[int, NDArray[np.float64]]],
+                       fontsize: float = 7.0) -> None:
+    """Pass numbers next to the pass starts, each moved to a free spot so that no two labels overlap.
+
+    Candidate spots lie behind the pass start (along the pass) and to either
+    side of it, farther and farther; the first whose box (estimated from the
+    font size and the axes scale) overlaps no placed label wins; a leader line
+    joins a label moved away from its pass.
+    """
+    fig.canvas.draw()  # fixes the limits and the aspect, hence the metres per pixel
+    inv = ax.transData.inverted()
+    origin = inv.transform((0.0, 0.0))
+    per_px = np.abs(inv.transform((1.0, 1.0)) - origin)
+    px = fontsize * fig.dpi / 72.0
+    placed: list[tuple[float, float, float, float]] = []
+    for index, xy in starts:
+        text = str(index)
+        w, h = (0.62 * px * len(text) + 4) * per_px[0], (px + 4) * per_px[1]
+        start = xy[0]
+        d = xy[1] - xy[0] if len(xy) > 1 else np.array([0.0, 1.0])
+        d = d / (np.linalg.norm(d) or 1.0)
+        side = np.array([-d[1], d[0]])
+        spot = None
+        for r in np.arange(1.0, 12.0, 1.0) * max(w, h):
+            for v in (-d, side, -side, -d + side, -d - side):
+                c = start + r * v / np.linalg.norm(v)
+                box = (c[0] - w / 2, c[1] - h / 2, c[0] + w / 2, c[1] + h / 2)
+                if not any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in placed):
+                    spot = c
+                    break
+            if spot is not None:
+                break
+        if spot is None:
+            spot = start
+        placed.append((spot[0] - w / 2, spot[1] - h / 2, spot[0] + w / 2, spot[1] + h / 2))
+        ax.annotate(text, xy=start, xytext=spot, fontsize=fontsize, ha="center", va="center", zorder=7,
+                    bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "0.5", "lw": 0.5, "alpha": 0.85},
+                    arrowprops={"arrowstyle": "-", "color": "0.4", "lw": 0.5, "shrinkA": 0, "shrinkB": 0})
 
 
 def plan_png_bytes(plan: Plan, *, field: Any = None, figsize: tuple[float, float] = (10.0, 8.0),

@@ -34,7 +34,10 @@ Two choices (``altitude_mode``):
   directly against Google Earth's terrain.
 
 Coordinates are written ``longitude,latitude,altitude`` (KML order) with 9
-decimals.
+decimals. Child elements follow the order of the OGC KML 2.2 schema (in a
+Feature: ``name``, ``description``, ``styleUrl``, ``Style``, then the
+geometry), so the file validates against ``ogckml22.xsd`` (tested with the
+copy fastkml ships).
 
 References
 ----------
@@ -173,9 +176,9 @@ def kml_text(
 
     home = _sub(doc, "Placemark")
     _sub(home, "name", "Home (take-off)")
-    _sub(home, "styleUrl", "#home")
     _sub(home, "description", f"WGS84 lat {plan.home.latitude_deg:.8f}, lon {plan.home.longitude_deg:.8f}, "
                               f"ellipsoidal h {plan.home.height_m:.2f} m")
+    _sub(home, "styleUrl", "#home")
     pt = _sub(home, "Point")
     _sub(pt, "altitudeMode", "clampToGround")
     _sub(pt, "coordinates", _coord(plan.home.longitude_deg, plan.home.latitude_deg, 0.0))
@@ -202,10 +205,10 @@ def kml_text(
                 continue
             pm = _sub(folder, "Placemark")
             _sub(pm, "name", f"P{p.index}.{j}" + (f" {w.hua}" if w.hua else ""))
+            _sub(pm, "description", _capture_description(p, j, w, alt_note))
             _sub(pm, "styleUrl", "#capture")
             st = _sub(pm, "Style")
             _sub(_sub(st, "IconStyle"), "heading", f"{heading_0_360(w.heading_deg):.2f}")
-            _sub(pm, "description", _capture_description(p, j, w, alt_note))
             pt = _sub(pm, "Point")
             _sub(pt, "altitudeMode", altitude_mode)
             _sub(pt, "coordinates", _coord(w.longitude_deg, w.latitude_deg, alt(w)))
@@ -249,9 +252,9 @@ def kml_text(
             lat, lon, _ = enu_to_geodetic(corners, origin)
             pm = _sub(doc, "Placemark")
             _sub(pm, "name", "Tower")
-            _sub(pm, "styleUrl", "#tower")
             _sub(pm, "description", f"receiver tower, {t.height_m:.2f} m high; target "
                                     f"({t.target[0]:.2f}, {t.target[1]:.2f}, {t.target[2]:.2f}) m field ENU")
+            _sub(pm, "styleUrl", "#tower")
             poly = _sub(pm, "Polygon")
             _sub(poly, "extrude", 1)
             _sub(poly, "altitudeMode", "relativeToGround")

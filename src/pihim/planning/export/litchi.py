@@ -25,11 +25,13 @@ Take-off and landing are Litchi's own; waypoints of kind ``takeoff`` and
 ``land`` are left out. Global settings (Heading Mode *Custom*, Finish
 Action, Path Mode *straight lines*, Cruising Speed) must be set in the
 Mission Hub after import. Litchi missions hold at most 99 waypoints (the DJI
-waypoint-mission limit); longer plans are refused by default
-(``max_waypoints``): export one flight at a time, or let
-:func:`litchi_missions` cut every flight into missions of at most 99
-waypoints at pass boundaries (``pihim plan`` writes them as
-``litchi_01.csv`` ... when ``litchi.csv`` is longer).
+waypoint-mission limit); longer ones are refused (``max_waypoints``), and a
+plan of several flights is written one flight at a time. A flight longer
+than 99 waypoints is cut by :func:`litchi_missions` into missions at pass
+boundaries (``pihim plan`` writes ``flight_01_litchi.csv``, or
+``flight_01_litchi_1.csv``, ``flight_01_litchi_2.csv`` ... when one flight
+needs several; fly them in order on one battery, starting each where the
+last ended).
 
 OpenCSP's UFACET planner writes Litchi CSVs the same way (from a template
 exported by the Mission Hub, 8-decimal longitude and latitude, altitude,
@@ -57,6 +59,7 @@ from pihim.planning.export._common import (
     check_plan,
     heading_0_360,
     mission_waypoints,
+    resolve_flight,
     write_export,
 )
 from pihim.planning.model import Plan, Waypoint
@@ -123,7 +126,7 @@ def litchi_csv_text(
 ) -> str:
     """The Litchi CSV text (see :func:`write_litchi_csv`)."""
     check_plan(plan)
-    wps = litchi_waypoints(plan, flight)
+    wps = litchi_waypoints(plan, resolve_flight(plan, flight))
     if not wps:
         raise PihimInputError("no waypoints to write to the Litchi CSV (only take-off/landing)")
     if max_waypoints is not None and len(wps) > max_waypoints:
@@ -134,7 +137,8 @@ def litchi_csv_text(
     return _csv_text(wps, plan.home.height_m, hover_ms)
 
 
-def litchi_missions(plan: Plan, max_waypoints: int = LITCHI_MAX_WAYPOINTS) -> tuple[tuple[Waypoint, ...], ...]:
+def litchi_missions(plan: Plan, max_waypoints: int = LITCHI_MAX_WAYPOINTS,
+                    flight: int | None = None) -> tuple[tuple[Waypoint, ...], ...]:
     """The plan's flights cut into Litchi missions of at most ``max_waypoints`` waypoints.
 
     Missions follow the flights in order and never span two flights (two
@@ -142,6 +146,14 @@ def litchi_missions(plan: Plan, max_waypoints: int = LITCHI_MAX_WAYPOINTS) -> tu
     or a transit waypoint, taking as many whole passes as fit; only a pass
     longer than ``max_waypoints`` by itself is cut inside (between two of
     its waypoints). Take-off and landing are Litchi's own and left out.
+
+    Parameters
+    ----------
+    plan : Plan
+    max_waypoints : int
+        Litchi's limit, 99.
+    flight : int, optional
+        Only this flight (:attr:`Flight.index`); default every flight.
 
     Returns
     -------
@@ -154,6 +166,8 @@ def litchi_missions(plan: Plan, max_waypoints: int = LITCHI_MAX_WAYPOINTS) -> tu
         raise PihimInputError(f"max_waypoints must be a positive integer, got {max_waypoints!r}")
     missions: list[tuple[Waypoint, ...]] = []
     for f in plan.flights:
+        if flight is not None and f.index != flight:
+            continue
         wps = litchi_waypoints(plan, f.index)
         cuts = [k for k, w in enumerate(wps) if k == 0 or w.kind in ("lead_in", "transit")] + [len(wps)]
         current: list[Waypoint] = []
@@ -168,6 +182,8 @@ def litchi_missions(plan: Plan, max_waypoints: int = LITCHI_MAX_WAYPOINTS) -> tu
             current += segment
         if current:
             missions.append(tuple(current))
+    if flight is not None and not missions:
+        mission_waypoints(plan, flight)  # raises the "no flight with index" error
     return tuple(missions)
 
 
@@ -250,7 +266,7 @@ def write_litchi_csv(
     return write_export(path, text, newline="\n")
 
 
-def litchi_mission_texts(plan: Plan, *, hover_ms: int = 0,
-                         max_waypoints: int = LITCHI_MAX_WAYPOINTS) -> tuple[str, ...]:
+def litchi_mission_texts(plan: Plan, *, hover_ms: int = 0, max_waypoints: int = LITCHI_MAX_WAYPOINTS,
+                         flight: int | None = None) -> tuple[str, ...]:
     """Litchi CSV texts of :func:`litchi_missions`, one per mission."""
-    return tuple(_csv_text(m, plan.home.height_m, hover_ms) for m in litchi_missions(plan, max_waypoints))
+    return tuple(_csv_text(m, plan.home.height_m, hover_ms) for m in litchi_missions(plan, max_waypoints, flight))

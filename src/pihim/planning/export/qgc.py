@@ -7,45 +7,68 @@ writes the same items as a ``QGC WPL 110`` text file.
 
 Mission layout
 --------------
+One mission is one flight (one battery): it starts at home and ends there.
+
 1. ``MAV_CMD_NAV_TAKEOFF`` (22): at the first waypoint if its kind is
    ``takeoff`` (climbing to the higher of its altitude and the next
    waypoint's, since a take-off waypoint may sit on the ground), otherwise at
    the plan's home position, climbing to the first waypoint's altitude; yaw
    (param4) = heading of the first waypoint flown.
-2. For every other waypoint, in order:
+2. Then, for every waypoint ``w`` after the take-off, in order:
 
-   * ``MAV_CMD_DO_CHANGE_SPEED`` (178: ground speed, m/s, throttle -1,
-     absolute) *before* the waypoint whenever its speed differs from the
-     previous one (``speed_commands=True``); the speed is the ground speed
-     toward this waypoint;
-   * ``MAV_CMD_NAV_WAYPOINT`` (16): hold (``capture_hold_s`` at capture
-     waypoints, else 0), acceptance radius, pass radius 0, **yaw = the
-     waypoint heading** (deg clockwise from North; PX4 flies it);
-   * ``MAV_CMD_CONDITION_YAW`` (115): angle = heading, rate
-     ``yaw_rate_deg_s`` (0: the autopilot default), direction 0 (shortest),
-     absolute (param4 = 0) -- ArduPilot ignores the waypoint yaw, so this
-     is what turns an ArduPilot copter (default for ``autopilot="ardupilot"``,
-     off for PX4);
-   * ``MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW`` (1000): pitch = waypoint gimbal
-     pitch (deg, negative down), yaw 0 (camera along the vehicle heading),
-     rates NaN (unset), flags ``ROLL_LOCK | PITCH_LOCK`` = 12 (pitch relative
-     to the horizon), gimbal device 0 (primary); optionally also the older
-     ``MAV_CMD_DO_MOUNT_CONTROL`` (205: pitch, roll 0, yaw 0, mode
-     ``MAV_MOUNT_MODE_MAVLINK_TARGETING`` = 2) with ``mount_control=True``;
-   * at capture waypoints only: ``MAV_CMD_IMAGE_START_CAPTURE`` (2000:
-     camera 0 = all, interval 0, count 1, capture sequence number 1, 2, ...)
-     or, with ``camera="digicam"``, ``MAV_CMD_DO_DIGICAM_CONTROL`` (203:
-     shoot = 1).
+   * the DO/CONDITION items that prepare the leg *to* ``w`` (they follow the
+     previous navigation item, so they run when the drone leaves it):
+     ``MAV_CMD_DO_CHANGE_SPEED`` (178: ground speed, m/s, throttle -1) when
+     the leg speed changes; ``MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW`` (1000:
+     pitch = ``w``'s gimbal pitch, yaw 0 = along the vehicle, rates NaN,
+     flags ``ROLL_LOCK | PITCH_LOCK`` = 12, pitch relative to the horizon;
+     plus ``MAV_CMD_DO_MOUNT_CONTROL`` (205) with ``mount_control=True``) when
+     the pitch changes; and, last (``condition_yaw``, default for ArduPilot),
+     ``MAV_CMD_CONDITION_YAW`` (115: angle = ``w``'s heading, rate
+     ``yaw_rate_deg_s``, direction 0, absolute);
+   * ``MAV_CMD_NAV_WAYPOINT`` (16): hold ``capture_hold_s`` at capture
+     waypoints (default 2 s) else 0, acceptance radius, pass radius 0,
+     **yaw (param4) = ``w``'s heading** (PX4 flies it on the leg to ``w``);
+   * at capture waypoints, *first* after the waypoint:
+     ``MAV_CMD_IMAGE_START_CAPTURE`` (2000: camera 0 = all, interval 0,
+     count 1, sequence number 1, 2, ..., reserved params 5-7 = 0) or, with
+     ``camera="digicam"``, ``MAV_CMD_DO_DIGICAM_CONTROL`` (203: shoot = 1).
 
-   A waypoint of kind ``land`` becomes ``MAV_CMD_NAV_LAND`` (21: abort
-   altitude 0, land mode 0, yaw = last heading) and ends the mission.
+   A waypoint of kind ``land`` becomes ``MAV_CMD_NAV_LAND`` (21: yaw = last
+   heading) and ends the mission.
 3. ``MAV_CMD_NAV_RETURN_TO_LAUNCH`` (20) (``end="rtl"``, default) or
    ``MAV_CMD_NAV_LAND`` at home (``end="land"``), unless a ``land``
    waypoint already ended the mission.
 
-Both ArduPilot and PX4 run the DO/CONDITION items that follow a navigation
-item once that waypoint is reached, so yaw, gimbal and camera commands act
-*at* their waypoint.
+Capture timing
+--------------
+Both autopilots run a mission as two tracks [3]_ [4]_ [5]_: the navigation
+item being flown, and the DO/CONDITION items that follow the last navigation
+item reached, started in order once it is reached (after its hold). In
+ArduPilot ``CONDITION_YAW`` completes only within 2 deg of its angle and
+holds back the DO items after it, but never the navigation: when the next
+waypoint is reached, DO items still waiting are dropped [3]_ [6]_. PX4 turns
+toward the yaw of the waypoint it is flying to as soon as that waypoint
+becomes current [4]_ [7]_. Hence the order above: the capture command comes
+first after its waypoint (nothing can hold it back), and the heading and
+pitch of waypoint ``w`` are commanded when the drone leaves the waypoint
+before it, so they are reached during the leg. The leg is flown slower where
+``max(|dheading| / yaw_rate_deg_s, |dpitch| / gimbal_rate_deg_s) +
+settle_s`` exceeds the leg time
+(:func:`pihim.planning.attitude.leg_speed`), so the drone arrives at every
+waypoint already at its heading and pitch. The hold at capture waypoints
+stops the drone at the capture point (a rotary-wing vehicle "stays at the
+waypoint" for param1 [5]_), so the photo is taken at the point, not within
+the acceptance radius before it. ``tests/planning/test_mission_timing.py``
+runs the written files through an interpreter of these rules and checks
+every photo's position and heading against the plan.
+
+With ArduPilot set ``WP_YAW_BEHAVIOR = 0`` (never change yaw): with the
+default (face the next waypoint) the autopilot turns toward the next
+waypoint whenever a waypoint starts, until the ``CONDITION_YAW`` after it
+runs. With PX4 keep the mission's yaw (``MPC_YAW_MODE`` / ``MIS_YAWMODE``
+"as set by the mission" where the firmware has it) and ``MPC_YAWRAUTO_MAX``
+>= ``yaw_rate_deg_s``.
 
 Altitudes
 ---------
@@ -72,15 +95,33 @@ References
    ``MAV_FRAME``, ``MAV_AUTOPILOT``, ``MAV_TYPE``, ``GIMBAL_MANAGER_FLAGS``,
    https://mavlink.io/en/messages/common.html; mission protocol,
    https://mavlink.io/en/services/mission.html.
-.. [3] ArduPilot, "Mission Commands",
+.. [3] ArduPilot, "Mission Commands" (Copter: ``NAV_WAYPOINT`` param1 hold,
+   ``CONDITION_YAW``, DO commands),
    https://ardupilot.org/copter/docs/common-mavlink-mission-command-messages-mav_cmd.html.
+.. [4] PX4 User Guide, "Mission Mode (Multicopter)",
+   https://docs.px4.io/main/en/flight_modes_mc/mission.html (mission
+   commands, ``NAV_ACC_RAD``, ``MIS_YAW_TMT`` / ``MIS_YAW_ERR``).
+.. [5] MAVLink, ``MAV_CMD_NAV_WAYPOINT``: param1 "hold time ... time to stay
+   at waypoint for rotary wing", param2 "acceptance radius (if the sphere
+   with this radius is hit, the waypoint counts as reached)", param4 "yaw
+   angle at waypoint (rotary wing)",
+   https://mavlink.io/en/messages/common.html#MAV_CMD_NAV_WAYPOINT.
+.. [6] ArduPilot issue 33238, "CONDITION_YAW only gates DO commands - it does
+   not prevent NAV command advancement",
+   https://github.com/ArduPilot/ardupilot/issues/33238.
+.. [7] PX4 (pixhawk.org), "Multirotor Yaw Modes": in the default mode the
+   vehicle assumes the yaw of the destination waypoint "as soon as that
+   waypoint becomes the current destination",
+   http://pixhawk.org/users/multirotor_yaw_modes.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import statistics
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -92,8 +133,10 @@ from pihim.planning.export._common import (
     heading_0_360,
     json_ready,
     mission_waypoints,
+    resolve_flight,
     write_export,
 )
+from pihim.planning.attitude import leg_speed
 from pihim.planning.model import Plan, Waypoint
 
 __all__ = [
@@ -112,6 +155,7 @@ __all__ = [
     "MAV_FRAME_MISSION",
     "Mission",
     "MissionItem",
+    "count_mission_items",
     "mission_items",
     "qgc_plan_document",
     "qgc_plan_text",
@@ -239,6 +283,146 @@ def _nonneg(name: str, value: Any) -> float:
     return f
 
 
+@dataclass(frozen=True)
+class _Options:
+    """Checked mission options (internal)."""
+
+    autopilot: str
+    condition_yaw: bool
+    yaw_rate_deg_s: float
+    gimbal_rate_deg_s: float
+    settle_s: float
+    mount_control: bool
+    camera: str
+    capture_hold_s: float
+    acceptance_radius_m: float
+    speed_commands: bool
+    end: str
+
+
+def _options(autopilot: Any = "ardupilot", condition_yaw: Any = None, yaw_rate_deg_s: Any = 30.0,
+             gimbal_rate_deg_s: Any = 30.0, settle_s: Any = 0.5, mount_control: Any = False,
+             camera: Any = "image_start_capture", capture_hold_s: Any = 2.0, acceptance_radius_m: Any = 0.0,
+             speed_commands: Any = True, end: Any = "rtl") -> _Options:
+    _option("autopilot", autopilot, ("ardupilot", "px4"))
+    _option("camera", camera, ("image_start_capture", "digicam"))
+    _option("end", end, ("rtl", "land"))
+    for name, flag in (("mount_control", mount_control), ("speed_commands", speed_commands)):
+        if not isinstance(flag, bool):
+            raise PihimInputError(f"{name} must be True or False, got {flag!r}")
+    if condition_yaw is None:
+        condition_yaw = autopilot == "ardupilot"
+    elif not isinstance(condition_yaw, bool):
+        raise PihimInputError(f"condition_yaw must be True, False or None, got {condition_yaw!r}")
+    rates = [_nonneg(n, v) for n, v in (("yaw_rate_deg_s", yaw_rate_deg_s), ("gimbal_rate_deg_s", gimbal_rate_deg_s))]
+    for name, r in zip(("yaw_rate_deg_s", "gimbal_rate_deg_s"), rates, strict=True):
+        if r <= 0:
+            raise PihimInputError(f"{name} must be a finite number > 0, got {r!r}")
+    return _Options(autopilot, condition_yaw, rates[0], rates[1], _nonneg("settle_s", settle_s), mount_control,
+                    camera, _nonneg("capture_hold_s", capture_hold_s),
+                    _nonneg("acceptance_radius_m", acceptance_radius_m), speed_commands, end)
+
+
+def _build_items(wps: Sequence[Waypoint], home: Waypoint, alt: Any, frame: int, o: _Options) -> list[MissionItem]:
+    """Mission items for a waypoint sequence (module docstring, "Mission layout")."""
+
+    def nav(command: int, w: Waypoint, p1: float, p2: float, p4: float, target: Waypoint | None,
+            altitude: float | None = None) -> MissionItem:
+        z = alt(w) if altitude is None else altitude
+        return MissionItem(command, frame, (p1, p2, 0.0, p4, w.latitude_deg, w.longitude_deg, z), True, target)
+
+    def do(command: int, params: tuple[float, ...], w: Waypoint | None) -> MissionItem:
+        return MissionItem(command, MAV_FRAME_MISSION, params, True, w)  # type: ignore[arg-type]
+
+    items: list[MissionItem] = []
+    state = {"speed": math.nan, "pitch": math.nan}
+
+    def prepare(prev: Waypoint, w: Waypoint) -> None:
+        """DO items run on arrival at ``prev``: speed, gimbal and heading for the leg to ``w``."""
+        speed = leg_speed(prev, w, yaw_rate_deg_s=o.yaw_rate_deg_s, gimbal_rate_deg_s=o.gimbal_rate_deg_s,
+                          settle_s=o.settle_s)
+        if o.speed_commands and speed > 0 and not math.isclose(speed, state["speed"], abs_tol=1e-9):
+            items.append(do(MAV_CMD_DO_CHANGE_SPEED, (1.0, speed, -1.0, 0.0, 0.0, 0.0, 0.0), w))
+            state["speed"] = speed
+        pitch = float(w.gimbal_pitch_deg)
+        if not math.isclose(pitch, state["pitch"], abs_tol=1e-6):
+            flags = float(GIMBAL_MANAGER_FLAGS_ROLL_LOCK | GIMBAL_MANAGER_FLAGS_PITCH_LOCK)
+            items.append(do(MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, (pitch, 0.0, _NAN, _NAN, flags, 0.0, 0.0), w))
+            if o.mount_control:
+                items.append(do(MAV_CMD_DO_MOUNT_CONTROL,
+                                (pitch, 0.0, 0.0, 0.0, 0.0, 0.0, float(MAV_MOUNT_MODE_MAVLINK_TARGETING)), w))
+            state["pitch"] = pitch
+        if o.condition_yaw:  # last: it holds back the DO items after it until the heading is reached
+            items.append(do(MAV_CMD_CONDITION_YAW, (heading_0_360(w.heading_deg), o.yaw_rate_deg_s, 0.0, 0.0,
+                                                    0.0, 0.0, 0.0), w))
+
+    rest: Sequence[Waypoint]
+    if wps[0].kind == "takeoff":
+        start, rest = wps[0], wps[1:]
+        first_yaw = heading_0_360(rest[0].heading_deg if rest else start.heading_deg)
+        climb = max(alt(start), alt(rest[0])) if rest else alt(start)  # a take-off waypoint may be on the ground
+        items.append(nav(MAV_CMD_NAV_TAKEOFF, start, 0.0, 0.0, first_yaw, start, altitude=climb))
+    else:
+        start, rest = home, wps
+        items.append(nav(MAV_CMD_NAV_TAKEOFF, home, 0.0, 0.0, heading_0_360(wps[0].heading_deg), None,
+                         altitude=alt(wps[0])))
+    captures = 0
+    landed = False
+    prev = dataclasses.replace(start, heading_deg=rest[0].heading_deg if rest else start.heading_deg,
+                               gimbal_pitch_deg=0.0)
+    last_yaw = heading_0_360(prev.heading_deg)
+    for w in rest:
+        if w.kind == "land":
+            items.append(nav(MAV_CMD_NAV_LAND, w, 0.0, 0.0, last_yaw, w))
+            landed = True
+            break
+        prepare(prev, w)
+        last_yaw = heading_0_360(w.heading_deg)
+        items.append(nav(MAV_CMD_NAV_WAYPOINT, w, o.capture_hold_s if w.capture else 0.0, o.acceptance_radius_m,
+                         last_yaw, w))
+        if w.capture:  # first after its waypoint: runs as soon as the waypoint (and its hold) is done
+            captures += 1
+            if o.camera == "image_start_capture":
+                items.append(do(MAV_CMD_IMAGE_START_CAPTURE, (0.0, 0.0, 1.0, float(captures), 0.0, 0.0, 0.0), w))
+            else:
+                items.append(do(MAV_CMD_DO_DIGICAM_CONTROL, (0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0), w))
+        prev = w
+    if not landed:
+        if o.end == "rtl":
+            items.append(do(MAV_CMD_NAV_RETURN_TO_LAUNCH, (0.0,) * 7, None))
+        else:
+            items.append(nav(MAV_CMD_NAV_LAND, home, 0.0, 0.0, last_yaw, None,
+                             altitude=0.0 if frame == MAV_FRAME_GLOBAL_RELATIVE_ALT else alt(home)))
+    return items
+
+
+def count_mission_items(waypoints: Sequence[Waypoint], **mission_options: Any) -> int:
+    """Mission items a waypoint sequence becomes, home slot included (what an autopilot stores).
+
+    Parameters
+    ----------
+    waypoints : sequence of Waypoint
+        One flight's waypoints (take-off ... landing), as
+        :attr:`pihim.planning.model.Flight.waypoints`.
+    **mission_options
+        As :func:`mission_items` (``autopilot``, ``condition_yaw``,
+        ``mount_control``, ``speed_commands``, rates, ``capture_hold_s``,
+        ``end``); altitude options do not change the count.
+
+    Returns
+    -------
+    int
+        ``len(mission_items(...).items) + 1``: ArduPilot keeps home in slot 0
+        of its mission storage, and the ``.waypoints`` file has that row too.
+    """
+    if not waypoints:
+        raise PihimInputError("no waypoints to count")
+    opts = {k: v for k, v in mission_options.items() if k not in ("altitude_frame", "geoid_undulation_m", "flight")}
+    o = _options(**opts)
+    items = _build_items(tuple(waypoints), waypoints[0], lambda w: 0.0, MAV_FRAME_GLOBAL_RELATIVE_ALT, o)
+    return len(items) + 1
+
+
 def mission_items(
     plan: Plan,
     *,
@@ -247,21 +431,26 @@ def mission_items(
     altitude_frame: Literal["relative", "amsl"] = "relative",
     geoid_undulation_m: float | None = None,
     condition_yaw: bool | None = None,
-    yaw_rate_deg_s: float = 0.0,
+    yaw_rate_deg_s: float = 30.0,
+    gimbal_rate_deg_s: float = 30.0,
+    settle_s: float = 0.5,
     mount_control: bool = False,
     camera: Literal["image_start_capture", "digicam"] = "image_start_capture",
-    capture_hold_s: float = 0.0,
+    capture_hold_s: float = 2.0,
     acceptance_radius_m: float = 0.0,
     speed_commands: bool = True,
     end: Literal["rtl", "land"] = "rtl",
 ) -> Mission:
-    """The MAVLink mission for a plan (see the module docstring for the layout).
+    """The MAVLink mission of one flight (see the module docstring for the layout and timing).
 
     Parameters
     ----------
     plan : Plan
     flight : int, optional
-        Export one flight (:attr:`Flight.index`) instead of all passes.
+        The flight (:attr:`Flight.index`) to fly. Default: the plan's only
+        flight; a plan of several flights must be exported one flight at a
+        time (one battery, one mission); a plan without flights flies its
+        passes joined by straight legs (no battery check).
     autopilot : {"ardupilot", "px4"}
         Sets ``firmwareType`` (3 or 12) and the default of ``condition_yaw``.
     altitude_frame : {"relative", "amsl"}
@@ -271,10 +460,16 @@ def mission_items(
         EGM96 geoid height at the site (AMSL = ellipsoidal - undulation);
         default from ``plan.site`` or the NSTTF estimate near the NSTTF.
     condition_yaw : bool, optional
-        Add ``MAV_CMD_CONDITION_YAW`` after each waypoint. Default: True for
-        ArduPilot, False for PX4 (which flies the waypoint yaw).
+        Turn with ``MAV_CMD_CONDITION_YAW`` on every leg. Default: True for
+        ArduPilot (which ignores the waypoint yaw), False for PX4 (which flies
+        the waypoint yaw, param 4).
     yaw_rate_deg_s : float
-        ``CONDITION_YAW`` rate; 0 lets the autopilot use its default.
+        Yaw rate, deg/s (> 0): ``CONDITION_YAW`` param 2, and the rate the leg
+        timing assumes (for PX4 set ``MPC_YAWRAUTO_MAX`` at least this high).
+    gimbal_rate_deg_s : float
+        Gimbal pitch rate the leg timing assumes, deg/s (> 0).
+    settle_s : float
+        Margin after a turn before a photo, seconds.
     mount_control : bool
         Also emit ``MAV_CMD_DO_MOUNT_CONTROL`` (205) for autopilots without
         gimbal protocol v2.
@@ -282,11 +477,14 @@ def mission_items(
         Capture command: ``MAV_CMD_IMAGE_START_CAPTURE`` (2000) or
         ``MAV_CMD_DO_DIGICAM_CONTROL`` (203).
     capture_hold_s : float
-        Hold time at capture waypoints (``NAV_WAYPOINT`` param1), seconds.
+        Hold at capture waypoints (``NAV_WAYPOINT`` param 1), seconds: the
+        drone stops at the point and the photo is taken when the hold ends.
+        Default 2 s, the hover per image of the flight-time model
+        (:attr:`pihim.planning.endurance.DroneEndurance.capture_s`).
     acceptance_radius_m : float
-        ``NAV_WAYPOINT`` param2; 0 lets the autopilot use its default.
+        ``NAV_WAYPOINT`` param 2; 0 lets the autopilot use its default.
     speed_commands : bool
-        Emit ``MAV_CMD_DO_CHANGE_SPEED`` when the waypoint speed changes.
+        Emit ``MAV_CMD_DO_CHANGE_SPEED`` when the leg speed changes.
     end : {"rtl", "land"}
         Final command when the waypoints do not end with a landing.
 
@@ -297,25 +495,15 @@ def mission_items(
     Raises
     ------
     PihimInputError
-        Invalid plan (no passes, non-finite waypoint) or option.
+        Invalid plan (no passes, non-finite waypoint) or option, or a plan of
+        several flights without ``flight``.
     """
     check_plan(plan)
-    _option("autopilot", autopilot, ("ardupilot", "px4"))
     _option("altitude_frame", altitude_frame, ("relative", "amsl"))
-    _option("camera", camera, ("image_start_capture", "digicam"))
-    _option("end", end, ("rtl", "land"))
-    for name, flag in (("mount_control", mount_control), ("speed_commands", speed_commands)):
-        if not isinstance(flag, bool):
-            raise PihimInputError(f"{name} must be True or False, got {flag!r}")
-    if condition_yaw is None:
-        condition_yaw = autopilot == "ardupilot"
-    elif not isinstance(condition_yaw, bool):
-        raise PihimInputError(f"condition_yaw must be True, False or None, got {condition_yaw!r}")
-    yaw_rate = _nonneg("yaw_rate_deg_s", yaw_rate_deg_s)
-    hold = _nonneg("capture_hold_s", capture_hold_s)
-    radius = _nonneg("acceptance_radius_m", acceptance_radius_m)
+    o = _options(autopilot, condition_yaw, yaw_rate_deg_s, gimbal_rate_deg_s, settle_s, mount_control, camera,
+                 capture_hold_s, acceptance_radius_m, speed_commands, end)
     undulation = geoid_undulation(plan, geoid_undulation_m)
-    wps = mission_waypoints(plan, flight)
+    wps = mission_waypoints(plan, resolve_flight(plan, flight))
 
     home = plan.home
     frame = MAV_FRAME_GLOBAL_RELATIVE_ALT if altitude_frame == "relative" else MAV_FRAME_GLOBAL
@@ -323,63 +511,7 @@ def mission_items(
     def alt(w: Waypoint) -> float:
         return w.height_m - home.height_m if frame == MAV_FRAME_GLOBAL_RELATIVE_ALT else w.height_m - undulation
 
-    def nav(command: int, w: Waypoint, p1: float, p2: float, p3: float, p4: float,
-            target: Waypoint | None, altitude: float | None = None) -> MissionItem:
-        z = alt(w) if altitude is None else altitude
-        return MissionItem(command, frame, (p1, p2, p3, p4, w.latitude_deg, w.longitude_deg, z), True, target)
-
-    def do(command: int, params: tuple[float, ...], w: Waypoint | None) -> MissionItem:
-        return MissionItem(command, MAV_FRAME_MISSION, params, True, w)  # type: ignore[arg-type]
-
-    items: list[MissionItem] = []
-    rest: tuple[Waypoint, ...]
-    # take-off and landing yaw: the heading of the next / last flown waypoint (not NaN, which the
-    # text format cannot carry and PX4 would read as "keep the current heading mode")
-    if wps[0].kind == "takeoff":
-        rest = wps[1:]
-        first_yaw = heading_0_360(rest[0].heading_deg if rest else wps[0].heading_deg)
-        climb = max(alt(wps[0]), alt(rest[0])) if rest else alt(wps[0])  # a take-off waypoint may be on the ground
-        items.append(nav(MAV_CMD_NAV_TAKEOFF, wps[0], 0.0, 0.0, 0.0, first_yaw, wps[0], altitude=climb))
-    else:
-        rest = wps
-        items.append(nav(MAV_CMD_NAV_TAKEOFF, home, 0.0, 0.0, 0.0, heading_0_360(wps[0].heading_deg), None,
-                         altitude=alt(wps[0])))
-
-    speed: float | None = None
-    captures = 0
-    landed = False
-    last_yaw = heading_0_360(wps[0].heading_deg)
-    for w in rest:
-        if w.kind == "land":
-            items.append(nav(MAV_CMD_NAV_LAND, w, 0.0, 0.0, 0.0, last_yaw, w))
-            landed = True
-            break
-        if speed_commands and w.speed_m_s > 0 and w.speed_m_s != speed:
-            items.append(do(MAV_CMD_DO_CHANGE_SPEED, (1.0, float(w.speed_m_s), -1.0, 0.0, 0.0, 0.0, 0.0), w))
-            speed = w.speed_m_s
-        heading = last_yaw = heading_0_360(w.heading_deg)
-        items.append(nav(MAV_CMD_NAV_WAYPOINT, w, hold if w.capture else 0.0, radius, 0.0, heading, w))
-        if condition_yaw:
-            items.append(do(MAV_CMD_CONDITION_YAW, (heading, yaw_rate, 0.0, 0.0, 0.0, 0.0, 0.0), w))
-        pitch = float(w.gimbal_pitch_deg)
-        flags = float(GIMBAL_MANAGER_FLAGS_ROLL_LOCK | GIMBAL_MANAGER_FLAGS_PITCH_LOCK)
-        items.append(do(MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, (pitch, 0.0, _NAN, _NAN, flags, 0.0, 0.0), w))
-        if mount_control:
-            items.append(do(MAV_CMD_DO_MOUNT_CONTROL,
-                            (pitch, 0.0, 0.0, 0.0, 0.0, 0.0, float(MAV_MOUNT_MODE_MAVLINK_TARGETING)), w))
-        if w.capture:
-            captures += 1
-            if camera == "image_start_capture":
-                items.append(do(MAV_CMD_IMAGE_START_CAPTURE, (0.0, 0.0, 1.0, float(captures), _NAN, _NAN, _NAN), w))
-            else:
-                items.append(do(MAV_CMD_DO_DIGICAM_CONTROL, (0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0), w))
-    if not landed:
-        if end == "rtl":
-            items.append(do(MAV_CMD_NAV_RETURN_TO_LAUNCH, (0.0,) * 7, None))
-        else:
-            items.append(nav(MAV_CMD_NAV_LAND, home, 0.0, 0.0, 0.0, last_yaw, None,
-                             altitude=0.0 if frame == MAV_FRAME_GLOBAL_RELATIVE_ALT else alt(home)))
-
+    items = _build_items(wps, home, alt, frame, o)
     speeds = [w.speed_m_s for w in wps if w.speed_m_s > 0]
     hover = float(statistics.median(speeds)) if speeds else 5.0
     cruise = float(max(speeds)) if speeds else hover
@@ -456,7 +588,8 @@ def qgc_plan_document(
     fence: list[dict[str, Any]] = []
     if geofence_margin_m is not None:
         margin = _nonneg("geofence_margin_m", geofence_margin_m)
-        fence.append(_fence_circle(plan, mission_waypoints(plan, mission_options.get("flight")), margin))
+        flight = resolve_flight(plan, mission_options.get("flight"))
+        fence.append(_fence_circle(plan, mission_waypoints(plan, flight), margin))
     doc = {
         "fileType": "Plan",
         "geoFence": {"circles": fence, "polygons": [], "version": 2},
