@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from pihim.errors import PihimInputError
-from pihim.visualize import aop_to_rgb, dolp_to_rgb, s0_to_gray, write_png
+from pihim.visualize import aop_to_rgb, dolp_to_rgb, polar_figure_png, s0_to_gray, write_png
 
 
 def test_aop_hue_is_cyclic_and_ordered():
@@ -41,3 +41,26 @@ def test_s0_stretch_and_png_roundtrip(tmp_path):
     back = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)[..., ::-1]
     assert np.array_equal(back, rgb)  # written as RGB, not BGR
     assert [f.name for f in tmp_path.iterdir()] == ["a.png"]
+
+
+@pytest.mark.parametrize("atomic", [True, False])
+def test_polar_figure_png_atomic_or_in_place(tmp_path, atomic):
+    """Atomic: a new file renamed over the old one (new inode); ``atomic=False``: written in place (same inode)."""
+    rng = np.random.default_rng(0)
+    s0 = rng.uniform(1000, 2000, (40, 50))
+    dolp = rng.uniform(0, 1, (40, 50))
+    aop = rng.uniform(0, 180, (40, 50))
+    path = tmp_path / "f.polar.png"
+    path.write_bytes(b"old")
+    inode = path.stat().st_ino
+    assert polar_figure_png(s0, dolp, aop, path, title="t", dpi=50, atomic=atomic) == path
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert img is not None and img.shape[:2] == (220, 800)  # 16 x 4.4 in at 50 dpi
+    assert (path.stat().st_ino == inode) is (not atomic)
+    assert [f.name for f in tmp_path.iterdir()] == ["f.polar.png"]
+
+
+def test_polar_figure_png_refuses_mismatched_shapes(tmp_path):
+    with pytest.raises(PihimInputError, match="one shape"):
+        polar_figure_png(np.zeros((4, 4)), np.zeros((4, 5)), np.zeros((4, 4)), tmp_path / "x.png")
+    assert not list(tmp_path.iterdir())

@@ -1,44 +1,169 @@
 """Atomic file output: write to a temporary sibling, then rename.
 
 A crash or a failed write therefore never leaves a half-written file under
-the final name.
+the final name. A process killed outright (SIGKILL, power loss) cannot remove
+its temporary files; their names therefore carry the writing process's host
+and id (``.NAME.pihim-HHHH-PID-XXXXXXXX.part.EXT``) so that a later run can
+tell them from the temporaries of a run still going and remove them
+(:func:`clean_stale_temporaries`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
+import re
+import socket
 import tempfile
-from collections.abc import Callable, Iterator
+import time
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 
+#: Temporary names written by this module: ``.STEM.pihim-HOST-PID-RANDOM.partSUFFIX``.
+_TEMP_RE = re.compile(r"^\..+\.pihim-(?P<host>[0-9a-f]{4})-(?P<pid>\d+)-[a-z0-9_]{8}\.part(\.[^/]*)?$")
+#: Temporaries of the older ``mkstemp`` naming (``.STEM.RANDOM.partSUFFIX``, no owner recorded).
+_LEGACY_TEMP_RE = re.compile(r"^\..+\.[a-z0-9_]{8}\.part(\.[^/]*)?$")
+#: A legacy temporary older than this (seconds) belongs to no running writer.
+LEGACY_TEMP_MAX_AGE_S = 3600.0
+
+
+def _host_tag() -> str:
+    """Four hex digits identifying this host (temporaries of other hosts are never removed)."""
+    return hashlib.sha1(socket.gethostname().encode("utf-8", "replace")).hexdigest()[:4]
+
+
+def temp_sibling(path: str | os.PathLike[str], register: list[Path] | None = None) -> Path:
+    """Create an empty temporary file next to ``path`` and return its path.
+
+    The name keeps the final suffix, so writers that dispatch on the
+    extension (OpenCV, tifffile) behave as for the final name, and records
+    the host and process id of the writer. The file gets the permissions of
+    an ordinary new file (``0666 & ~umask``). With ``register``, the path is
+    appended to it before anything else can happen, so that a caller cleaning
+    up after an interruption (SIGTERM raises in the main thread) knows every
+    temporary it made; an interruption inside this function removes the file.
+    """
+    final = Path(path)
+    fd, tmp_name = tempfile.mkstemp(
+        prefix=f".{final.stem}.pihim-{_host_tag()}-{os.getpid()}-", suffix=f".part{final.suffix}", dir=final.parent
+    )
+    try:
+        os.close(fd)
+        if register is not None:
+            register.append(Path(tmp_name))
+        os.chmod(tmp_name, 0o666 & ~_UMASK)  # mkstemp creates 0600; give outputs the usual permissions
+    except BaseException:
+        if register is None or Path(tmp_name) not in register:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp_name)
+        raise
+    return Path(tmp_name)
+
+
+def _pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this host."""
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, OSError):
+        return True  # exists but belongs to someone else, or cannot tell: keep its files
+    return True
+
+
+def is_stale_temporary(entry: os.DirEntry[str] | Path, *, now: float | None = None) -> bool:
+    """Whether ``entry`` is a temporary file of :func:`temp_sibling` whose writer is gone.
+
+    A temporary of this host whose process no longer exists is stale; one of
+    another host never is (its process cannot be checked). A temporary of the
+    older naming, which records no process, is stale once older than
+    :data:`LEGACY_TEMP_MAX_AGE_S`.
+    """
+    name = entry.name
+    m = _TEMP_RE.match(name)
+    if m is not None:
+        return m["host"] == _host_tag() and not _pid_alive(int(m["pid"]))
+    if _LEGACY_TEMP_RE.match(name) is not None:
+        try:
+            age = (time.time() if now is None else now) - os.stat(entry, follow_symlinks=False).st_mtime
+        except OSError:
+            return False
+        return age > LEGACY_TEMP_MAX_AGE_S
+    return False
+
+
+def clean_stale_temporaries(directory: str | os.PathLike[str]) -> list[Path]:
+    """Remove the temporaries that killed runs left in ``directory`` (not recursive).
+
+    Returns the removed paths. Files that cannot be listed or removed are
+    left alone: cleaning never fails a run.
+    """
+    removed: list[Path] = []
+    try:
+        entries = list(os.scandir(directory))
+    except OSError:
+        return removed
+    for entry in entries:
+        try:
+            if not entry.is_file(follow_symlinks=False) or not is_stale_temporary(entry):
+                continue
+            os.unlink(entry.path)
+        except OSError:
+            continue
+        removed.append(Path(entry.path))
+    return removed
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; rename it onto ``path`` on success.
-
-    The temporary file keeps the final suffix so that writers which dispatch
-    on the extension (OpenCV, tifffile) behave as for the final name.
-    """
+    """Yield a temporary path next to ``path``; rename it onto ``path`` on success."""
     final = Path(path)
     final.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(
-        prefix=f".{final.stem}.", suffix=f".part{final.suffix}", dir=final.parent
-    )
-    os.close(fd)
-    tmp = Path(tmp_name)
-    os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp creates 0600; give outputs the usual permissions
+    made: list[Path] = []
     try:
-        yield tmp
-        os.replace(tmp, final)
+        temp_sibling(final, made)
+        yield made[0]
+        os.replace(made[0], final)
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
+        for tmp in made:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+        raise
+
+
+@contextlib.contextmanager
+def atomic_group(paths: Sequence[str | os.PathLike[str]]) -> Iterator[list[Path]]:
+    """Yield one temporary path per entry of ``paths``; rename them all when the block succeeds.
+
+    Every file is written in full before the first rename, so the final
+    names appear within a few renames of each other; on any failure the
+    temporaries and any file already renamed are removed. (A kill between two
+    renames can still leave part of the group: mark completion with a file
+    written after the group when that matters.)
+    """
+    finals = [Path(p) for p in paths]
+    tmps: list[Path] = []
+    done: list[Path] = []
+    try:
+        for final in finals:
+            final.parent.mkdir(parents=True, exist_ok=True)
+            temp_sibling(final, tmps)
+        yield list(tmps)
+        for tmp, final in zip(tmps, finals, strict=True):
+            os.replace(tmp, final)
+            done.append(final)
+    except BaseException:
+        for p in [*tmps, *done]:
+            with contextlib.suppress(OSError):
+                p.unlink()
         raise
 
 

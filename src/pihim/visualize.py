@@ -16,6 +16,7 @@ References
 
 from __future__ import annotations
 
+import contextlib
 import io
 from pathlib import Path
 
@@ -99,14 +100,18 @@ def s0_to_gray(s0: ArrayLike, *, percentiles: tuple[float, float] = (0.5, 99.5))
     return _to_u8(np.clip(np.nan_to_num(scale), 0.0, 1.0))
 
 
-def write_png(path: str | Path, image: NDArray[np.uint8]) -> Path:
-    """Write an RGB ``(H, W, 3)`` or grey ``(H, W)`` uint8 image as PNG, atomically."""
+def write_png(path: str | Path, image: NDArray[np.uint8], *, atomic: bool = True) -> Path:
+    """Write an RGB ``(H, W, 3)`` or grey ``(H, W)`` uint8 image as PNG, atomically.
+
+    ``atomic=False`` writes ``path`` directly (for a caller that already
+    writes under a temporary name).
+    """
     img = np.asarray(image)
     if img.dtype != np.uint8 or img.ndim not in (2, 3):
         raise PihimInputError("PNG previews must be uint8 grey or RGB images")
     if img.ndim == 3:
         img = img[..., ::-1]  # OpenCV writes BGR
-    with atomic_path(path) as tmp:
+    with atomic_path(path) if atomic else contextlib.nullcontext(Path(path)) as tmp:
         if not cv2.imwrite(str(tmp), np.ascontiguousarray(img)):
             raise OSError(f"{path}: could not write PNG")
     return Path(path)
@@ -212,6 +217,7 @@ def polar_figure_png(
     title: str = "",
     max_side: int = 900,
     dpi: float = 110.0,
+    atomic: bool = True,
 ) -> Path:
     """S0, DoLP and AoP side by side with titles, colour bars and an AoP hue wheel, as one PNG.
 
@@ -227,13 +233,16 @@ def polar_figure_png(
     ----------
     s0, dolp, aop_deg : array_like, shape (H, W)
     path : str or path-like
-        Output PNG, written atomically.
+        Output PNG, written atomically unless ``atomic`` is false.
     title : str
         Figure title (e.g. the frame name).
     max_side : int
         Largest image side drawn, pixels.
     dpi : float
         Resolution of the PNG.
+    atomic : bool
+        ``False`` writes ``path`` directly, for a caller that already writes
+        under a temporary name (``pihim polar``'s per-frame group).
 
     Returns
     -------
@@ -243,12 +252,13 @@ def polar_figure_png(
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    a_s0, a_d, a_a = (np.asarray(v, dtype=np.float64) for v in (s0, dolp, aop_deg))
+    a_s0, a_d, a_a = (np.asarray(v) for v in (s0, dolp, aop_deg))
     if not (a_s0.ndim == 2 and a_s0.shape == a_d.shape == a_a.shape):
         raise PihimInputError(f"S0, DoLP and AoP must be 2-D images of one shape, got {a_s0.shape}, "
                               f"{a_d.shape}, {a_a.shape}")
     k = max(1, int(np.ceil(max(a_s0.shape) / max_side)))
-    a_s0, a_d, a_a = a_s0[::k, ::k], a_d[::k, ::k], a_a[::k, ::k]
+    # decimate before converting: a full-size float64 copy of a large frame is not needed for the figure
+    a_s0, a_d, a_a = (v[::k, ::k].astype(np.float64) for v in (a_s0, a_d, a_a))
     finite = a_s0[np.isfinite(a_s0)]
     lo, hi = (np.percentile(finite, (0.5, 99.5)) if finite.size else (0.0, 1.0))
     hi = hi if hi > lo else lo + 1.0
@@ -279,6 +289,6 @@ def polar_figure_png(
         fig.suptitle(title, fontsize=11)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi)
-    with atomic_path(path) as tmp:
+    with atomic_path(path) if atomic else contextlib.nullcontext(Path(path)) as tmp:
         Path(tmp).write_bytes(buf.getvalue())
     return Path(path)

@@ -585,3 +585,25 @@ def test_fuzz_corrupted_valid_images(
     path = tmp_path_factory.mktemp("corrupt") / f"frame{suffix}"
     path.write_bytes(bytes(payload))
     _valid_frame_or_input_error(lambda: read_frame(path), path)
+
+
+@pytest.mark.parametrize("name", ["x.raw", "x.tiff", "x.png"])
+def test_fifo_refused_without_blocking(tmp_path: Path, name: str) -> None:
+    # issue 10: a FIFO named x.raw made the reader block forever
+    path = tmp_path / name
+    os.mkfifo(path)
+    _assert_input_error(lambda: read_frame(path, width=4, height=4), path, "not a regular file")
+
+
+def test_corrupt_png_libpng_text_in_one_message(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    # issue 10: libpng printed its own 'libpng error:' line beside pihim's message
+    ok, buf = cv2.imencode(".png", (np.arange(64 * 64).reshape(64, 64) % 4096).astype(np.uint16))
+    data = bytearray(buf.tobytes())
+    i = data.index(b"IDAT")
+    data[i + 10 : i + 30] = bytes(20)
+    path = tmp_path / "bad.png"
+    path.write_bytes(bytes(data))
+    with pytest.raises(PihimInputError) as err:
+        read_frame(path)
+    assert str(path) in str(err.value) and "libpng" in str(err.value)
+    assert capfd.readouterr().err == ""

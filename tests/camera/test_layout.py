@@ -17,7 +17,9 @@ def test_default_is_imx250mzr():
     assert str(IMX250MZR) == "90,45,135,0"
 
 
-@pytest.mark.parametrize("text", ["0,45,90", "0,45,90,90", "a,b,c,d", "bayer", "0,45,90,136"])
+@pytest.mark.parametrize("text", ["0,45,90", "0,45,90,90", "a,b,c,d", "bayer", "0,45,90,136",
+                                  # issue 10: OverflowError, and silent truncation to whole degrees
+                                  "inf,45,90,135", "nan,45,90,135", "0.7,45.9,90.2,135.1", "1e400,45,90,135"])
 def test_bad_layouts(text):
     with pytest.raises(PihimInputError):
         MosaicLayout.parse(text)
@@ -89,3 +91,11 @@ def test_split_rejects_bad_shapes():
         IMX250MZR.split(np.zeros((3, 4)))
     with pytest.raises(PihimInputError, match="2-D"):
         IMX250MZR.split(np.zeros((2, 4, 3)))
+
+
+def test_whole_float_angles_accepted_fractional_refused():
+    assert str(MosaicLayout.parse("90.0,45,135,0")) == "90,45,135,0"
+    assert MosaicLayout(((90.0, 45.0), (135.0, 0.0))) == IMX250MZR
+    for bad in (((90.5, 45), (135, 0)), ((float("inf"), 45), (135, 0))):
+        with pytest.raises(PihimInputError):
+            MosaicLayout(bad)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -135,6 +136,9 @@ def _bad_cases(tiffs, tmp):
     corrupt.write_bytes(b"II*\x00garbage")
     frames = [str(p) for p in tiffs]
     ok = "0:180:22.5"
+    fifo = tmp / "fifo.raw"
+    if not fifo.exists():
+        os.mkfifo(fifo)
     return {
         "missing frame": ([*frames[:-1], str(tmp / "nope.tiff")], ["--angles", ok]),
         "corrupt frame": ([*frames[:-1], str(corrupt)], ["--angles", ok]),
@@ -150,6 +154,10 @@ def _bad_cases(tiffs, tmp):
         "raw without size": ([str(tmp / "x.raw")] * 8, ["--angles", ok]),
         "drift with 4 angles": (frames[:4], ["--angles", "0,45,90,135", "--fit-drift"]),
         "missing --angles": (frames, []),
+        # issue 10: a range of 1e18 angles grew to 3.9 GB; a FIFO blocked forever
+        "huge angle range": (frames, ["--angles", "0:1e9:1e-9"]),
+        "fifo frame": ([*frames[:-1], str(fifo)], ["--angles", ok, "--width", "128", "--height", "96"]),
+        "nan dark level": (frames, ["--angles", ok, "--dark-level", "nan"]),
     }
 
 
@@ -170,6 +178,9 @@ def _bad_cases(tiffs, tmp):
         "raw without size",
         "drift with 4 angles",
         "missing --angles",
+        "huge angle range",
+        "fifo frame",
+        "nan dark level",
     ],
 )
 def test_bad_input_exits_2_with_one_line_and_no_output(case, tiffs, tmp_path, capsys):

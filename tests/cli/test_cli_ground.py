@@ -1,6 +1,7 @@
 """End-to-end tests of ``pihim ground``."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -33,6 +34,12 @@ def test_ground_maps_written(tmp_path, capsys):
         (["--time", "2025-06-01T10:00"], "time"),
         (["--time", "yesterday-ish+01:00"], "time"),
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--mirror", "bronze"], "mirror"),
+        # issue 10: validated before anything is computed or written (--seed -1 used to fail after four PNGs)
+        (["--sun-zenith", "30", "--sun-azimuth", "0", "--monte-carlo", "--seed", "-1"], "--seed"),
+        # requests too large for the machine are refused with the estimate (used to be MemoryError)
+        (["--sun-zenith", "30", "--sun-azimuth", "0", "--resolution", "0.001"], "needs about 48.6 tb of memory"),
+        (["--sun-zenith", "30", "--sun-azimuth", "0", "--monte-carlo", "--facets", "1000000000000"],
+         "needs about 1 pb of memory"),
     ],
 )
 def test_bad_input_one_line_exit_2(tmp_path, capsys, args, needle):
@@ -41,6 +48,13 @@ def test_bad_input_one_line_exit_2(tmp_path, capsys, args, needle):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and needle in err.lower()
     assert not out.exists()
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs a /proc file system")
+def test_out_that_cannot_be_created_is_one_line(capsys):
+    rc = main(["ground", "--sun-zenith", "30", "--sun-azimuth", "0", "--resolution", "10", "--out", "/proc/x"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("pihim: error: --out /proc/x: cannot create")
 
 
 def test_success_says_what_was_written(tmp_path, capsys):

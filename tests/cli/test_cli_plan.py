@@ -3,6 +3,7 @@
 import csv
 import json
 from importlib import resources
+from pathlib import Path
 
 import jsonschema
 import pytest
@@ -90,3 +91,11 @@ def test_impossible_requests(tmp_path, capsys, args, needle):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and needle in err.lower()
     assert not out.exists()
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs a /proc file system")
+def test_out_that_cannot_be_created_is_one_line(capsys):
+    # issue 10: 'pihim plan --out /proc/x' was a FileNotFoundError traceback after planning
+    assert main(["plan", "--time", TIME, "--heliostats", "8E3", "--out", "/proc/x"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pihim: error: --out /proc/x: cannot create")

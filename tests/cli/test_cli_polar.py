@@ -1,6 +1,7 @@
 """End-to-end tests of ``pihim polar`` and the atomic-output guarantee."""
 
 import json
+import os
 from importlib import resources
 
 import jsonschema
@@ -66,7 +67,8 @@ def test_batch_continues_after_bad_items(frame, tmp_path, capsys):
     assert len(lines) == 3
     assert "odd.tiff" in lines[0] and "corrupt.png" in lines[1] and "missing.tiff" in lines[2]
     assert "Traceback" not in err
-    assert sorted(p.name for p in out.iterdir()) == ["frame_a.AoP.tiff", "frame_a.DoLP.tiff", "frame_a.S0.tiff"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "frame_a.AoP.tiff", "frame_a.DoLP.tiff", "frame_a.S0.tiff", "frame_a.polar.json"]
 
 
 @pytest.mark.parametrize(
@@ -76,6 +78,16 @@ def test_batch_continues_after_bad_items(frame, tmp_path, capsys):
         (["--demosaic", "nearest"], "demosaic"),
         (["--calibration", "nope.json"], "calibration"),
         (["--bogus-option"], "bogus"),
+        # issue 10: out-of-range numbers are one line and exit 2, before any frame is read
+        (["--layout", "inf,45,90,135"], "whole degrees"),
+        (["--layout", "0.7,45.9,90.2,135.1"], "whole degrees"),
+        (["--saturation-level", "nan"], "saturation-level"),
+        (["--saturation-level", "-1"], "saturation-level"),
+        (["--dark-level", "nan"], "dark-level"),
+        (["--dark-level", "-3"], "dark-level"),
+        (["--bit-depth", "0"], "bit-depth"),
+        (["--bit-depth", "12", "--saturation-level", "5000"], "full scale"),
+        (["--pixel-format", "Mono13"], "pixel format"),
         (["--dark-level", "-10"], "--dark-level must be a finite number of raw units >= 0, got -10"),
     ],
 )
@@ -87,11 +99,23 @@ def test_bad_options_one_line_exit_2(frame, tmp_path, capsys, extra, needle):
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
 
 
-def test_colliding_stems_refused(frame, tmp_path, capsys):
+def test_same_stems_get_distinct_output_names(frame, tmp_path, capsys):
     other = tmp_path / "frame_a.tiff"
     other.write_bytes(frame.read_bytes())
-    assert main(["polar", str(frame), str(other), "--out", str(tmp_path / "o")]) == 2
-    assert "collide" in capsys.readouterr().err
+    out = tmp_path / "o"
+    assert main(["polar", str(frame), str(other), "--out", str(out), "--json"]) == 0
+    recs, err = _records(capsys)
+    assert [r["status"] for r in recs] == ["ok", "ok"]
+    s0 = [r["outputs"]["S0"] for r in recs]
+    assert len(set(s0)) == 2 and all(p.endswith(".S0.tiff") for p in s0)
+    assert all(tifffile.imread(p).shape == (16, 20) for p in s0)
+    # one warning line names both frames and their output names
+    warning = [ln for ln in err.splitlines() if "share the name" in ln]
+    assert len(warning) == 1 and str(frame) in warning[0] and str(other) in warning[0]
+    # the names are stable: a rerun finds both frames done
+    assert main(["polar", str(frame), str(other), "--out", str(out), "--json"]) == 0
+    recs, _ = _records(capsys)
+    assert [r.get("resumed") for r in recs] == [True, True]
 
 
 def test_atomic_path_leaves_nothing_on_failure(tmp_path):
@@ -118,6 +142,261 @@ def test_calibration_changes_result(frame, tmp_path, capsys):
     assert abs(recs[0]["dolp"]["median"] - 0.35) > 0.02
 
 
+# -- issue 10: every failure contained --------------------------------------------------------------
+
+
+def test_out_folder_under_a_file_is_one_line(frame, tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    assert main(["polar", str(frame), "--out", str(afile / "sub")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pihim: error: --out") and "not a directory" in err[0]
+
+
+def test_unreadable_items_do_not_stop_the_batch(frame, tmp_path, capsys):
+    folder = tmp_path / "in" / "folder.tiff"  # a directory named like a frame
+    folder.mkdir()
+    fifo = tmp_path / "in" / "x.raw"
+    os.mkfifo(fifo)  # reading it would block forever
+    out = tmp_path / "o"
+    rc = main(["polar", str(folder), str(fifo), str(frame), "--width", "40", "--height", "32", "--out", str(out),
+               "--json"])
+    recs, err = _records(capsys)
+    assert rc == 2
+    assert [r["status"] for r in recs] == ["error", "error", "ok"]
+    lines = err.strip().splitlines()
+    errors = [ln for ln in lines if ln.startswith("pihim: error:")]
+    assert len(errors) == 2 and "directory" in errors[0] and "not a regular file" in errors[1]
+    assert (out / "frame_a.S0.tiff").is_file()
+
+
+def test_memory_error_on_one_frame_spares_the_next(frame, tmp_path, capsys, monkeypatch):
+    import pihim.cli.polar as polar_cli
+
+    big = tmp_path / "in" / "big.tiff"
+    big.write_bytes(frame.read_bytes())
+    later = tmp_path / "in" / "later.tiff"
+    later.write_bytes(frame.read_bytes())
+    real = polar_cli.polar_image
+
+    def polar_image(data, **kw):
+        if polar_image.calls == 1:  # the second frame of the batch
+            polar_image.calls += 1
+            raise MemoryError
+        polar_image.calls += 1
+        return real(data, **kw)
+
+    polar_image.calls = 0
+    monkeypatch.setattr(polar_cli, "polar_image", polar_image)
+    out = tmp_path / "o"
+    assert main(["polar", str(frame), str(big), str(later), "--out", str(out), "--json"]) == 2
+    recs, err = _records(capsys)
+    assert [r["status"] for r in recs] == ["ok", "error", "ok"]
+    assert "not enough memory" in recs[1]["error"] and "big.tiff" in recs[1]["error"]
+    assert (out / "later.S0.tiff").is_file() and not list(out.glob("big.*"))
+    assert "Traceback" not in err
+
+
+def test_frame_too_large_for_memory_refused_with_the_figure(frame, tmp_path, capsys, monkeypatch):
+    import pihim._resources as resources
+
+    monkeypatch.setattr(resources, "available_memory", lambda: 10_000)  # 10 kB left
+    out = tmp_path / "o"
+    assert main(["polar", str(frame), "--out", str(out), "--demosaic", "full"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    # 32 x 40 pixels x 96 B = 123 kB needed, 10 kB available
+    assert "frame_a.tiff: a 40x32 frame with --demosaic full needs about 123 kB of memory; 10 kB is available" in err[0]
+    assert not list(out.glob("frame_a.*"))
+
+
+def test_never_writes_over_an_input(frame, tmp_path, capsys):
+    same = frame.parent
+    s0_named = same / "frame_a.S0.tiff"  # the name frame_a's S0 output would take
+    s0_named.write_bytes(frame.read_bytes())
+    before = s0_named.read_bytes()
+    assert main(["polar", str(frame), str(s0_named), "--out", str(same), "--json"]) == 2
+    recs, err = _records(capsys)
+    assert [r["status"] for r in recs] == ["error", "ok"]
+    assert "would overwrite the input" in recs[0]["error"] and str(s0_named) in recs[0]["error"]
+    assert s0_named.read_bytes() == before
+    assert (same / "frame_a.S0.S0.tiff").is_file()  # the other frame was processed
+
+
+def test_corrupt_png_is_one_line(tmp_path, capfd):
+    import cv2
+
+    ok, buf = cv2.imencode(".png", (np.arange(64 * 64).reshape(64, 64) % 4096).astype(np.uint16))
+    data = bytearray(buf.tobytes())
+    i = data.index(b"IDAT")
+    data[i + 10 : i + 30] = bytes(20)  # corrupt the compressed data, keep the chunk structure
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(bytes(data))
+    assert main(["polar", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capfd.readouterr().err.strip().splitlines()  # file descriptor 2: libpng writes there itself
+    assert len(err) == 1 and err[0].startswith("pihim: error:") and "bad.png" in err[0]
+
+
+def test_dark_level_above_every_value_warns_and_says_so_in_json(frame, tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["polar", str(frame), "--out", str(out), "--dark-level", "4000", "--json"]) == 0
+    recs, err = _records(capsys)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("pihim: warning:") and "--dark-level 4000" in lines[0]
+    assert recs[0]["fraction_valid"] == 0.0 and "no valid pixel" in recs[0]["warnings"][0]
+
+
+def test_implausible_calibration_refused(frame, tmp_path, capsys):
+    from pihim.polarimetry import AnalyserMatrix
+
+    cal = tmp_path / "tiny.json"
+    cal.write_text(json.dumps({"matrix": (AnalyserMatrix.ideal().matrix * 1e-300).tolist()}))
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 100_000 + "]" * 100_000)
+    for path, needle in ((cal, "transmissions"), (deep, "nested too deeply")):
+        assert main(["polar", str(frame), "--out", str(tmp_path / "o"), "--calibration", str(path)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0] and str(path) in err[0]
+    assert not (tmp_path / "o").exists()
+
+
+def test_disk_full_leaves_no_part_of_the_frame(frame, tmp_path, capsys, monkeypatch):
+    import pihim.cli.polar as polar_cli
+
+    other = tmp_path / "in" / "frame_b.tiff"
+    other.write_bytes(frame.read_bytes())
+    real = polar_cli.tifffile.imwrite
+    calls = []
+
+    def imwrite(path, data, **kw):
+        calls.append(path)
+        if len(calls) == 2:  # frame_a's DoLP, after its S0 was written
+            raise OSError("1253376 requested and 749500 written")
+        return real(path, data, **kw)
+
+    monkeypatch.setattr(polar_cli.tifffile, "imwrite", imwrite)
+    out = tmp_path / "o"
+    assert main(["polar", str(frame), str(other), "--out", str(out), "--json"]) == 1
+    recs, err = _records(capsys)
+    assert [r["status"] for r in recs] == ["error", "ok"]
+    assert "no space left on the device" in recs[0]["error"] and "requested" not in recs[0]["error"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "frame_b.AoP.tiff", "frame_b.DoLP.tiff", "frame_b.S0.tiff", "frame_b.polar.json"]
+
+
+def _mtimes(out):
+    return {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+
+
+def test_rerun_resumes_and_overwrite_redoes(frame, tmp_path, capsys):
+    other = tmp_path / "in" / "frame_b.tiff"
+    other.write_bytes(frame.read_bytes())
+    out = tmp_path / "o"
+    args = ["polar", str(frame), str(other), "--out", str(out), "--json"]
+    assert main(args) == 0
+    _records(capsys)
+    first = _mtimes(out)
+    (out / "frame_b.DoLP.tiff").unlink()  # an incomplete frame is redone
+    assert main(args) == 0
+    recs, err = _records(capsys)
+    assert [r.get("resumed", False) for r in recs] == [True, False]
+    assert "1 of 2 frames were already done" in err
+    assert all(_mtimes(out)[n] == t for n, t in first.items() if n.startswith("frame_a"))
+    # other options: the frame is redone
+    assert main([*args, "--demosaic", "full"]) == 0
+    recs, _ = _records(capsys)
+    assert [r.get("resumed", False) for r in recs] == [False, False] and recs[0]["demosaic"] == "full"
+    assert main([*args, "--demosaic", "full", "--overwrite"]) == 0
+    recs, _ = _records(capsys)
+    assert [r.get("resumed", False) for r in recs] == [False, False]
+
+
+def test_stale_temporaries_are_removed(frame, tmp_path, capsys):
+    import subprocess
+    import sys
+
+    from pihim._atomic import _host_tag
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    pid = int(dead.stdout)  # a process that has exited
+    out = tmp_path / "o"
+    out.mkdir()
+    stale = out / f".frame_a.S0.pihim-{_host_tag()}-{pid}-abcdefgh.part.tiff"
+    stale.write_bytes(b"half")
+    alive = out / f".other.pihim-{_host_tag()}-{os.getpid()}-abcdefgh.part.tiff"  # a run still going
+    alive.write_bytes(b"busy")
+    elsewhere = out / f".other.pihim-zzzz-{pid}-abcdefgh.part.tiff"  # not a name pihim makes
+    elsewhere.write_bytes(b"?")
+    assert main(["polar", str(frame), "--out", str(out)]) == 0
+    names = {p.name for p in out.iterdir()}
+    assert stale.name not in names and alive.name in names and elsewhere.name in names
+
+
+def _kill_when(proc, out, n_done, timeout_s):
+    """Wait until ``n_done`` records exist in ``out`` (or the process ends), then a random short delay."""
+    import random
+    import time
+
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end and proc.poll() is None:
+        if out.is_dir() and len(list(out.glob("*.polar.json"))) >= n_done:
+            break
+        time.sleep(0.005)
+    time.sleep(random.uniform(0.0, 0.12))
+
+
+def test_killed_batches_resume_without_loss(tmp_path, capsys):
+    """Kill a real ``pihim polar`` batch at random moments (SIGKILL twice, SIGTERM once), then rerun.
+
+    After each kill: every frame with a record has all its outputs, readable and of the right shape.
+    After the rerun: no temporary file, every frame complete, and the frames complete before the rerun
+    were not redone (their files are untouched).
+    """
+    import random
+    import signal
+    import subprocess
+    import sys
+
+    random.seed(10)
+    rng = np.random.default_rng(10)
+    frames = []
+    for k in range(10):
+        p = tmp_path / "in" / f"f{k:02d}.tiff"
+        p.parent.mkdir(exist_ok=True)
+        tifffile.imwrite(p, rng.integers(0, 4000, (256, 256), dtype=np.uint16))
+        frames.append(p)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    opts = ["--demosaic", "full", "--png"]
+    outputs = ("S0.tiff", "DoLP.tiff", "AoP.tiff", "S0.png", "DoLP.png", "AoP.png", "polar.png")
+    for trial, sig in enumerate((signal.SIGKILL, signal.SIGKILL, signal.SIGTERM)):
+        out = tmp_path / f"o{trial}"
+        proc = subprocess.Popen([sys.executable, "-m", "pihim", "polar", *map(str, frames), "--out", str(out), *opts],
+                                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        _kill_when(proc, out, random.randint(1, 6), timeout_s=60.0)
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=30)
+        done = {p.name.removesuffix(".polar.json") for p in out.glob("*.polar.json")}
+        if sig == signal.SIGTERM and proc.returncode == 143:
+            assert b"Traceback" not in err and b"pihim: terminated" in err
+            assert not list(out.glob(".*.part*")), "SIGTERM left a temporary file"
+        elif sig == signal.SIGTERM:  # the batch had finished (exit 0) or was exiting (default action)
+            assert proc.returncode in (0, -signal.SIGTERM) and len(done) == len(frames)
+        for stem in done:  # completion is marked last: a marked frame is whole
+            for suffix in outputs:
+                assert (out / f"{stem}.{suffix}").stat().st_size > 0
+            assert tifffile.imread(out / f"{stem}.DoLP.tiff").shape == (256, 256)
+        before = {p.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in out.iterdir()
+                  if p.name.split(".")[0] in done}
+        assert main(["polar", *map(str, frames), "--out", str(out), *opts, "--json"]) == 0
+        recs, _ = _records(capsys)
+        assert {r["file"] for r in recs if r.get("resumed")} == {str(f) for f in frames if f.stem in done}
+        assert not [p.name for p in out.iterdir() if ".part" in p.name]
+        assert len(list(out.glob("*.polar.json"))) == len(frames)
+        for f in frames:
+            for suffix in outputs:
+                assert (out / f"{f.stem}.{suffix}").stat().st_size > 0
+        after = {n: (p.stat().st_ino, p.stat().st_mtime_ns) for n in before if (p := out / n).exists()}
+        assert after == before  # frames completed before the rerun were not written again
 def test_success_is_reported_and_png_adds_a_captioned_figure(frame, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["polar", str(frame), "--out", str(out), "--png"]) == 0
@@ -137,3 +416,88 @@ def test_a_directory_is_reported_as_a_directory(frame, tmp_path, capsys):
     assert main(["polar", str(folder), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "is a directory" in err and "unsupported" not in err
+
+
+# -- merge of issue 10 and issue 11: the captioned figure in the frame's group, the summary with resumed frames ------
+
+
+def test_png_figure_belongs_to_the_frame_group(frame, tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["polar", str(frame), "--out", str(out), "--png", "--json"]) == 0
+    recs, _ = _records(capsys)
+    fig = out / "frame_a.polar.png"
+    assert recs[0]["outputs"]["figure_png"] == str(fig)
+    assert recs[0]["output_bytes"]["figure_png"] == fig.stat().st_size > 20_000
+    stored = json.loads((out / "frame_a.polar.json").read_text())
+    assert stored["outputs"]["figure_png"] == str(fig)
+    # the figure is checked on resume like the other outputs: a truncated figure makes the frame redone
+    fig.write_bytes(fig.read_bytes()[:100])
+    assert main(["polar", str(frame), "--out", str(out), "--png", "--json"]) == 0
+    recs, _ = _records(capsys)
+    assert not recs[0].get("resumed") and fig.stat().st_size > 20_000
+
+
+def test_png_figure_failure_leaves_none_of_the_frame(frame, tmp_path, capsys, monkeypatch):
+    import pihim.cli.polar as polar_cli
+
+    other = tmp_path / "in" / "frame_b.tiff"
+    other.write_bytes(frame.read_bytes())
+    real = polar_cli.polar_figure_png
+    seen = []
+
+    def figure(*args, **kw):
+        seen.append((args[3], kw.get("atomic")))
+        if len(seen) == 1:  # frame_a's figure, after its TIFFs and bare previews were written
+            raise OSError(28, "No space left on device")
+        return real(*args, **kw)
+
+    monkeypatch.setattr(polar_cli, "polar_figure_png", figure)
+    out = tmp_path / "o"
+    assert main(["polar", str(frame), str(other), "--out", str(out), "--png", "--json"]) == 1
+    recs, _ = _records(capsys)
+    assert [r["status"] for r in recs] == ["error", "ok"] and "no space left" in recs[0]["error"]
+    # written to the frame's temporary (not atomically again), then renamed with the others
+    assert all(atomic is False and ".part" in path.name for path, atomic in seen)
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        f"frame_b.{s}" for s in ("S0.tiff", "DoLP.tiff", "AoP.tiff", "S0.png", "DoLP.png", "AoP.png", "polar.png",
+                                 "polar.json"))
+
+
+def test_record_without_the_figure_is_redone(frame, tmp_path, capsys):
+    out = tmp_path / "o"
+    args = ["polar", str(frame), "--out", str(out), "--png", "--json"]
+    assert main(args) == 0
+    _records(capsys)
+    # a record as a version without the captioned figure wrote it: same options, no figure_png
+    record_path = out / "frame_a.polar.json"
+    rec = json.loads(record_path.read_text())
+    del rec["outputs"]["figure_png"], rec["output_bytes"]["figure_png"]
+    record_path.write_text(json.dumps(rec))
+    (out / "frame_a.polar.png").unlink()
+    assert main(args) == 0
+    recs, _ = _records(capsys)
+    assert not recs[0].get("resumed") and (out / "frame_a.polar.png").stat().st_size > 20_000
+
+
+def test_summary_counts_processed_resumed_and_failed(frame, tmp_path, capsys):
+    other = tmp_path / "in" / "frame_b.tiff"
+    other.write_bytes(frame.read_bytes())
+    missing = tmp_path / "in" / "missing.tiff"
+    out = tmp_path / "o"
+    assert main(["polar", str(frame), "--out", str(out)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"pihim polar: 1 of 1 frames -> {out}: <stem>.S0/.DoLP/.AoP.tiff (float32, AoP in deg); "
+                   "median DoLP 0.350-0.350"]
+    assert main(["polar", str(frame), str(other), str(missing), "--out", str(out)]) == 2
+    cap = capsys.readouterr()
+    err = [ln for ln in cap.err.strip().splitlines() if ln.startswith("pihim")]  # not the progress bar
+    assert cap.out == "" and len(err) == 2
+    assert err[0].startswith("pihim: error:") and "missing.tiff" in err[0]
+    assert err[1] == (f"pihim polar: 1 of 3 frames -> {out}: <stem>.S0/.DoLP/.AoP.tiff (float32, AoP in deg); "
+                      "median DoLP 0.350-0.350; 1 of 3 already complete from an earlier run, skipped "
+                      "(--overwrite redoes them); 1 failed")
+    # nothing left to do: no frame processed, both skipped
+    assert main(["polar", str(frame), str(other), "--out", str(out)]) == 0
+    err = [ln for ln in capsys.readouterr().err.strip().splitlines() if ln.startswith("pihim")]
+    assert err == [f"pihim polar: no frame processed in {out}; 2 of 2 already complete from an earlier run, "
+                   "skipped (--overwrite redoes them)"]

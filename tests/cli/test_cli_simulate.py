@@ -113,6 +113,8 @@ def _bad_cases(geometry):
         "odd size": (["--camera", "24,75,20", *look, "--size", "65x48"], "even"),
         "bad supersample": (["--camera", "24,75,20", *look, "--supersample", "0"], "supersample"),
         "naive time": (["--camera", "24,75,20", *look, "--time", "2021-05-13T13:00"], "utc offset"),
+        # issue 10: sizes the machine cannot hold are refused before rendering
+        "huge size": (["--camera", "24,75,20", *look, "--size", "100000x100000"], "needs about 2.56 tb of memory"),
     }
 
 
@@ -120,7 +122,7 @@ def _bad_cases(geometry):
     "camera below the ground", "camera inside a heliostat", "camera in the mirror box", "camera in the pedestal",
     "unknown heliostat", "look-at equal to position", "night", "negative sigma", "negative gps sigma",
     "negative seed", "two pose groups", "no pose", "hua without target", "roll alone", "target not visible",
-    "bad waypoint", "missing plan", "odd size", "bad supersample", "naive time",
+    "bad waypoint", "missing plan", "odd size", "bad supersample", "naive time", "huge size",
 ])
 def test_bad_input_one_line_exit_2_nothing_written(tmp_path, capsys, geometry, case):
     args, needle = _bad_cases(geometry)[case]
@@ -153,3 +155,12 @@ def test_bad_output_name(tmp_path, capsys, out_name, needle):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and needle in err
     assert not out.exists() or out.is_dir() and list(out.iterdir()) == []
+
+
+def test_deeply_nested_waypoint_plan_is_one_line(tmp_path, capsys):
+    plan = tmp_path / "plan.json"
+    plan.write_text("[" * 100_000 + "]" * 100_000)
+    out = tmp_path / "o" / "FRAME.tiff"
+    assert main(["simulate", "--time", TIME, "--waypoint", f"{plan}:0", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nested too deeply" in err[0] and not out.parent.exists()

@@ -132,6 +132,10 @@ BAD_ROWS = [
     ("8E4,34.1,94.5,4.9,25,5,5,4.02,0.2,1.2192,1.2192", "Pivot Offset = 0.2 differs from 0.1778 on line 2"),
     ("8E4,34.1,94.5,4.9,25.5,5,5,4.02,0.1778,1.2192,1.2192", "'Num. Facets' must be an integer"),
     ("8E4,34.1,94.5,4.9,25,5,5,4.02,0.1778,0,1.2192", "'Facet Width' must be positive"),
+    # issue 10: a 100000 x 100000 facet grid ended in MemoryError
+    ("8E4,34.1,94.5,4.9,10000000000,100000,100000,4.02,0.1778,1.2192,1.2192",
+     "Num. Facets = 10000000000 (100000 x 100000) is more than pihim handles, at most 10000 facets per heliostat "
+     "(the facet table alone would take 240 GB)"),
 ]
 
 
@@ -354,3 +358,12 @@ def test_radial_staggered_field_options() -> None:
             radial_staggered_field(bad)  # type: ignore[arg-type]
     with pytest.raises(PihimInputError, match="azimuth_span_deg"):
         radial_staggered_field(10, azimuth_span_deg=0.0)
+
+
+def test_fifo_field_file_refused(tmp_path: Path) -> None:
+    import os
+
+    p = tmp_path / "h.csv"
+    os.mkfifo(p)
+    with pytest.raises(PihimInputError, match="not a regular file"):
+        load_field(p)

@@ -115,6 +115,11 @@ def test_parse_date():
     for bad in ("2021-3-20", "20210320", "", "2021-02-30"):
         with pytest.raises(PihimInputError):
             parse_date(bad)
+    # issue 10: 'pihim windows --date 9999-12-31' was a NotImplementedError from pandas
+    for bad in ("9999-12-31", dt.date(9999, 12, 31), "0001-01-01"):
+        with pytest.raises(PihimInputError, match="outside the years pihim handles"):
+            parse_date(bad)
+    assert parse_date("2261-12-31") == dt.date(2261, 12, 31)
 
 
 # --------------------------------------------------------------------------- windows helper

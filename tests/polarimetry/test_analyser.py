@@ -62,3 +62,34 @@ def test_bad_calibration_files(tmp_path, content, match):
 def test_rank_deficient_rejected():
     with pytest.raises(PihimInputError, match="rank"):
         AnalyserMatrix.from_parameters([0, 0, 90, 90])
+
+
+@pytest.mark.parametrize(
+    "scale, match", [(1e-300, "transmissions"), (1e300, "transmissions"), (-1.0, "transmissions")]
+)
+def test_implausible_scale_rejected(scale, match):
+    # issue 10: a matrix of 1e-300 passed the rank test and masked every pixel (exit 0)
+    with pytest.raises(PihimInputError, match=match):
+        AnalyserMatrix(AnalyserMatrix.ideal().matrix * scale)
+
+
+def test_ill_conditioned_rejected():
+    with pytest.raises(PihimInputError, match="ill-conditioned"):
+        AnalyserMatrix.from_parameters([0, 45, 90, 135], 1.0, 1.0 + 1e-7)  # polarizers that barely polarize
+
+
+def test_deeply_nested_calibration_json_is_one_line(tmp_path):
+    p = tmp_path / "deep.json"
+    p.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(PihimInputError, match="nested too deeply") as err:
+        AnalyserMatrix.load(p)
+    assert str(p) in str(err.value)
+
+
+def test_fifo_calibration_refused(tmp_path):
+    import os
+
+    p = tmp_path / "cal.json"
+    os.mkfifo(p)
+    with pytest.raises(PihimInputError, match="not a regular file"):
+        AnalyserMatrix.load(p)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -79,6 +80,9 @@ def test_time_and_site_berry(tmp_path, capsys):
         (["--sun-zenith", "30", "--sun-azimuth", "10", "--site", "nsttf"], "--site needs --time"),
         (["--time", "2024-06-21T10:00:00-06:00", "--site", "95,0,0"], "latitude"),
         (["--sun-zenith", "abc", "--sun-azimuth", "10"], "sun-zenith"),
+        # issue 10: out-of-range numbers
+        (["--time", "2024-06-21T10:00:00-06:00", "--site", "0,0,1e300"], "site height"),
+        (["--time", "9999-06-21T10:00:00-06:00"], "outside the years"),
     ],
 )
 def test_bad_input_exits_2_with_one_line_and_no_files(tmp_path, capsys, args, needle):
@@ -96,6 +100,25 @@ def test_out_is_a_file(tmp_path, capsys):
     f.write_text("x")
     assert main(["sky", "--sun-zenith", "30", "--sun-azimuth", "10", "--out", str(f)]) == 2
     assert "not a directory" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs a /proc file system")
+def test_out_that_cannot_be_created_is_one_line(tmp_path, capsys):
+    # issue 10: 'pihim sky --out /proc/x' was a FileNotFoundError traceback
+    rc = main(["sky", "--sun-zenith", "30", "--sun-azimuth", "10", "--resolution", "5", "--out", "/proc/x"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("pihim: error: --out /proc/x: cannot create")
+
+
+def test_resolution_too_fine_for_memory_refused_with_the_figure(tmp_path, capsys, monkeypatch):
+    import pihim._resources as resources
+
+    monkeypatch.setattr(resources, "available_memory", lambda: 50_000_000)  # 50 MB left
+    rc = main(["sky", "--sun-zenith", "30", "--sun-azimuth", "10", "--resolution", "0.5", "--out", str(tmp_path / "s")])
+    err = capsys.readouterr().err.strip().splitlines()
+    # 180 x 720 directions x 1.5 kB = 194 MB
+    assert rc == 2 and len(err) == 1 and "needs about 194 MB of memory; 50 MB is available" in err[0]
+    assert not (tmp_path / "s").exists()
 
 
 def test_success_says_what_was_written(tmp_path, capsys):

@@ -129,7 +129,8 @@ def test_nsttf_site_and_parse_site():
     assert (custom.latitude_deg, custom.longitude_deg, custom.height_m) == (35.1, -106.6, 1650.0)
 
 
-@pytest.mark.parametrize("bad", ["mars", "35,-106", "95,0,0", "10,200,0", "a,b,c", "1,2,nan"])
+@pytest.mark.parametrize("bad", ["mars", "35,-106", "95,0,0", "10,200,0", "a,b,c", "1,2,nan",
+                                 "0,0,1e300", "0,0,-1e6", "0,0,inf"])
 def test_parse_site_refuses_bad_text(bad):
     with pytest.raises(PihimInputError):
         parse_site(bad)
@@ -144,3 +145,12 @@ def test_require_daylight():
         require_daylight([0.0, 0.6, -0.8])
     require_daylight(SunPosition.from_angles(90.0, 10.0))  # on the horizon is allowed
     require_daylight(direction_from_angles(30.0, 235.0))
+
+
+def test_out_of_range_years_refused_in_one_line():
+    # issue 10: years pandas cannot hold used to fail deep inside pandas
+    for text in ("9999-05-13T10:00-06:00", "1000-01-01T00:00Z"):
+        with pytest.raises(PihimInputError, match="outside the years pihim handles") as err:
+            parse_time(text)
+        assert "\n" not in str(err.value)
+    assert parse_time("2261-06-01T12:00Z").year == 2261

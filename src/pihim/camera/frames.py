@@ -71,9 +71,13 @@ References
 
 from __future__ import annotations
 
+import contextlib
 import operator
 import os
-from collections.abc import Callable
+import stat
+import sys
+import tempfile
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeAlias
@@ -405,7 +409,8 @@ def _check_dimensions(label: str, width: object, height: object) -> tuple[int, i
 
 
 def _read_file_bytes(path: PathLike, label: str) -> NDArray[np.uint8]:
-    """All bytes of a file as ``uint8`` (:func:`numpy.fromfile`); rejects empty files."""
+    """All bytes of a regular file as ``uint8`` (:func:`numpy.fromfile`); rejects empty files."""
+    _check_file(path, label)
     try:
         data = np.fromfile(path, dtype=np.uint8)
     except OSError as exc:
@@ -492,13 +497,15 @@ def _checked_mosaic(label: str, data: NDArray) -> NDArray[np.uint8] | NDArray[np
 
 
 def _check_file(path: PathLike, label: str) -> None:
-    """Raise unless ``path`` is an existing, non-empty regular file."""
+    """Raise unless ``path`` is an existing, non-empty regular file (a FIFO would block the reader)."""
     try:
         st = os.stat(path)
     except OSError as exc:
         raise _os_error(label, exc) from None
-    if os.path.isdir(path):
+    if stat.S_ISDIR(st.st_mode):
         raise _error(label, "is a directory, not a frame file")
+    if not stat.S_ISREG(st.st_mode):
+        raise _error(label, "not a regular file (a FIFO, device or socket); give a frame file")
     if st.st_size == 0:
         raise _error(label, "empty file")
 
@@ -555,6 +562,31 @@ def read_tiff(path: PathLike) -> RawFrame:
     return RawFrame(data, bit_depth, "tiff", Path(path))
 
 
+@contextlib.contextmanager
+def stderr_captured(lines: list[str]) -> Iterator[None]:
+    """Send what C libraries write to file descriptor 2 into ``lines`` instead of the terminal.
+
+    Decoders such as libpng print their own error lines on stderr; pihim
+    reports the failure once, in its own message. Where descriptor 2 cannot
+    be redirected, nothing is captured.
+    """
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield
+        return
+    with tempfile.TemporaryFile() as sink:
+        try:
+            sys.stderr.flush()
+            os.dup2(sink.fileno(), 2)
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            lines.extend(sink.read(4096).decode("utf-8", "replace").splitlines())
+
+
 def _check_png_chunks(label: str, raw: NDArray[np.uint8]) -> None:
     """Walk the PNG chunk list up to ``IEND``; reject lengths running past the file end.
 
@@ -605,14 +637,17 @@ def read_png(path: PathLike) -> RawFrame:
     # OpenCV logs its own warning line for corrupt buffers; the error below says it all
     log_level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    captured: list[str] = []
     try:
-        img = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
+        with stderr_captured(captured):  # libpng prints "libpng error: ..." itself
+            img = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
     except Exception as exc:  # noqa: BLE001 - cv2.error (or MemoryError) on corrupt data
         raise _error(label, f"cannot decode PNG: {_describe(exc)}") from None
     finally:
         cv2.utils.logging.setLogLevel(log_level)
     if img is None:
-        raise _error(label, "cannot decode PNG (corrupt or unsupported file)")
+        detail = "; ".join(line.strip() for line in captured if line.strip())
+        raise _error(label, f"cannot decode PNG ({detail or 'corrupt or unsupported file'})")
     data = _checked_mosaic(label, img)
     return RawFrame(data, 8 if data.dtype == np.uint8 else None, "png", Path(path))
 

@@ -23,6 +23,7 @@ References
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +34,14 @@ from pihim.polarimetry.analyser import NOMINAL_ANGLES_DEG
 
 _VALID = frozenset(int(a) for a in NOMINAL_ANGLES_DEG)
 _NAMED = {"imx250mzr": ((90, 45), (135, 0)), "default": ((90, 45), (135, 0))}
+
+
+def _whole_degrees(a: object) -> int:
+    """``a`` as an int if it is a whole number (45, 45.0, numpy ints); ValueError otherwise (0.7, inf, nan)."""
+    v = float(a)  # type: ignore[arg-type]
+    if not math.isfinite(v) or v != round(v):
+        raise ValueError(f"{a!r} is not a whole number of degrees")
+    return int(v)
 
 
 def _mirror_angle(a: int) -> int:
@@ -55,8 +64,8 @@ class MosaicLayout:
 
     def __post_init__(self) -> None:
         try:
-            grid = tuple(tuple(int(a) for a in row) for row in self.angles_deg)
-        except (TypeError, ValueError):
+            grid = tuple(tuple(_whole_degrees(a) for a in row) for row in self.angles_deg)
+        except (TypeError, ValueError, OverflowError):
             raise PihimInputError(f"layout must be 2x2 angles, got {self.angles_deg!r}") from None
         flat = [a for row in grid for a in row]
         if len(grid) != 2 or any(len(r) != 2 for r in grid) or sorted(flat) != sorted(_VALID):
@@ -74,14 +83,20 @@ class MosaicLayout:
             return cls(_NAMED[key])
         parts = [p for p in key.replace(";", ",").replace(" ", ",").split(",") if p]
         try:
-            vals = [int(float(p)) for p in parts]
+            nums = [float(p) for p in parts]
         except ValueError:
-            vals = []
-        if len(vals) != 4:
+            nums = []
+        if len(nums) != 4:
             raise PihimInputError(
                 f"unknown layout {text!r}: give a name ({', '.join(sorted(_NAMED))}) "
                 "or four row-major angles like 90,45,135,0"
             )
+        if not all(math.isfinite(v) and v == round(v) for v in nums):
+            raise PihimInputError(
+                f"layout {text!r}: the angles must be the whole degrees 0, 45, 90 and 135 (row-major), "
+                "e.g. 90,45,135,0"
+            )
+        vals = [int(v) for v in nums]
         return cls(((vals[0], vals[1]), (vals[2], vals[3])))
 
     @classmethod

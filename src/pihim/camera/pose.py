@@ -25,7 +25,6 @@ OpenCV's extrinsics are ``rvec = Rodrigues(R)`` and ``tvec = -R C``.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -287,18 +286,12 @@ class CameraPose:
         CameraPose
             :meth:`from_waypoint` of that waypoint.
         """
+        from pihim._inputs import load_json_file
+
         p = Path(path)
-        try:
-            text = p.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise PihimInputError(f"plan file not found: {p}") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise PihimInputError(f"cannot read plan file {p}: {exc}") from None
-        try:
-            doc = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise PihimInputError(f"{p} is not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") \
-                from None
+        if not p.exists():
+            raise PihimInputError(f"plan file not found: {p}")
+        doc = load_json_file(p, "plan file")
         schema = doc.get("schema") if isinstance(doc, dict) else None
         passes = doc.get("passes") if isinstance(doc, dict) else None
         if (schema is not None and schema != "pihim.plan/1") or not isinstance(passes, list) \

@@ -1,14 +1,23 @@
 """The ``pihim`` command line: a thin layer over the Python API.
 
 Every command reports invalid input as one line on stderr and exits with
-status 2; computed results can be printed as JSON (``--json``).
+status 2; computed results can be printed as JSON (``--json``). Exit
+statuses: 0 success; 2 bad input (an option, a file, or a request larger
+than the memory of the machine), also when only some items of a batch were
+bad; 1 an operating-system error while writing, or an internal error; 130
+interrupted (SIGINT), 143 terminated (SIGTERM). No status comes with a
+traceback unless ``PIHIM_TRACEBACK=1`` is set.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import signal
 import sys
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import typer
 
@@ -45,11 +54,49 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
     print(f"pihim: warning: {message}", file=sys.stderr)
 
 
+class Terminated(BaseException):
+    """Raised in the main thread on SIGTERM, so that temporary files are removed as on Ctrl-C."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:  # noqa: ARG001
+    raise Terminated(signum)
+
+
+@contextmanager
+def _sigterm_raises() -> Iterator[None]:
+    """Turn SIGTERM into :class:`Terminated` for the duration of the block (main thread only)."""
+    try:
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    except (ValueError, OSError):  # not the main thread, or no signals here
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _one_line(exc: BaseException) -> str:
+    """An exception as one line of text."""
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the CLI; returns the exit status (0 ok, 1 some items failed, 2 bad input)."""
+    """Run the CLI; returns the exit status (0 ok, 2 bad input, 1 write or internal error, 130/143 stopped)."""
     # readers turn corrupt files into one-line errors; silence tifffile's own log lines
     logging.getLogger("tifffile").setLevel(logging.CRITICAL)
     warnings.showwarning = _one_line_warning
+    with _sigterm_raises():
+        try:
+            return _run(argv)
+        except Terminated:
+            print("pihim: terminated", file=sys.stderr)
+            return 128 + signal.SIGTERM
+
+
+def _run(argv: list[str] | None) -> int:
+    """The command, with every failure turned into one stderr line and an exit status."""
     try:
         rv = app(args=argv, standalone_mode=False, prog_name="pihim")
     except PihimInputError as exc:
@@ -66,6 +113,24 @@ def main(argv: list[str] | None = None) -> int:
     except typer.Abort:
         print("pihim: aborted", file=sys.stderr)
         return 130
+    except MemoryError:
+        from pihim._resources import memory_error_message
+
+        print(f"pihim: error: {memory_error_message('this request')}", file=sys.stderr)
+        return 2
+    except RecursionError:
+        print("pihim: error: input nested too deeply", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"pihim: error: {where}{exc.strerror or _one_line(exc)}", file=sys.stderr)
+        return 1
+    except Exception as exc:  # noqa: BLE001 - the promise is one line, never a traceback
+        if os.environ.get("PIHIM_TRACEBACK"):
+            raise
+        print(f"pihim: error: internal error ({_one_line(exc)}); set PIHIM_TRACEBACK=1 for details",
+              file=sys.stderr)
+        return 1
     return int(rv or 0)
 
 

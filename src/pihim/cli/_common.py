@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import math
 import sys
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from rich.console import Console
@@ -70,13 +70,43 @@ def report_error(message: str) -> None:
     print(f"pihim: error: {message}", file=sys.stderr)
 
 
-def unique_stems(paths: Iterable[Any]) -> None:
-    """Refuse batches in which two inputs would write the same output names."""
-    seen: dict[str, Any] = {}
-    for p in paths:
-        if p.stem in seen:
-            raise PihimInputError(f"{p} and {seen[p.stem]} share the name {p.stem!r}; outputs would collide")
-        seen[p.stem] = p
+def check_out_dir(out: "Path", *, option: str = "--out") -> None:
+    """Refuse an output directory that cannot be one, before any work is done.
+
+    ``out`` must be a directory or not exist yet; its nearest existing
+    ancestor must be a directory. Nothing is created (see
+    :func:`make_out_dir`).
+    """
+    from pathlib import Path
+
+    p = Path(out)
+    if p.exists() and not p.is_dir():
+        raise PihimInputError(f"{option} {out}: exists and is not a directory")
+    for parent in p.absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise PihimInputError(f"{option} {out}: {parent} is not a directory")
+            break
+
+
+def make_out_dir(out: "Path", *, option: str = "--out") -> "Path":
+    """Create the output directory (one-line error if impossible) and clean stale temporaries in it.
+
+    Temporary files that killed runs left behind (see
+    :func:`pihim._atomic.clean_stale_temporaries`) are removed.
+    """
+    from pathlib import Path
+
+    from pihim._atomic import clean_stale_temporaries
+
+    p = Path(out)
+    check_out_dir(p, option=option)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PihimInputError(f"{option} {out}: cannot create the directory ({exc.strerror or exc})") from None
+    clean_stale_temporaries(p)
+    return p
 
 
 def load_field_option(spec: str, facets: "Path | None", *, nsttf_tower: bool = True) -> "Field":

@@ -20,16 +20,24 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from pihim._atomic import write_json_atomic
+from pihim._atomic import clean_stale_temporaries, write_json_atomic
 from pihim.camera import calibration
 from pihim.camera.frames import read_frame
 from pihim.camera.layout import MosaicLayout
+from pihim.cli._common import check_out_dir
 from pihim.errors import PihimInputError
 from pihim.polarimetry.analyser import NOMINAL_ANGLES_DEG
 
 
-def parse_angles(text: str) -> list[float]:
+#: Most angles ``--angles START:STOP:STEP`` may expand to (one frame per angle).
+MAX_ANGLES = 10_000
+
+
+def parse_angles(text: str, *, max_count: int = MAX_ANGLES) -> list[float]:
     """Parse ``--angles``: comma-separated degrees, or ``START:STOP:STEP`` (STOP exclusive).
+
+    A range is refused before it is expanded when it holds more than
+    ``max_count`` angles (``0:1e9:1e-9`` would be 10^18 of them).
 
     Examples
     --------
@@ -39,6 +47,7 @@ def parse_angles(text: str) -> list[float]:
     [0.0, 45.0, 90.0, 135.0]
     """
     s = text.strip()
+    count: float | None = None
     try:
         if ":" in s:
             parts = [float(p) for p in s.split(":")]
@@ -47,8 +56,8 @@ def parse_angles(text: str) -> list[float]:
             start, stop, step = parts
             if not all(math.isfinite(v) for v in parts) or step <= 0 or stop <= start:
                 raise ValueError
-            n = math.ceil((stop - start) / step - 1e-9)
-            vals = [start + i * step for i in range(n)]
+            count = (stop - start) / step
+            vals = [] if not count - 1e-9 <= max_count else [start + i * step for i in range(math.ceil(count - 1e-9))]
         else:
             vals = [float(p) for p in s.replace(";", ",").split(",") if p.strip()]
     except ValueError:
@@ -56,6 +65,8 @@ def parse_angles(text: str) -> list[float]:
             f"--angles: cannot parse {text!r}; give comma-separated degrees like 0,22.5,45 "
             "or START:STOP:STEP like 0:180:22.5"
         ) from None
+    if count is not None and not count - 1e-9 <= max_count:
+        raise PihimInputError(f"--angles {text!r} gives {count:.3g} angles; at most {max_count} (one per frame)")
     if not vals or not all(math.isfinite(v) for v in vals):
         raise PihimInputError(f"--angles: no finite angles in {text!r}")
     return vals
@@ -151,13 +162,20 @@ def calibrate_polarizer(
     ] = False,
 ) -> None:
     """Estimate the analyser matrix from frames behind a linear polarizer rotated to known angles."""
-    angle_list = parse_angles(angles)
+    angle_list = parse_angles(angles, max_count=max(len(frames), 1))
     if len(angle_list) != len(frames):
         raise PihimInputError(f"got {len(frames)} frames but {len(angle_list)} angles in --angles")
     mosaic_layout = MosaicLayout.parse(layout)
     roi_box = None if roi is None else parse_roi(roi)
     if bit_depth is not None and not 1 <= bit_depth <= 16:
         raise PihimInputError(f"--bit-depth must be in 1..16, got {bit_depth}")
+    if not (math.isfinite(dark_level) and dark_level >= 0):
+        raise PihimInputError(f"--dark-level must be a finite number >= 0, got {dark_level:g}")
+    if not (math.isfinite(polarizer_dolp) and 0 < polarizer_dolp <= 1):
+        raise PihimInputError(f"--polarizer-dolp must be in (0, 1], got {polarizer_dolp:g}")
+    if out.is_dir():
+        raise PihimInputError(f"--out {out}: cannot write the calibration: is a directory; give a JSON file name")
+    check_out_dir(out.parent, option="--out")
     raws = [read_frame(p, width=width, height=height, pixel_format=pixel_format) for p in frames]
     cal = calibration.calibrate_polarizer(
         raws,
@@ -171,6 +189,8 @@ def calibrate_polarizer(
     )
     record = cal.to_dict()
     try:
+        if out.parent.is_dir():
+            clean_stale_temporaries(out.parent)  # left by a killed run
         write_json_atomic(out, record)
     except OSError as exc:
         raise PihimInputError(f"{out}: cannot write the calibration ({exc.strerror or exc})") from None

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from rich.console import Console
 from rich.table import Table
 
-from pihim._atomic import write_json_atomic
+from pihim._atomic import clean_stale_temporaries, write_json_atomic
 from pihim.camera.frames import read_frame
 from pihim.camera.layout import MosaicLayout
 from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
@@ -59,18 +59,23 @@ def read_grey(path: Path) -> NDArray:
     if suffix not in GREY_SUFFIXES:
         raise PihimInputError(f"{label}: unsupported grey image type {suffix or '(no extension)'!r}; "
                               f"expected one of {', '.join(GREY_SUFFIXES)}")
-    if not path.is_file():
-        raise PihimInputError(f"{label}: no such file")
+    from pihim._inputs import check_regular_file
+    from pihim.camera.frames import stderr_captured
+
+    check_regular_file(path, "grey image")
+    captured: list[str] = []
     try:
         if suffix == ".png":
-            img = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+            with stderr_captured(captured):  # libpng prints its own error line
+                img = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
         else:
             img = tifffile.imread(path)
     except Exception as exc:  # noqa: BLE001 - decoders raise many types on corrupt files
         raise PihimInputError(f"{label}: cannot read image ({type(exc).__name__}: {' '.join(str(exc).split())})") \
             from None
     if img is None:
-        raise PihimInputError(f"{label}: cannot decode image (corrupt or unsupported file)")
+        detail = "; ".join(line.strip() for line in captured if line.strip())
+        raise PihimInputError(f"{label}: cannot decode image ({detail or 'corrupt or unsupported file'})")
     img = np.asarray(img)
     if img.ndim == 3 and img.shape[0] == 1:
         img = img[0]
@@ -215,6 +220,8 @@ def calibrate_camera(
         "files": [str(p) for p in images],
     }
     try:
+        if out.parent.is_dir():
+            clean_stale_temporaries(out.parent)  # left by a killed run
         write_json_atomic(out, record)
     except OSError as exc:
         raise PihimInputError(f"{out}: cannot write the calibration ({exc.strerror or exc})") from None

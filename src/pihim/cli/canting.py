@@ -18,7 +18,7 @@ import typer
 
 from pihim.camera.frames import RAW_SUFFIXES, read_frame
 from pihim.camera.model import CameraModel
-from pihim.cli._common import emit_json, load_field_option, report_error, stderr_console
+from pihim.cli._common import check_out_dir, emit_json, load_field_option, report_error, stderr_console
 from pihim.cli.edges import _write_all, read_log
 from pihim.errors import PihimInputError
 from pihim.inspection.canting import CantingResult
@@ -196,8 +196,7 @@ def canting(
     t0 = _time.perf_counter()
     if not frames:
         raise PihimInputError("give at least one frame")
-    if out.exists() and not out.is_dir():
-        raise PihimInputError(f"{out}: exists and is not a directory")
+    check_out_dir(out)
     for frame in frames:
         if not frame.is_file():
             read_frame(frame)  # the reader's own one-line error (missing, a directory, ...)

@@ -12,7 +12,6 @@ import contextlib
 import json
 import math
 import os
-import tempfile
 import time as _time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -23,12 +22,12 @@ import numpy as np
 import tifffile
 import typer
 
-from pihim._atomic import _UMASK
+from pihim._atomic import temp_sibling
 from pihim.camera.frames import RAW_SUFFIXES, read_frame
 from pihim.camera.layout import IMX250MZR, MosaicLayout
 from pihim.camera.model import CameraModel
 from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
-from pihim.cli._common import emit_json, report_error, stderr_console
+from pihim.cli._common import check_out_dir, emit_json, make_out_dir, report_error, stderr_console
 from pihim.errors import PihimInputError
 from pihim.inspection.edges import EDGE_METHODS, IMAGE_TYPES, EdgeMaps, edge_maps
 from pihim.polarimetry.analyser import AnalyserMatrix
@@ -51,16 +50,11 @@ def read_log(meta: Path) -> dict[str, Any]:
 
     ``truth`` is never looked at.
     """
-    try:
-        text = meta.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise PihimInputError(f"{meta}: metadata file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise PihimInputError(f"{meta}: cannot read the metadata file ({exc})") from None
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise PihimInputError(f"{meta}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    from pihim._inputs import load_json_file
+
+    if not meta.exists():
+        raise PihimInputError(f"{meta}: metadata file not found")
+    doc = load_json_file(meta, "metadata file")
     if not isinstance(doc, Mapping):
         raise PihimInputError(f"{meta}: metadata must be a JSON object")
     log = doc.get("log", doc if "camera" in doc else None)
@@ -98,21 +92,19 @@ def sensor_settings(log: Mapping[str, Any], meta: Path) -> dict[str, Any]:
 def _write_all(out_dir: Path, writers: dict[Path, Callable[[Path], None]]) -> None:
     """Write every file under a temporary name, then rename them all; on failure remove everything written."""
     created = not out_dir.exists()
+    made: list[Path] = []
     tmps: dict[Path, Path] = {}
     done: list[Path] = []
     try:
-        out_dir.mkdir(parents=True, exist_ok=True)
+        make_out_dir(out_dir)
         for final, writer in writers.items():
-            fd, name = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=f".part{final.suffix}", dir=out_dir)
-            os.close(fd)
-            os.chmod(name, 0o666 & ~_UMASK)
-            tmps[final] = Path(name)
-            writer(Path(name))
+            tmps[final] = temp_sibling(final, made)
+            writer(tmps[final])
         for final, tmp in tmps.items():
             os.replace(tmp, final)
             done.append(final)
     except BaseException:
-        for path in [*tmps.values(), *done]:
+        for path in [*made, *done]:
             with contextlib.suppress(OSError):
                 path.unlink()
         if created:
@@ -180,8 +172,7 @@ def edges(
         raise PihimInputError(f"unknown edge method {method!r}; choose one of {', '.join(EDGE_METHODS)}")
     if demosaic not in DEMOSAIC_METHODS:
         raise PihimInputError(f"unknown demosaic method {demosaic!r}; choose one of {', '.join(DEMOSAIC_METHODS)}")
-    if out.exists() and not out.is_dir():
-        raise PihimInputError(f"{out}: exists and is not a directory")
+    check_out_dir(out)
     if not frame.is_file():
         read_frame(frame)  # the reader's own one-line error (missing, a directory, ...)
     if meta is None:

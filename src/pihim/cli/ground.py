@@ -29,7 +29,8 @@ import numpy as np
 import typer
 
 from pihim._atomic import atomic_path
-from pihim.cli._common import emit_json, stderr_console
+from pihim._resources import require_memory
+from pihim.cli._common import check_out_dir, emit_json, make_out_dir, stderr_console
 from pihim.cli.sky import resolve_sun
 from pihim.errors import PihimInputError
 from pihim.polarimetry.frames import normalize
@@ -42,6 +43,10 @@ from pihim.surfaces.mirror import mirror_model
 from pihim.visualize import polar_map_png
 
 SCHEMA_ID = "pihim.ground/1"
+#: Peak bytes per map direction of :func:`_maps` (measured about 0.8-1.1 kB; rounded up).
+MAP_BYTES_PER_DIRECTION = 1500
+#: Peak bytes per Monte Carlo microfacet (measured about 0.67 kB; rounded up).
+MC_BYTES_PER_FACET = 1000
 AOP_REFERENCE = (
     "image AoP in [0, 180) deg: counter-clockwise from image right as displayed, for a zero-roll camera "
     "at the map direction looking at the observed point"
@@ -124,6 +129,13 @@ def ground(
         raise PihimInputError(f"--resolution must divide 90 deg, got {resolution:g}")
     if facets < 1:
         raise PihimInputError(f"--facets must be >= 1, got {facets}")
+    if seed < 0:
+        raise PihimInputError(f"--seed must be a non-negative integer, got {seed}")
+    n_dirs = round(90.0 / resolution) * round(360.0 / resolution)
+    require_memory(n_dirs * MAP_BYTES_PER_DIRECTION, f"--resolution {resolution:g} ({n_dirs:.3g} directions)")
+    if monte_carlo:
+        require_memory(facets * MC_BYTES_PER_FACET + n_dirs * MAP_BYTES_PER_DIRECTION,
+                       f"--monte-carlo --facets {facets:g}")
     ground_model = GroundModel(
         sigma_deg=sigma, refractive_index=refractive_index, diffuse_albedo=diffuse_albedo, sun_irradiance=sun_irradiance
     )
@@ -131,12 +143,16 @@ def ground(
     sun, when = resolve_sun(time, site, sun_zenith, sun_azimuth)
     require_daylight(sun, what="pihim ground")
     sky = with_horizontal_irradiance(SkyModel(kind=model, dmax=dmax), sun.vector, sky_irradiance)  # type: ignore[arg-type]
-    if out.exists() and not out.is_dir():
-        raise PihimInputError(f"{out}: exists and is not a directory")
+    check_out_dir(out)
     normal = normalize(direction_from_angles(mirror_normal_zenith, mirror_normal_azimuth))
     with stderr_console.status("pihim ground: computing the ground and mirror maps ..."):
         maps = _maps(ground_model, sky, mirror_obj, sun.vector, normal, resolution)
-    out.mkdir(parents=True, exist_ok=True)
+    # everything is computed (and so validated) before the first file is written
+    mc = None
+    if monte_carlo:
+        with stderr_console.status(f"pihim ground: Monte Carlo over {facets:,} microfacets ..."):
+            mc = ground_model.monte_carlo(sun.vector, sky, n_facets=facets, bin_deg=resolution, seed=seed)
+    make_out_dir(out)
     title = f"sun zen {float(sun.zenith_deg):.1f} az {float(sun.azimuth_deg):.1f}, sigma {sigma:g}"
     sun_marker = ((float(sun.azimuth_deg), float(sun.zenith_deg), "*", "sun"),)
     files = {
@@ -153,9 +169,7 @@ def ground(
                                             title=f"AoP difference -- {title}", markers=sun_marker),
     }
     arrays = dict(maps)
-    if monte_carlo:
-        with stderr_console.status(f"pihim ground: Monte Carlo over {facets:,} microfacets ..."):
-            mc = ground_model.monte_carlo(sun.vector, sky, n_facets=facets, bin_deg=resolution, seed=seed)
+    if mc is not None:
         arrays.update(mc_counts=mc.counts, mc_stokes=mc.stokes, mc_stderr=mc.stderr,
                       mc_dolp=mc.dolp, mc_aop_local_meridian_deg=mc.aop_deg)
         files["mc_dolp_png"] = polar_map_png(mc.dolp, out / "ground-dolp-mc.png", style="dolp",

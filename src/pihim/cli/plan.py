@@ -13,7 +13,7 @@ from typing import Annotated
 
 import typer
 
-from pihim.cli._common import emit_json, load_field_option, parse_point, stderr_console
+from pihim.cli._common import check_out_dir, emit_json, load_field_option, make_out_dir, parse_point, stderr_console
 from pihim.errors import PihimInputError
 from pihim.planning.endurance import DroneEndurance
 from pihim.planning.export import export_all
@@ -51,8 +51,7 @@ def plan(
     when = parse_time(time)
     site_obj = parse_site(site)
     aim_point = parse_point(aim, name="--aim")
-    if out.exists() and not out.is_dir():
-        raise PihimInputError(f"{out}: exists and is not a directory")
+    check_out_dir(out)
     if not (math.isfinite(battery_min) and battery_min > 0):
         raise PihimInputError(f"--battery-min must be a positive number of minutes, got {battery_min:g}")
     if max_mission_items < 4:
@@ -66,7 +65,7 @@ def plan(
     the_plan = build_plan(fld, when, site_obj, aim_point=aim_point, max_altitude_m=max_altitude, heliostats=names,
                           scoring=scoring, shift=not no_shift, endurance=DroneEndurance(battery_min=battery_min),
                           fleet_hours=fleet_hours, max_mission_items=max_mission_items, mission_options=options)
-    files = export_all(the_plan, out, field=fld, max_mission_items=max_mission_items, **options)
+    files = export_all(the_plan, make_out_dir(out), field=fld, max_mission_items=max_mission_items, **options)
     summary = the_plan.summary
     summary["seconds"]["total_with_export"] = round(_time.perf_counter() - t0, 4)
     if json_out:

@@ -1,8 +1,33 @@
-"""``pihim polar``: raw mosaic frames to S0, DoLP and AoP images."""
+"""``pihim polar``: raw mosaic frames to S0, DoLP and AoP images.
+
+Batch behaviour (``docs/cli.md``):
+
+* every option is checked before the first frame is read;
+* a frame that fails -- unreadable, bad data, too large for the memory left,
+  outputs that would overwrite an input, a write error -- is reported on one
+  stderr line and the batch goes on; the exit status says that some failed;
+* a frame's images are written under temporary names and renamed together,
+  then its record ``<name>.polar.json`` is written last: a frame with a
+  record is complete; a run that is killed leaves at worst a frame without
+  a record (redone on the next run) and temporaries that the next run removes;
+* a rerun skips the frames whose record matches the input file (size and
+  modification time), the options and the outputs on disk (``--overwrite``
+  redoes them).
+"""
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import hashlib
+import json
 import math
+import os
+import re
+import shutil
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -10,78 +35,358 @@ import numpy as np
 import tifffile
 import typer
 
-from pihim._atomic import atomic_path
-from pihim.camera.frames import read_frame
+from pihim._atomic import atomic_group, write_json_atomic
+from pihim._resources import format_bytes, memory_error_message, require_memory
+from pihim.camera.frames import normalize_pixel_format, read_frame
 from pihim.camera.layout import MosaicLayout
 from pihim.camera.pipeline import DEMOSAIC_METHODS, PolarImage, polar_image
-from pihim.cli._common import emit_json, parse_layout, progress, report_error, stderr_console, unique_stems
+from pihim.cli._common import emit_json, make_out_dir, parse_layout, progress, report_error, stderr_console
 from pihim.errors import PihimInputError
 from pihim.polarimetry.analyser import AnalyserMatrix
 from pihim.visualize import aop_to_rgb, dolp_to_rgb, polar_figure_png, s0_to_gray, write_png
 
 SCHEMA_ID = "pihim.polar-frame/1"
+#: Suffix of the per-frame record, written after the frame's images: its completion mark.
+RECORD_SUFFIX = ".polar.json"
+#: Peak bytes per output pixel while a frame is read, processed and written (PolarImage 21 B, statistics,
+#: TIFF writing; tracemalloc on a 1024x1024 frame: 56-62 B, and 184-190 B with PNG previews; rounded up).
+BYTES_PER_OUTPUT_PIXEL = 96
+BYTES_PER_OUTPUT_PIXEL_PNG = 256
+#: With --png, the captioned figure on top (decimated to <= 900 px a side, so about constant: tracemalloc peak
+#: 17-18 MB on 64x64 to 1024x1224 frames, plus the Agg canvas; rounded up).
+FIGURE_BYTES = 32_000_000
+
+_IMAGE_KEYS = ("S0", "DoLP", "AoP")
+
+
+@dataclass(frozen=True)
+class PolarOptions:
+    """Everything that determines a frame's outputs besides the frame itself."""
+
+    layout: MosaicLayout
+    analyser: AnalyserMatrix | None
+    demosaic: str
+    dark_level: float
+    bit_depth: int | None
+    saturation_level: float | None
+    width: int | None
+    height: int | None
+    pixel_format: str | None
+    png: bool
+
+    def fingerprint(self) -> dict[str, Any]:
+        """JSON-ready summary compared on resume (a frame made with other options is redone)."""
+        return {
+            "layout": str(self.layout),
+            "analyser_matrix": None if self.analyser is None else self.analyser.matrix.tolist(),
+            "demosaic": self.demosaic,
+            "dark_level": self.dark_level,
+            "bit_depth": self.bit_depth,
+            "saturation_level": self.saturation_level,
+            "width": self.width,
+            "height": self.height,
+            "pixel_format": self.pixel_format,
+            "png": self.png,
+        }
 
 
 def write_float_tiff(path: Path, image: np.ndarray) -> Path:
-    """Write a float32 TIFF atomically."""
-    with atomic_path(path) as tmp:
-        tifffile.imwrite(tmp, np.ascontiguousarray(image, dtype=np.float32))
+    """Write a float32 TIFF (to ``path`` as given: pass a temporary name for atomicity)."""
+    tifffile.imwrite(path, np.ascontiguousarray(image, dtype=np.float32))
     return path
 
 
-def write_polar_outputs(result: PolarImage, out_dir: Path, stem: str, *, png: bool) -> dict[str, str]:
-    """Write ``<stem>.S0/DoLP/AoP.tiff`` (and PNG previews); return the written paths."""
-    written = {
-        "S0": write_float_tiff(out_dir / f"{stem}.S0.tiff", result.s0),
-        "DoLP": write_float_tiff(out_dir / f"{stem}.DoLP.tiff", result.dolp),
-        "AoP": write_float_tiff(out_dir / f"{stem}.AoP.tiff", result.aop_deg),
-    }
+def output_paths(out_dir: Path, name: str, *, png: bool) -> dict[str, Path]:
+    """The files of one frame: ``S0``, ``DoLP``, ``AoP`` TIFFs (with ``png``: the ``*_png`` previews and the
+    captioned ``figure_png``, ``<name>.polar.png``); not the record."""
+    paths = {k: out_dir / f"{name}.{k}.tiff" for k in _IMAGE_KEYS}
     if png:
-        written["S0_png"] = write_png(out_dir / f"{stem}.S0.png", s0_to_gray(result.s0))
-        written["DoLP_png"] = write_png(out_dir / f"{stem}.DoLP.png", dolp_to_rgb(result.dolp))
-        written["AoP_png"] = write_png(out_dir / f"{stem}.AoP.png", aop_to_rgb(result.aop_deg, result.dolp))
-        written["figure_png"] = polar_figure_png(result.s0, result.dolp, result.aop_deg,
-                                                 out_dir / f"{stem}.polar.png", title=f"{stem}: S0, DoLP and AoP")
-    return {k: str(v) for k, v in written.items()}
+        paths.update({f"{k}_png": out_dir / f"{name}.{k}.png" for k in _IMAGE_KEYS})
+        paths["figure_png"] = out_dir / f"{name}.polar.png"
+    return paths
 
 
-def process_one(
-    path: Path,
-    out_dir: Path,
-    *,
-    layout: MosaicLayout,
-    analyser: AnalyserMatrix | None,
-    demosaic: str,
-    dark_level: float,
-    bit_depth: int | None,
-    saturation_level: float | None,
-    width: int | None,
-    height: int | None,
-    pixel_format: str | None,
-    png: bool,
-) -> dict[str, Any]:
-    """Read, process and write one frame; returns its JSON record."""
-    frame = read_frame(path, width=width, height=height, pixel_format=pixel_format)
-    result = polar_image(
-        frame.data,
-        layout=layout,
-        analyser=analyser,
-        demosaic=demosaic,  # type: ignore[arg-type]
-        dark_level=dark_level,
-        bit_depth=bit_depth if bit_depth is not None else frame.bit_depth,
-        saturation_level=saturation_level,
-    )
-    outputs = write_polar_outputs(result, out_dir, path.stem, png=png)
-    return {
+def write_polar_outputs(result: PolarImage, out_dir: Path, stem: str, *, png: bool) -> dict[str, str]:
+    """Write ``<stem>.S0/DoLP/AoP.tiff`` (and the PNG previews and figure) together; return the written paths.
+
+    All files are written under temporary names first and renamed only when
+    every one is complete; on failure none is left.
+    """
+    paths = output_paths(out_dir, stem, png=png)
+    images = {"S0": result.s0, "DoLP": result.dolp, "AoP": result.aop_deg}
+    keys = list(paths)
+    with atomic_group([paths[k] for k in keys]) as tmps:
+        tmp = dict(zip(keys, tmps, strict=True))
+        for k in _IMAGE_KEYS:
+            write_float_tiff(tmp[k], images[k])
+        if png:
+            write_png(tmp["S0_png"], s0_to_gray(result.s0), atomic=False)
+            write_png(tmp["DoLP_png"], dolp_to_rgb(result.dolp), atomic=False)
+            write_png(tmp["AoP_png"], aop_to_rgb(result.aop_deg, result.dolp), atomic=False)
+            polar_figure_png(result.s0, result.dolp, result.aop_deg, tmp["figure_png"],
+                             title=f"{stem}: S0, DoLP and AoP", atomic=False)
+    return {k: str(v) for k, v in paths.items()}
+
+
+# -- batch planning ------------------------------------------------------------------------
+
+
+def output_names(frames: Sequence[Path]) -> dict[Path, str]:
+    """Output base name of each frame: its stem, or ``<stem>-<hash>`` when several frames share a stem.
+
+    Stems are compared case-insensitively (outputs must not collide on
+    case-insensitive file systems); the hash (8 hex digits of the absolute
+    path) keeps the names distinct and the same from one run to the next.
+    """
+    groups: dict[str, list[Path]] = {}
+    for p in frames:
+        groups.setdefault(p.stem.casefold(), []).append(p)
+    names: dict[Path, str] = {}
+    for p in frames:
+        if len(groups[p.stem.casefold()]) == 1:
+            names[p] = p.stem
+        else:
+            digest = hashlib.sha1(os.fsencode(os.path.abspath(p))).hexdigest()[:8]
+            names[p] = f"{p.stem}-{digest}"
+    return names
+
+
+def _file_id(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of an existing file, else None."""
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return st.st_dev, st.st_ino
+
+
+def check_not_an_input(path: Path, outputs: Sequence[Path], inputs: dict[tuple[int, int], Path]) -> None:
+    """Refuse (for this frame) outputs that are one of the batch's input files."""
+    for o in outputs:
+        fid = _file_id(o)
+        if fid is not None and fid in inputs:
+            raise PihimInputError(f"{path}: its output {o} would overwrite the input {inputs[fid]}; choose another --out")
+
+
+def estimate_frame_bytes(height: int, width: int, *, demosaic: str, png: bool) -> int:
+    """Peak bytes of processing and writing one ``width`` x ``height`` mosaic (raw frame excluded)."""
+    n_out = height * width if demosaic == "full" else (height // 2) * (width // 2)
+    return n_out * (BYTES_PER_OUTPUT_PIXEL_PNG if png else BYTES_PER_OUTPUT_PIXEL) + (FIGURE_BYTES if png else 0)
+
+
+# -- resume ------------------------------------------------------------------------------------
+
+
+def input_fingerprint(path: Path) -> dict[str, Any]:
+    """Absolute path, size and modification time of an input file."""
+    st = os.stat(path)
+    return {"path": os.path.abspath(path), "bytes": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def _tiff_matches(path: Path, height: int, width: int) -> bool:
+    """Whether ``path`` is a single float32 TIFF page of the given shape (header only)."""
+    try:
+        with tifffile.TiffFile(path) as tif:
+            page = tif.pages[0]
+            return len(tif.pages) == 1 and tuple(page.shape) == (height, width) and page.dtype == np.float32
+    except Exception:  # noqa: BLE001 - any unreadable file is simply not complete
+        return False
+
+
+def completed_record(record_path: Path, path: Path, options: dict[str, Any]) -> dict[str, Any] | None:
+    """The stored record of a frame done earlier with the same input and options, if complete; else None."""
+    try:
+        with open(record_path, encoding="utf-8") as f:
+            rec = json.load(f)
+        if not (isinstance(rec, dict) and rec.get("status") == "ok" and rec.get("schema") == SCHEMA_ID):
+            return None
+        if rec.get("input") != input_fingerprint(path) or rec.get("options") != options:
+            return None
+        sizes, outputs = rec.get("output_bytes"), rec.get("outputs")
+        if not isinstance(sizes, dict) or not isinstance(outputs, dict) or set(sizes) != set(outputs):
+            return None
+        if set(outputs) != set(output_paths(record_path.parent, "", png=bool(options.get("png")))):
+            return None  # made by a version that wrote other files (e.g. no captioned figure yet)
+        for key, out in outputs.items():
+            here = record_path.parent / Path(out).name  # the record sits beside the outputs
+            if os.path.getsize(here) != sizes[key]:
+                return None
+            if key in _IMAGE_KEYS and not _tiff_matches(here, rec["height"], rec["width"]):
+                return None
+    except (OSError, ValueError, TypeError, KeyError, RecursionError):
+        return None
+    return rec
+
+
+# -- one frame -------------------------------------------------------------------------------------
+
+
+def _frame_warnings(data: np.ndarray, result: PolarImage, dark_level: float) -> list[str]:
+    """Warnings for a frame whose outputs carry no usable DoLP or AoP."""
+    if np.isfinite(result.dolp).any():
+        return []
+    vmax = float(data.max()) if data.size else 0.0
+    if dark_level >= vmax:
+        return [f"no valid pixel: --dark-level {dark_level:g} is at or above every raw value (max {vmax:g})"]
+    return ["no valid pixel: every super-pixel is saturated or dark (DoLP and AoP are all NaN)"]
+
+
+def _write_error(path: Path, exc: OSError, out_dir: Path) -> str:
+    """One line for an operating-system error while writing a frame's outputs."""
+    text = str(exc)
+    if exc.errno == errno.ENOSPC or re.search(r"\d+ requested and \d+ written", text):
+        try:
+            free = f", {format_bytes(shutil.disk_usage(out_dir).free)} free"
+        except OSError:
+            free = ""
+        return f"{path}: cannot write its outputs in {out_dir}: no space left on the device{free}"
+    return f"{path}: cannot write its outputs in {out_dir}: {exc.strerror or ' '.join(text.split())}"
+
+
+def process_one(path: Path, out_dir: Path, name: str, options: PolarOptions) -> dict[str, Any]:
+    """Read, process and write one frame; returns its JSON record (the record file is written last)."""
+    opts = options
+    frame = read_frame(path, width=opts.width, height=opts.height, pixel_format=opts.pixel_format)
+    h, w = frame.data.shape
+    require_memory(estimate_frame_bytes(h, w, demosaic=opts.demosaic, png=opts.png),
+                   f"{path}: a {w}x{h} frame with --demosaic {opts.demosaic}")
+    source = input_fingerprint(path)
+    try:
+        result = polar_image(
+            frame.data,
+            layout=opts.layout,
+            analyser=opts.analyser,
+            demosaic=opts.demosaic,  # type: ignore[arg-type]
+            dark_level=opts.dark_level,
+            bit_depth=opts.bit_depth if opts.bit_depth is not None else frame.bit_depth,
+            saturation_level=opts.saturation_level,
+        )
+    except PihimInputError as exc:
+        raise PihimInputError(f"{path}: {exc}") from None
+    warnings = _frame_warnings(frame.data, result, opts.dark_level)
+    record_path = out_dir / f"{name}{RECORD_SUFFIX}"
+    with contextlib.suppress(FileNotFoundError):
+        record_path.unlink()  # the frame is not complete again until its new record is written
+    outputs = write_polar_outputs(result, out_dir, name, png=opts.png)
+    record: dict[str, Any] = {
         "schema": SCHEMA_ID,
         "file": str(path),
         "status": "ok",
         "pixel_format": frame.pixel_format,
-        "layout": str(layout),
-        "calibrated": analyser is not None,
+        "layout": str(opts.layout),
+        "calibrated": opts.analyser is not None,
         **result.summary(),
         "outputs": outputs,
+        "warnings": warnings,
+        "input": source,
+        "options": opts.fingerprint(),
+        "output_bytes": {k: os.path.getsize(v) for k, v in outputs.items()},
     }
+    write_json_atomic(record_path, record)
+    for text in warnings:
+        print(f"pihim: warning: {path}: {text}", file=sys.stderr)
+    return record
+
+
+def _warn_renamed(batch: Sequence[Path], names: dict[Path, str]) -> None:
+    """One warning line per group of frames that share a name and get distinct output names."""
+    groups: dict[str, list[Path]] = {}
+    for p in batch:
+        if names[p] != p.stem:
+            groups.setdefault(p.stem.casefold(), []).append(p)
+    for group in groups.values():
+        listed = ", ".join(f"{p} -> {names[p]}.*" for p in group)
+        print(f"pihim: warning: frames share the name {group[0].stem!r}; their outputs are named {listed}",
+              file=sys.stderr)
+
+
+def _error_record(path: Path, message: str) -> dict[str, Any]:
+    return {"schema": SCHEMA_ID, "file": str(path), "status": "error", "error": message}
+
+
+def _summary(processed: Sequence[dict[str, Any]], resumed: int, n_frames: int, out_dir: Path, *, png: bool) -> str:
+    """The success line: frames processed by this run, skipped as already complete, and failed.
+
+    Parameters
+    ----------
+    processed : sequence of dict
+        Records of the frames this run processed and wrote.
+    resumed : int
+        Frames skipped because an earlier run completed them.
+    n_frames : int
+        Frames in the batch (each file counted once).
+    out_dir : Path
+        Output directory.
+    png : bool
+        Whether PNG previews and the captioned figure were asked for.
+
+    Returns
+    -------
+    str
+        One line; the median DoLP range is over the processed frames only.
+    """
+    failed = n_frames - len(processed) - resumed
+    if processed:
+        med = [r["dolp"]["median"] for r in processed if r["dolp"]["median"] is not None]
+        text = (f"pihim polar: {len(processed)} of {n_frames} frames -> {out_dir}: <stem>.S0/.DoLP/.AoP.tiff "
+                f"(float32, AoP in deg)" + (", PNG previews and <stem>.polar.png (captioned)" if png else "")
+                + (f"; median DoLP {min(med):.3f}-{max(med):.3f}" if med else ""))
+    else:
+        text = f"pihim polar: no frame processed in {out_dir}"
+    if resumed:
+        text += f"; {resumed} of {n_frames} already complete from an earlier run, skipped (--overwrite redoes them)"
+    if failed:
+        text += f"; {failed} failed"
+    return text
+
+
+# -- options -----------------------------------------------------------------------------------------
+
+
+def check_options(
+    *, demosaic: str, layout: str, calibration: Path | None, dark_level: float, bit_depth: int | None,
+    saturation_level: float | None, width: int | None, height: int | None, pixel_format: str | None, png: bool,
+) -> PolarOptions:
+    """Validate every option (one-line :class:`PihimInputError`) before any frame is read."""
+    if demosaic not in DEMOSAIC_METHODS:
+        raise PihimInputError(f"unknown demosaic method {demosaic!r}; choose one of {', '.join(DEMOSAIC_METHODS)}")
+    lay = parse_layout(layout)
+    analyser = AnalyserMatrix.load(calibration) if calibration is not None else None
+    if not (math.isfinite(dark_level) and dark_level >= 0):
+        raise PihimInputError(f"--dark-level must be a finite number of raw units >= 0, got {dark_level:g}")
+    if bit_depth is not None and not 1 <= bit_depth <= 16:
+        raise PihimInputError(f"--bit-depth must be in 1..16, got {bit_depth}")
+    if saturation_level is not None:
+        if not (math.isfinite(saturation_level) and saturation_level > dark_level):
+            raise PihimInputError(
+                f"--saturation-level must be a finite raw level above --dark-level ({dark_level:g}), "
+                f"got {saturation_level:g}"
+            )
+        if bit_depth is not None and saturation_level > 2**bit_depth - 1:
+            raise PihimInputError(
+                f"--saturation-level {saturation_level:g} is above the {bit_depth}-bit full scale {2**bit_depth - 1}"
+            )
+    if bit_depth is not None and dark_level >= 2**bit_depth - 1:
+        raise PihimInputError(f"--dark-level {dark_level:g} is at or above the {bit_depth}-bit full scale")
+    for label, v in (("--width", width), ("--height", height)):
+        if v is not None and v < 1:
+            raise PihimInputError(f"{label} must be a positive number of pixels, got {v}")
+    fmt = None if pixel_format is None else normalize_pixel_format(pixel_format)
+    return PolarOptions(lay, analyser, demosaic, float(dark_level), bit_depth,
+                        None if saturation_level is None else float(saturation_level), width, height, fmt, png)
+
+
+def _distinct(frames: Sequence[Path]) -> list[Path]:
+    """Frames in order, each file once (the same file named twice is processed once)."""
+    seen: set[Any] = set()
+    out: list[Path] = []
+    for p in frames:
+        key = _file_id(p) or os.path.abspath(p)
+        if key in seen:
+            continue
+        seen.add(key)
+        out.append(p)
+    return out
 
 
 def polar(
@@ -96,49 +401,68 @@ def polar(
     width: Annotated[int | None, typer.Option(help="Width in pixels (.raw only).")] = None,
     height: Annotated[int | None, typer.Option(help="Height in pixels (.raw only).")] = None,
     pixel_format: Annotated[str | None, typer.Option(help="Lucid pixel format (.raw only), e.g. PolarizeMono12p.")] = None,
-    png: Annotated[bool, typer.Option("--png", help="Also write PNG previews.")] = False,
+    png: Annotated[bool, typer.Option("--png", help="Also write PNG previews and a captioned figure, <stem>.polar.png.")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Redo frames already done in --out by an earlier run.")] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object per frame on stdout.")] = False,
 ) -> int:
     """Turn raw mosaic frames into S0, DoLP and AoP images (float32 TIFF, AoP in degrees).
 
-    Frames that cannot be read are reported (one line each) and skipped; the
-    others are still processed. Exit status 2 if any frame was bad input.
+    Frames that fail are reported (one line each) and skipped; the others are
+    still processed. Frames already done in --out with the same input and
+    options are skipped (--overwrite redoes them). Exit status 2 if any frame
+    was bad input, 1 if only writing failed.
     """
-    if demosaic not in DEMOSAIC_METHODS:
-        raise PihimInputError(f"unknown demosaic method {demosaic!r}; choose one of {', '.join(DEMOSAIC_METHODS)}")
-    lay = parse_layout(layout)
-    analyser = AnalyserMatrix.load(calibration) if calibration is not None else None
-    if dark_level is not None and not (math.isfinite(dark_level) and dark_level >= 0):
-        raise PihimInputError(f"--dark-level must be a finite number of raw units >= 0, got {dark_level:g}")
-    unique_stems(frames)
-    if out.exists() and not out.is_dir():
-        raise PihimInputError(f"{out}: exists and is not a directory")
-    out.mkdir(parents=True, exist_ok=True)
+    options = check_options(demosaic=demosaic, layout=layout, calibration=calibration, dark_level=dark_level,
+                            bit_depth=bit_depth, saturation_level=saturation_level, width=width, height=height,
+                            pixel_format=pixel_format, png=png)
+    batch = _distinct(frames)
+    names = output_names(batch)
+    _warn_renamed(batch, names)
+    inputs = {fid: p for p in batch if (fid := _file_id(p)) is not None}
+    out_dir = make_out_dir(out)
+    fingerprint = json.loads(json.dumps(options.fingerprint()))
     status = 0
-    done: list[dict[str, Any]] = []
-    for path in progress(frames, "polar"):
+    resumed = 0
+    processed: list[dict[str, Any]] = []
+    for path in progress(batch, "polar"):
+        name = names[path]
+        record_path = out_dir / f"{name}{RECORD_SUFFIX}"
         try:
-            record = process_one(
-                path, out, layout=lay, analyser=analyser, demosaic=demosaic, dark_level=dark_level,
-                bit_depth=bit_depth, saturation_level=saturation_level, width=width, height=height,
-                pixel_format=pixel_format, png=png,
-            )
+            check_not_an_input(path, [*output_paths(out_dir, name, png=png).values(), record_path], inputs)
+            done = None if overwrite else completed_record(record_path, path, fingerprint)
+            if done is not None:
+                record = {**done, "file": str(path), "resumed": True}
+                resumed += 1
+            else:
+                record = process_one(path, out_dir, name, options)
         except PihimInputError as exc:
             report_error(str(exc))
             status = 2
-            record = {"schema": SCHEMA_ID, "file": str(path), "status": "error", "error": str(exc)}
+            record = _error_record(path, str(exc))
+        except MemoryError:
+            message = memory_error_message(f"{path}: processing the frame")
+            report_error(message)
+            status = 2
+            record = _error_record(path, message)
         except OSError as exc:
-            report_error(f"{path}: {exc}")
+            message = _write_error(path, exc, out_dir)
+            report_error(message)
             status = max(status, 1)
-            record = {"schema": SCHEMA_ID, "file": str(path), "status": "error", "error": str(exc)}
+            record = _error_record(path, message)
+        except Exception as exc:  # noqa: BLE001 - one frame's failure never stops the batch
+            message = f"{path}: internal error ({type(exc).__name__}: {' '.join(str(exc).split())})"
+            report_error(message)
+            status = max(status, 1)
+            record = _error_record(path, message)
         if json_out:
             emit_json(record)
-        elif record["status"] == "ok":
-            done.append(record)
-    if done:
-        med = [r["dolp"]["median"] for r in done if r["dolp"]["median"] is not None]
-        stderr_console.print(
-            f"pihim polar: {len(done)} of {len(frames)} frames -> {out}: <stem>.S0/.DoLP/.AoP.tiff (float32, AoP in "
-            f"deg)" + (", PNG previews and <stem>.polar.png (captioned)" if png else "")
-            + (f"; median DoLP {min(med):.3f}-{max(med):.3f}" if med else ""), highlight=False, soft_wrap=True)
+        if record["status"] == "ok" and not record.get("resumed"):
+            processed.append(record)
+    if json_out:
+        if resumed:  # the records say the rest (one per frame, "resumed": true for the skipped ones)
+            print(f"pihim: {resumed} of {len(batch)} frames were already done in {out_dir} and were skipped "
+                  "(--overwrite redoes them)", file=sys.stderr)
+    elif processed or resumed:
+        stderr_console.print(_summary(processed, resumed, len(batch), out_dir, png=png),
+                             highlight=False, soft_wrap=True)
     return status

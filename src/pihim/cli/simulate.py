@@ -15,6 +15,9 @@ from typing import Annotated, Any
 
 import typer
 
+from pihim._atomic import clean_stale_temporaries
+from pihim._inputs import load_json_file
+from pihim._resources import require_memory
 from pihim.camera.model import CameraModel
 from pihim.cli._common import emit_json, load_field_option, parse_point, stderr_console
 from pihim.errors import PihimInputError
@@ -34,6 +37,9 @@ from pihim.sky.sun import parse_site
 SUMMARY_SCHEMA_ID = "pihim.simulate-summary/1"
 _TRITON_WIDTH_PX = 2448
 _TRITON_FOCAL_MM = 35.0
+#: Bytes per pixel a render keeps (raw, Stokes and truth images, 7 label planes: about 70 B) with room
+#: for the renderer's working arrays; an upper estimate used to refuse sizes the machine cannot hold.
+RENDER_BYTES_PER_PIXEL = 256
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -44,6 +50,7 @@ def parse_size(text: str) -> tuple[int, int]:
         raise PihimInputError(f"--size must look like 2448x2048, got {text!r}") from None
     if w < 16 or h < 16 or w % 2 or h % 2:
         raise PihimInputError(f"--size must be even and at least 16x16, got {text}")
+    require_memory(w * h * RENDER_BYTES_PER_PIXEL, f"--size {w}x{h}")
     return w, h
 
 
@@ -89,6 +96,7 @@ def parse_pose_request(hua: str | None, target: str | None, waypoint: str | None
             raise PihimInputError(f"--waypoint index must be an integer >= 0, got {index}")
         if not Path(path).is_file():
             raise PihimInputError(f"--waypoint {path}: no such file")
+        load_json_file(path, "plan file")  # malformed or too deeply nested: one line now, not a traceback later
         return WaypointPose(path, index)
     if camera is None or look_at is None:
         raise PihimInputError("--camera and --look-at go together (--roll needs them)")
@@ -164,6 +172,8 @@ def simulate(
             field_source="nsttf-like" if nsttf_like else str(field),
             facets_source=None if facets is None else str(facets),
         )
+    if out.parent.is_dir():
+        clean_stale_temporaries(out.parent)
     write_simulated_frame(sim, out)
     seconds = _time.perf_counter() - t0
     stats = sim.rendered.stats

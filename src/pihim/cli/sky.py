@@ -31,7 +31,8 @@ import numpy as np
 import typer
 
 from pihim._atomic import atomic_path
-from pihim.cli._common import emit_json, stderr_console
+from pihim._resources import require_memory
+from pihim.cli._common import check_out_dir, emit_json, make_out_dir, stderr_console
 from pihim.errors import PihimInputError
 from pihim.sky.berry import neutral_points
 from pihim.sky.model import SkyMap, SkyModel, _grid_size, sky_map
@@ -50,6 +51,8 @@ AOP_REFERENCE = (
     "AoP in [0, 180) deg from the local meridian (0 = E-field toward the zenith), counter-clockwise "
     "looking into the beam, i.e. as an observer on the ground looking up at that sky point sees it"
 )
+#: Peak bytes per sky direction: the maps (measured 130-180 B) and their polar plots, rounded up.
+SKY_BYTES_PER_DIRECTION = 1500
 FILES = {"dolp_png": "sky-dolp.png", "aop_png": "sky-aop.png", "npz": "sky-maps.npz"}
 
 
@@ -123,7 +126,7 @@ def plot_polar(
 
 def write_outputs(result: SkyMap, out: Path, *, sun: SunPosition, title: str) -> dict[str, str]:
     """Write the two PNGs and the npz atomically; returns the written paths."""
-    out.mkdir(parents=True, exist_ok=True)
+    make_out_dir(out)
     markers = [(float(sun.azimuth_deg), float(sun.zenith_deg), "*", "sun")]
     if result.model.kind == "berry":
         pts = neutral_points(result.sun_dir, result.model.neutral_point_separation_deg)
@@ -171,11 +174,11 @@ def sky(
     ground (see the .npz's aop_reference).
     """
     sky_model = SkyModel(kind=model, dmax=dmax, neutral_point_separation_deg=neutral_separation, radiance=radiance)  # type: ignore[arg-type]
-    _grid_size(resolution)
+    nz = _grid_size(resolution)
+    require_memory(4 * nz * nz * SKY_BYTES_PER_DIRECTION, f"--resolution {resolution:g} ({4 * nz * nz:,} directions)")
     sun, when = resolve_sun(time, site, sun_zenith, sun_azimuth)
     require_daylight(sun, what="pihim sky")
-    if out.exists() and not out.is_dir():
-        raise PihimInputError(f"{out}: exists and is not a directory")
+    check_out_dir(out)
     result = sky_map(sky_model, sun.vector, resolution)
     title = f"sun zenith {float(sun.zenith_deg):.1f}, azimuth {float(sun.azimuth_deg):.1f} deg, {model}"
     files = write_outputs(result, out, sun=sun, title=title)

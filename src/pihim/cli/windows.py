@@ -36,7 +36,7 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from pihim.cli._common import emit_json, load_field_option, parse_floats, stderr_console
+from pihim.cli._common import check_out_dir, emit_json, load_field_option, make_out_dir, parse_floats, stderr_console
 from pihim.errors import PihimInputError
 
 SCHEMA_ID = "pihim.windows/1"
@@ -79,14 +79,13 @@ def windows(
     aim_point = None if aim is None else np.array(parse_floats(aim, name="--aim", count=3))
     if aim_point is not None and not np.all(np.isfinite(aim_point)):
         raise PihimInputError("--aim: coordinates must be finite")
-    if out.exists() and not out.is_dir():
-        raise PihimInputError(f"{out}: exists and is not a directory")
+    check_out_dir(out)
     fld = load_field_option(field, facets, nsttf_tower=is_nsttf(site_obj))
     with _progress_bar(f"planning and scoring {day.isoformat()}") as tick:
         sweep = sweep_day(day, site=site_obj, field=fld, aim_point=aim_point, step_min=step_min,
                           min_elevation_deg=min_elevation, max_altitude_m=max_altitude,
                           search=None if no_shift else ShiftSearch(), progress=tick)
-    out.mkdir(parents=True, exist_ok=True)
+    make_out_dir(out)
     csv_path = write_windows_csv(sweep, out / "windows.csv")
     png_path = write_windows_png(sweep, out / "windows.png", threshold=threshold, relative=relative)
     if json_out:

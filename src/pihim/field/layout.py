@@ -66,6 +66,7 @@ import csv
 import io
 import math
 import re
+import stat
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -593,9 +594,20 @@ class Field:
 # --------------------------------------------------------------------------- CSV
 
 
+#: Largest facet count of one heliostat a field file may declare (real heliostats have 1 to ~100).
+MAX_FACETS_PER_HELIOSTAT = 10_000
+
+
 def _open_rows(path: Path, kind: str) -> Iterator[tuple[int, list[str]]]:
     """(line number, cells) for every non-blank row; BOM tolerated."""
+    from pihim._inputs import MAX_TEXT_BYTES
+
     try:
+        st = path.stat()
+        if not stat.S_ISREG(st.st_mode):
+            raise PihimInputError(f"{path}: cannot read {kind}: not a regular file")
+        if st.st_size > MAX_TEXT_BYTES:
+            raise PihimInputError(f"{path}: cannot read {kind}: {st.st_size} bytes is more than {MAX_TEXT_BYTES}")
         text = path.read_bytes().decode("utf-8-sig")
     except OSError as e:
         raise PihimInputError(f"{path}: cannot read {kind}: {e.strerror or e}") from None
@@ -671,6 +683,12 @@ def _read_heliostat_csv(path: Path) -> tuple[tuple[str, ...], NDArray[np.float64
         if n_facets != n_rows * n_cols:
             raise PihimInputError(
                 f"{path}:{lineno}: Num. Facets = {n_facets} but Num. Rows x Num. Cols = {n_rows} x {n_cols}"
+            )
+        if n_facets > MAX_FACETS_PER_HELIOSTAT:
+            raise PihimInputError(
+                f"{path}:{lineno}: Num. Facets = {n_facets} ({n_rows} x {n_cols}) is more than pihim handles, "
+                f"at most {MAX_FACETS_PER_HELIOSTAT} facets per heliostat (the facet table alone would take "
+                f"{n_facets * 24 / 1e9:.3g} GB)"
             )
         dims = {label: _number(path, lineno, label, cells[k])
                 for k, label in ((7, "Pivot Height"), (8, "Pivot Offset"), (9, "Facet Width"), (10, "Facet Height"))}

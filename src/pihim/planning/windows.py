@@ -151,7 +151,7 @@ from pihim.planning.scoring import (
     coverage,
     score_passes,
 )
-from pihim.sky.sun import NSTTF, Site, parse_site, sun_position
+from pihim.sky.sun import NSTTF, Site, check_year, parse_site, sun_position
 
 __all__ = [
     "DEFAULT_MAX_ALTITUDE_M",
@@ -185,19 +185,21 @@ def parse_date(text: str | _dt.date) -> _dt.date:
     Raises
     ------
     PihimInputError
-        Malformed text.
+        Malformed text, or a year outside :data:`pihim.sky.sun.YEAR_RANGE`.
     """
-    if isinstance(text, _dt.datetime):
-        return text.date()
-    if isinstance(text, _dt.date):
-        return text
+    if isinstance(text, (_dt.date, _dt.datetime)):
+        day = text.date() if isinstance(text, _dt.datetime) else text
+        check_year(day.year, str(day))
+        return day
     try:
         s = str(text).strip()
         if len(s) != 10:
             raise ValueError
-        return _dt.date.fromisoformat(s)
+        day = _dt.date.fromisoformat(s)
     except ValueError:
         raise PihimInputError(f"date {text!r} is not a calendar date YYYY-MM-DD (e.g. 2021-05-13)") from None
+    check_year(day.year, text)
+    return day
 
 
 def local_timezone(site: Site) -> Any:

@@ -24,7 +24,6 @@ References
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +38,11 @@ from pihim.errors import PihimInputError
 NOMINAL_ANGLES_DEG: tuple[float, float, float, float] = (0.0, 45.0, 90.0, 135.0)
 
 _SCHEMA_ID = "pihim.analyser/1"
+
+#: Channel transmissions ``t_k`` accepted in an analyser matrix (the ideal analyser has 1).
+TRANSMISSION_RANGE = (1e-3, 1e3)
+#: Largest condition number accepted (the ideal analyser has sqrt(2); noise is amplified by up to this).
+MAX_CONDITION_NUMBER = 1e6
 
 
 @dataclass(frozen=True)
@@ -68,6 +72,19 @@ class AnalyserMatrix:
             raise PihimInputError(f"analyser matrix must be a finite 4x3 array, got shape {m.shape}")
         if np.linalg.matrix_rank(m) < 3:
             raise PihimInputError("analyser matrix is rank deficient: Stokes cannot be recovered")
+        t = 2.0 * m[:, 0]
+        lo, hi = TRANSMISSION_RANGE
+        if not np.all((t >= lo) & (t <= hi)):
+            raise PihimInputError(
+                f"analyser matrix transmissions (twice its first column) must be in [{lo:g}, {hi:g}], "
+                f"got {', '.join(f'{v:.3g}' for v in t)}"
+            )
+        cond = float(np.linalg.cond(m))
+        if not cond <= MAX_CONDITION_NUMBER:
+            raise PihimInputError(
+                f"analyser matrix is ill-conditioned (condition number {cond:.3g} > {MAX_CONDITION_NUMBER:g}): "
+                "Stokes cannot be recovered reliably"
+            )
         m.setflags(write=False)
         p = np.linalg.pinv(m)
         # snap round-off (e.g. 1e-17 instead of 0 for the ideal matrix) so that
@@ -176,13 +193,12 @@ class AnalyserMatrix:
     @classmethod
     def load(cls, path: str | Path) -> AnalyserMatrix:
         """Read a calibration JSON file written by ``pihim calibrate-polarizer``."""
+        from pihim._inputs import load_json_file
+
         p = Path(path)
-        try:
-            obj = json.loads(p.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise PihimInputError(f"{p}: calibration file not found") from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise PihimInputError(f"{p}: not a readable calibration JSON ({exc})") from None
+        if not p.exists():
+            raise PihimInputError(f"{p}: calibration file not found")
+        obj = load_json_file(p, "calibration JSON")
         try:
             return cls.from_dict(obj)
         except PihimInputError as exc:

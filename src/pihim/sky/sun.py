@@ -70,6 +70,21 @@ def _is_real(x: Any) -> bool:
         return False
 
 
+#: Ellipsoidal site heights accepted, metres: below the Dead Sea shore to above any airfield
+#: (the standard atmosphere used for refraction ends at 44 km).
+SITE_HEIGHT_RANGE_M = (-1000.0, 10000.0)
+
+#: Calendar years accepted for times and dates (the range of :class:`pandas.Timestamp`).
+YEAR_RANGE = (1678, 2261)
+
+
+def check_year(year: int, text: object) -> None:
+    """Refuse a time or date outside :data:`YEAR_RANGE` with one line naming ``text``."""
+    lo, hi = YEAR_RANGE
+    if not lo <= year <= hi:
+        raise PihimInputError(f"{text!r}: year {year} is outside the years pihim handles, {lo}..{hi}")
+
+
 @dataclass(frozen=True)
 class Site:
     """A place on the WGS84 ellipsoid.
@@ -100,8 +115,11 @@ class Site:
         for label, value, lim in (("latitude", self.latitude_deg, 90.0), ("longitude", self.longitude_deg, 180.0)):
             if not (_is_real(value) and -lim <= float(value) <= lim):
                 raise PihimInputError(f"site {label} must be a number in [-{lim:g}, {lim:g}] deg, got {value!r}")
-        if not _is_real(self.height_m):
-            raise PihimInputError(f"site height must be a finite number of metres, got {self.height_m!r}")
+        lo, hi = SITE_HEIGHT_RANGE_M
+        if not (_is_real(self.height_m) and lo <= float(self.height_m) <= hi):
+            raise PihimInputError(
+                f"site height must be a number of metres in [{lo:g}, {hi:g}] (ellipsoidal), got {self.height_m!r}"
+            )
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-friendly record of the site."""
@@ -194,12 +212,21 @@ def parse_time(time: str | datetime | pd.Timestamp) -> pd.Timestamp:
     if isinstance(time, str):
         text = time.strip()
         try:
-            ts = pd.Timestamp(datetime.fromisoformat(text))
+            parsed = datetime.fromisoformat(text)
+        except ValueError:
+            parsed = None
+        if parsed is not None:
+            check_year(parsed.year, time)
+        try:
+            if parsed is None:
+                raise ValueError
+            ts = pd.Timestamp(parsed)
         except ValueError:
             raise PihimInputError(
                 f"time {time!r} is not an ISO 8601 date-time (e.g. 2024-06-21T10:30:00-06:00)"
             ) from None
     elif isinstance(time, datetime):  # includes pandas.Timestamp
+        check_year(time.year, str(time))
         ts = pd.Timestamp(time)
     else:
         raise PihimInputError(f"time must be an ISO 8601 string or a datetime, got {type(time).__name__}")

@@ -1,0 +1,59 @@
+"""Atomic writes, writer-named temporaries and the cleaning of stale ones (``pihim._atomic``)."""
+
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from pihim._atomic import (
+    LEGACY_TEMP_MAX_AGE_S,
+    _host_tag,
+    atomic_group,
+    clean_stale_temporaries,
+    temp_sibling,
+)
+
+
+def _dead_pid() -> int:
+    """The id of a process that has exited."""
+    done = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    return int(done.stdout)
+
+
+def test_temp_sibling_names_its_writer(tmp_path):
+    tmp = temp_sibling(tmp_path / "a.S0.tiff")
+    assert tmp.parent == tmp_path and tmp.suffix == ".tiff"
+    assert tmp.name.startswith(f".a.S0.pihim-{_host_tag()}-{os.getpid()}-") and ".part" in tmp.name
+    assert clean_stale_temporaries(tmp_path) == []  # this process is alive: its temporary stays
+    assert tmp.exists()
+
+
+def test_clean_removes_only_temporaries_of_gone_processes(tmp_path):
+    pid = _dead_pid()
+    stale = tmp_path / f".x.pihim-{_host_tag()}-{pid}-abcdefgh.part.tiff"
+    other_host = tmp_path / f".x.pihim-{'0000' if _host_tag() != '0000' else '1111'}-{pid}-abcdefgh.part.tiff"
+    legacy_old = tmp_path / ".y.k2j4h5g6.part.png"
+    legacy_new = tmp_path / ".z.k2j4h5g6.part.png"
+    ordinary = tmp_path / "x.tiff"
+    for p in (stale, other_host, legacy_old, legacy_new, ordinary):
+        p.write_bytes(b"data")
+    old = time.time() - LEGACY_TEMP_MAX_AGE_S - 60
+    os.utime(legacy_old, (old, old))
+    removed = clean_stale_temporaries(tmp_path)
+    assert sorted(p.name for p in removed) == sorted([stale.name, legacy_old.name])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([other_host.name, legacy_new.name, ordinary.name])
+
+
+def test_atomic_group_all_or_nothing(tmp_path):
+    finals = [tmp_path / "a.txt", tmp_path / "b.txt"]
+    with pytest.raises(RuntimeError):
+        with atomic_group(finals) as tmps:
+            tmps[0].write_text("a")
+            raise RuntimeError("second file failed")
+    assert list(tmp_path.iterdir()) == []
+    with atomic_group(finals) as tmps:
+        for t, text in zip(tmps, "ab", strict=True):
+            t.write_text(text)
+    assert [p.read_text() for p in finals] == ["a", "b"] and len(list(tmp_path.iterdir())) == 2
