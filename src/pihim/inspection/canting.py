@@ -31,17 +31,16 @@ projection of mirrored points (held to ``cv2.projectPoints`` through
 :func:`pihim.camera.pose.project_points`), independent of the renderer's
 ray tracer that made the test frames.
 
-Status (measured on rendered UFACET frames of 8E3 / 7E3, 13:00, 35 mm)
---------------------------------------------------------------------
-With the camera pose refined from a prior within ~0.15 m / 0.15 deg and the
-edge points of S0 (the DoLP of the dark target back is too noisy at 39 dB
-to add its edges unweighted), 6-7 facets per frame pass the quality gates
-and their deviations are recovered to 0.01-0.35 mrad RMS, against 0.3-0.6
-mrad for the paper's grid search on the same frames; a facet whose fit
-locks onto other features (another heliostat, a structure edge) is caught
-by its residual. Not yet: a pose from the issue's 1.5 m / 1 deg priors
-(:mod:`pihim.inspection.pose`), polarimetric edge weighting, combining
-frames, and speed (about 30 s per full frame; the grid search dominates).
+Status (measured on 20 rendered NSTTF UFACET frames, ``benchmarks/canting_quality.py``)
+-----------------------------------------------------------------------------------
+From the issue's GPS 1.5 m / attitude 1 deg priors (pose refined to 0.31 px
+median) and S0 edge points (the DoLP of the dark target back is too noisy at
+39 dB to add its edges unweighted), 0-10 facets per frame pass the quality
+gates and their deviations are recovered to 0.16 / 0.25 mrad RMS (azimuth /
+elevation) against 0.84 / 0.41 mrad for the paper's grid search on the same
+frames; a facet whose fit locks onto other features is mostly caught by its
+residual. Not yet: polarimetric edge weighting, and speed (about 5 s for
+this step on a full frame).
 
 References
 ----------

@@ -5,19 +5,22 @@ hundreds of pixels from where it appears. The pose is refined against the
 outlines of the HUA's facets, which the field model gives exactly in the
 heliostat frame:
 
-1. **Coarse**: the projected facet outlines, rasterised at a quarter of the
-   resolution, are cross-correlated (FFT) with a proximity map of the
-   image's edge points, ``exp(-DT^2 / 2 s^2)`` of their distance transform;
-   the best image shift is turned into a small pan and tilt of the camera.
-   The mirror's outer outline breaks the periodicity of the facet grid, so
-   a shift by one facet pitch scores lower than the true one when the outer
-   edges are in view.
-2. **Fine**: Levenberg-Marquardt on the six pose parameters (rotation vector
-   and position increments) minimising the point-to-line distances between
-   the image's sub-pixel edge points and the nearest projected model edge,
+1. **Search**: starting positions around the logged one (about a GPS
+   sigma apart, nearest first, a second ring only when the first fails);
+   at each, the projected facet outlines, rasterised at 1/16 resolution,
+   are cross-correlated (FFT) with a proximity map ``exp(-DT^2 / 2 s^2)``
+   of the image's edge points, and the best image shifts (by two scores:
+   mean proximity of the points in frame, and share of the whole model) are
+   turned into a pan and tilt of the camera.
+2. **Alignment**: the six pose parameters maximise the summed proximity on
+   ever sharper maps (s = 48 to 3 px, trust-region least squares); a wide
+   map merges the two edges of each facet gap, so the basin spans a good
+   part of a facet. The first start whose aligned outline has 80 % of its
+   in-frame points within 1.5 px of an edge wins (else the best).
+3. **Fine**: Levenberg-Marquardt on the point-to-line distances between the
+   image's sub-pixel edge points and the nearest projected model edge,
    re-matched between solves with a shrinking gate (an ICP with the
-   point-to-line metric), with a soft-L1 loss against outliers (reflected
-   features near a facet edge).
+   point-to-line metric), with a soft-L1 loss against outliers.
 
 The result is the pose of the camera **relative to the HUA as the field
 model places it from its logged drive angles**: a tracking error of the HUA
