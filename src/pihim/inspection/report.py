@@ -43,6 +43,12 @@ def _f(v: Any, spec: str = "+.2f") -> str:
     return html.escape(str(v))
 
 
+def _track(t: Any) -> str:
+    if isinstance(t, dict) and "az" in t and "el" in t:
+        return f"az {_f(t['az'])}, el {_f(t['el'])} mrad"
+    return "unknown"
+
+
 def _img(src: str, alt: str, cls: str = "") -> str:
     c = f' class="{cls}"' if cls else ""
     return f'<img src="{html.escape(src, quote=True)}" alt="{html.escape(alt, quote=True)}"{c} loading="lazy">'
@@ -89,7 +95,7 @@ def _pair_section(p: dict[str, Any]) -> str:
                      f"{_f(o['est_az_mrad'])}, el {_f(o['est_el_mrad'])} mrad; true mean canting deviation of the "
                      f"same facets az {_f(o['true_mean_deviation_az_mrad'])}, el "
                      f"{_f(o['true_mean_deviation_el_mrad'])} mrad (true tracking error "
-                     f"{e(str(o['true_tracking_error_mrad']))} mrad). The two differ by the camera pose's and "
+                     f"{_track(o['true_tracking_error_mrad'])}). The two differ by the camera pose's and "
                      "the logged drive angles' common offset, which a single frame cannot separate.</p>")
     rows = ["<tr><th>facet</th><th>est az</th><th>true az</th><th>error az</th><th>grid error az</th>"
             "<th>est el</th><th>true el</th><th>error el</th><th>grid error el</th><th>&sigma; az / el</th>"
@@ -101,14 +107,16 @@ def _pair_section(p: dict[str, Any]) -> str:
                 f"<td><b>{_f(f['err_az_mrad'])}</b></td><td>{_f(f['grid_err_az_mrad'])}</td>"
                 f"<td>{_f(f['est_el_mrad'])}</td><td>{_f(f['true_rel_el_mrad'])}</td>"
                 f"<td><b>{_f(f['err_el_mrad'])}</b></td><td>{_f(f['grid_err_el_mrad'])}</td>"
-                f"<td>{_f(f['az_sigma_mrad'], '.2f')} / {_f(f['el_sigma_mrad'], '.2f')}</td>"
+                f"<td>{_f(f['az_sigma_mrad'], '.2g')} / {_f(f['el_sigma_mrad'], '.2g')}</td>"
                 "<td class=l>used</td></tr>")
         else:
             rows.append(f"<tr class=skip><td>{f['id']}</td>" + "<td>&ndash;</td>" * 9
                         + f"<td class=l>{e(f['reason'] or '')}</td></tr>")
     parts.append("<p class=note>Facet deviations in mrad, heliostat frame, relative to the mean over the facets "
                  "used (estimate) and to the true mean over the same facets (truth); grid = the paper's "
-                 "0.1&deg; (1.75 mrad) grid search on the same frame.</p>")
+                 "0.1&deg; (1.75 mrad) grid search on the same frame; &sigma; is the fit's formal standard error "
+                 "(residuals and Jacobian), which leaves out model and lock-on errors and so understates the "
+                 "real error.</p>")
     parts.append("<table>" + "".join(rows) + "</table>")
     pf = p["pose_fit"]
     parts.append(
