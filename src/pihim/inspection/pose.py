@@ -424,7 +424,7 @@ def refine_pose(
             break
     if best is None:
         raise PihimInputError("the heliostat's outline matches no edges: pose prior too far off?")
-    pose, rms, n_used, _ = _icp(camera, best[1], pts, seg, edges.xy, gates_px)
+    pose, rms, n_used = _icp(camera, best[1], pts, seg, edges.xy, gates_px)
     support = maps.support(project_points(camera, pose, pts))
     shift = project_points(camera, pose, pts[:1])[0] - project_points(camera, prior, pts[:1])[0]
     dx, dy = float(shift[0]), float(shift[1])
@@ -434,10 +434,9 @@ def refine_pose(
 
 
 def _icp(camera: CameraModel, start: CameraPose, pts: NDArray, seg: NDArray, obs: NDArray,
-         gates_px: tuple[float, ...]) -> tuple[CameraPose, float, int, int]:
-    """Point-to-line ICP from ``start``; returns (pose, rms px, matched points, support within 1.5 px)."""
+         gates_px: tuple[float, ...]) -> tuple[CameraPose, float, int]:
+    """Point-to-line ICP from ``start``; returns (pose, rms px, matched points of the last round)."""
     from scipy.optimize import least_squares
-    from scipy.spatial import cKDTree
 
     pose = start
     rms = np.inf
@@ -461,7 +460,4 @@ def _icp(camera: CameraModel, start: CameraPose, pts: NDArray, seg: NDArray, obs
         r = residuals(np.zeros(6))
         rms = float(np.sqrt(np.mean(r**2)))
         n_used = len(q)
-    uv, _ = _project_lines(camera, pose, pts, seg)
-    ok = np.all(np.isfinite(uv), axis=1)
-    d, _ = cKDTree(uv[ok]).query(obs, distance_upper_bound=1.5)
-    return pose, rms, n_used, int(np.isfinite(d).sum())
+    return pose, rms, n_used
