@@ -214,15 +214,20 @@ def measure(
     Returns
     -------
     dict
-        ``median_ms``, ``p10_ms``, ``p90_ms``, ``peak_mb``, [``output_mb``],
-        ``other_cpu`` (see :func:`other_cpu_load`) and ``repeat``.
+        ``median_ms``, ``p10_ms``, ``p90_ms``, ``cpu_ms`` (process CPU time,
+        all threads, per timed call), ``load_avg`` (one-minute load average
+        after the timed calls), ``peak_mb``, [``output_mb``], ``other_cpu``
+        (see :func:`other_cpu_load`) and ``repeat``.
     """
     for _ in range(warmup):
         fn()
     gc.collect()
+    cpu0 = time.process_time()
     samples, load = time_calls(fn, repeat, pause_gc=pause_gc)
+    cpu_ms = 1e3 * (time.process_time() - cpu0) / repeat
     median, p10, p90 = (float(v) for v in np.percentile(samples, [50, 10, 90]))
-    row: dict[str, Any] = {"median_ms": median, "p10_ms": p10, "p90_ms": p90, "peak_mb": None}
+    row: dict[str, Any] = {"median_ms": median, "p10_ms": p10, "p90_ms": p90, "cpu_ms": cpu_ms,
+                           "load_avg": load_average(), "peak_mb": None}
     if trace:
         peak, out = traced_peak(fn)
         row["peak_mb"] = peak / 1e6

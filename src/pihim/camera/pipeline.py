@@ -14,7 +14,6 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from pihim.camera import _kernels
 from pihim.camera.layout import IMX250MZR, MosaicLayout, check_mosaic_shape
 from pihim.errors import PihimInputError
 from pihim.polarimetry.analyser import AnalyserMatrix
@@ -130,6 +129,7 @@ class PolarImage:
         :func:`pihim._quantiles.order_statistics`), without float64 copies.
         """
         from pihim import _quantiles
+        from pihim.camera import _kernels
 
         n_pixels = int(self.s0.size)
         base: dict[str, Any] = {
@@ -288,6 +288,8 @@ def polar_image(
         saturated = np.empty(shape, dtype=np.bool_)
     else:
         s0, s1, s2, dolp, aop, saturated = _checked_outputs(out, shape)
+    from pihim.camera import _kernels  # numba: imported on first use (keeps importing this module quick)
+
     kernel = _kernels.superpixel_polar if demosaic == "superpixel" else _kernels.fullres_polar
     kernel(raw, w_pos, np.float32(dark_level), np.float32(sat), s0, s1, s2, dolp, aop, saturated)
     return PolarImage(s0, s1, s2, dolp, aop, saturated, demosaic, depth)
