@@ -207,7 +207,7 @@ def run_benchmark(repeat: int, warmup: int, quick: bool) -> dict[str, Any]:
 
     def add(label: str, fn: Callable[[], Any], reps: int = repeat, scale: float = 1.0, **extra: Any) -> dict[str, Any]:
         m = time_call(fn, reps, warmup)
-        for k in ("median_s", "p10_s", "p90_s", "first_call_s"):
+        for k in ("median_s", "p10_s", "p90_s", "cpu_s", "first_call_s"):
             m[k] *= scale
         row = {"label": label, "scaled_by": scale, **m, **extra}
         rows.append(row)
