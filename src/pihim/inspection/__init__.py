@@ -7,8 +7,9 @@
   regions either side of an edge and the DoLP / S0 contrast ratio.
 * :mod:`pihim.inspection.success` -- scoring against the ground truth: the
   paper's edge-detection success (all facet edges of the heliostat found)
-  and success rates over sets (Table 2). Reads truth; the estimator never
-  does.
+  and success rates over sets (Table 2), optionally only along the stretches
+  of the outline where the paper's sky-vs-sky scenario holds. Reads truth;
+  the estimator never does.
 * :mod:`pihim.inspection.features` -- sub-pixel edge points (combined S0,
   DoLP and axial AoP gradient) for model fitting.
 * :mod:`pihim.inspection.pose` -- camera pose refinement on the HUA's facet
@@ -52,6 +53,7 @@ from pihim.inspection.success import (
     outlines_from_simulation,
     outlines_from_truth,
     score_frame,
+    sky_vs_sky_mask,
     success_rate,
 )
 
@@ -79,5 +81,6 @@ __all__ = [
     "robust_thresholds",
     "roi_pair_contrast",
     "score_frame",
+    "sky_vs_sky_mask",
     "success_rate",
 ]
