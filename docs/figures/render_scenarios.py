@@ -82,13 +82,12 @@ from pihim.inspection.contrast import PAPER_ROI_SIZE, RoiPairContrast, contrast_
 from pihim.inspection.edges import axial_gradient_magnitude, gradient_magnitude
 from pihim.planning.pipeline import build_plan
 from pihim.polarimetry.stokes import aop_deg, dolp
-from pihim.render.bvh import cast_rays
 from pihim.render.frame import RenderedFrame, render_frame
 from pihim.render.paths import FACET_BACK, GROUND, MIRROR, SKY, STRUCTURE_HIT
 from pihim.render.scene import field_scene
 from pihim.render.shading import Environment
-from pihim.render.views import sky_overlap, sky_vs_sky_view
-from pihim.scenarios import GROUND_AOP_DIFFERENCE_MIN_DEG, SKY_DOLP_DIFFERENCE_MIN, ground_vs_ground
+from pihim.render.views import ground_vs_ground_view, sky_overlap, sky_vs_sky_view
+from pihim.scenarios import SKY_DOLP_DIFFERENCE_MIN
 from pihim.sky.sun import NSTTF, parse_time, sun_position
 from pihim.visualize import POLAR_MAP_STYLES
 
@@ -116,38 +115,8 @@ ROI_COLOURS = ("#e8202a", "#1f8fff")
 # --------------------------------------------------------------------------- small geometry helpers
 
 
-def _clear(scene, origins: NDArray, targets: NDArray, stop: float = 1.0) -> NDArray[np.bool_]:
-    """Whether no scene rectangle lies on the segments ``origin -> origin + stop (target - origin)``."""
-    o = np.ascontiguousarray(np.broadcast_to(origins, np.shape(targets)), dtype=float)
-    _, prim = cast_rays(scene.bvh, o, np.asarray(targets, float) - o, t_max=stop)
-    return prim < 0
-
-
-def _sunlit(scene, points: NDArray, sun_vec: NDArray) -> NDArray[np.bool_]:
-    """Whether the sun (its centre) is seen from ``points``: no rectangle toward it."""
-    p = np.ascontiguousarray(points, dtype=float)
-    _, prim = cast_rays(scene.bvh, p + 1e-6 * sun_vec, np.broadcast_to(sun_vec, p.shape))
-    return prim < 0
-
-
-def _ground_hit(origin: NDArray, d: NDArray, plane: tuple[float, float, float]) -> NDArray:
-    """Where rays meet the ground plane ``z = a + b x + c y``."""
-    a, b, c = plane
-    t = (a + b * origin[..., 0] + c * origin[..., 1] - origin[..., 2]) / (d[..., 2] - b * d[..., 0] - c * d[..., 1])
-    return origin + t[..., None] * d
-
-
 def _unit(v: NDArray) -> NDArray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _camera_grid(centre: NDArray, dx: tuple[float, float], dy: tuple[float, float], z: tuple[float, float],
-                 step: float = 1.0) -> NDArray:
-    xs = np.arange(centre[0] + dx[0], centre[0] + dx[1] + 1e-9, step)
-    ys = np.arange(centre[1] + dy[0], centre[1] + dy[1] + 1e-9, step)
-    zs = np.arange(z[0], z[1] + 1e-9, 1.0)
-    g = np.stack(np.meshgrid(xs, ys, zs, indexing="ij"), axis=-1)
-    return g.reshape(-1, 3)
 
 
 # --------------------------------------------------------------------------- regions of interest
@@ -445,50 +414,15 @@ def ground_scene(field: object, hua: str = "8E3") -> dict:
     scene = field_scene(pose)
     ih = field.index(hua)
     o = pose.mirror_outline()[ih]
-    up = _unit(o[0] - o[3])
-    n = pose.normals[ih]
-    f0, f1 = GROUND_EDGE_STRETCH
-    fractions = np.linspace(f0, f1, 3)
-    edge = o[3] + fractions[:, None] * (o[2] - o[3])
-    aim = o[3] + 0.5 * (f0 + f1) * (o[2] - o[3])
-    cams = _camera_grid(aim, (-40.0, 40.0), (-40.0, 40.0), (15.0, 30.0))
-    v = aim - cams
-    pitch = np.degrees(np.arctan2(v[:, 2], np.linalg.norm(v[:, :2], axis=1)))
-    cams = cams[((cams - aim) @ n > 0.5) & (pitch <= GROUND_PITCH_MAX_DEG)]
-    ok = np.ones(len(cams), bool)
-    results = []
-    for e in edge:
-        # the real ground seen just past the edge: in view (nothing between) and sunlit
-        g = _ground_hit(cams, _unit(e - 0.05 * up - cams), scene.ground)
-        ok &= _clear(scene, cams, g) & _sunlit(scene, g, s)
-        r = ground_vs_ground(cams, e + 0.3 * up, n, s, env.sky, env.mirror, env.ground, ground_point=g)
-        ok &= r.usable
-        # the mirror 0.3 and 0.7 m inside the edge: in view, and showing sunlit ground that nothing hides
-        for h in (0.3, 0.7):
-            p = e + h * up + 0.01 * n
-            src = r.mirror.source_dir if h == 0.3 else ground_vs_ground(
-                cams, e + h * up, n, s, env.sky, env.mirror, env.ground, ground_point=g).mirror.source_dir
-            ok &= (src[:, 2] < 0) & _clear(scene, cams, np.broadcast_to(p, cams.shape), stop=0.98)
-            g_refl = _ground_hit(np.broadcast_to(p, cams.shape), src, scene.ground)
-            ok &= _clear(scene, np.broadcast_to(p, cams.shape), g_refl) & _sunlit(scene, g_refl, s)
-        results.append(r)
-    axial = np.mean([r.aop_difference_deg for r in results], axis=0)
-    s0_m = np.mean([r.mirror.stokes[:, 0] for r in results], axis=0)
-    s0_g = np.mean([r.ground_stokes[:, 0] for r in results], axis=0)
-    dolp_m = np.mean([r.mirror.dolp for r in results], axis=0)
-    dolp_g = np.mean([r.ground_dolp for r in results], axis=0)
-    contrast = np.abs(s0_m - s0_g) / (s0_m + s0_g)
-    ok &= (contrast <= GROUND_S0_CONTRAST_MAX) & (axial > GROUND_AOP_DIFFERENCE_MIN_DEG)
-    if not ok.any():
+    view = ground_vs_ground_view(pose, ih, env, edge_stretch=GROUND_EDGE_STRETCH, max_pitch_deg=GROUND_PITCH_MAX_DEG,
+                                 max_s0_contrast=GROUND_S0_CONTRAST_MAX, scene=scene)
+    if view is None:
         raise SystemExit("ground-vs-ground: no camera position satisfies the criteria")
-    cand = np.flatnonzero(ok)
-    j = cand[np.argmax(np.minimum(dolp_m, dolp_g)[cand])]
-    predicted = {"axial_deg": float(axial[j]), "mirror_dolp": float(dolp_m[j]), "ground_dolp": float(dolp_g[j]),
-                 "s0_contrast": float(contrast[j]), "mirror_s0": float(s0_m[j]), "ground_s0": float(s0_g[j]),
-                 "mirror_aop_deg": float(results[1].mirror.aop_deg[j]),  # the middle point of the edge
-                 "ground_aop_deg": float(results[1].ground_aop_deg[j]),
-                 "candidates": int(ok.sum()), "max_axial_deg": float(axial[cand].max()),
-                 "max_ground_dolp": float(dolp_g[cand].max())}
+    predicted = {"axial_deg": view.aop_difference_deg, "mirror_dolp": view.mirror_dolp,
+                 "ground_dolp": view.ground_dolp, "s0_contrast": view.s0_contrast, "candidates": view.candidates}
+    aim = view.look_at_m
+    cams = view.camera_m[None]
+    j = 0
     cam_pose = CameraPose.look_at(cams[j], aim)
     fr = render_frame(scene, CAMERA, cam_pose, env)
     lab = fr.labels
@@ -553,11 +487,8 @@ def main() -> int:
     g = ground_scene(field)
     pr = g["predicted"]
     print(f"ground-vs-ground: {_where(g['camera'])}, {g['range_m']:.1f} m from the edge; {pr['candidates']} "
-          f"candidates (largest predicted axial difference {pr['max_axial_deg']:.1f} deg, largest ground DoLP "
-          f"{pr['max_ground_dolp']:.3f})")
-    print(f"  predicted: AoP {pr['mirror_aop_deg']:.1f} vs {pr['ground_aop_deg']:.1f} deg, axial {pr['axial_deg']:.1f};"
-          f" DoLP {pr['mirror_dolp']:.3f} vs {pr['ground_dolp']:.3f}; S0 {pr['mirror_s0']:.1f} vs "
-          f"{pr['ground_s0']:.1f}, contrast {pr['s0_contrast']:.3f}")
+          f"candidates; predicted: axial AoP difference {pr['axial_deg']:.1f} deg; DoLP {pr['mirror_dolp']:.3f} vs "
+          f"{pr['ground_dolp']:.3f}; S0 contrast {pr['s0_contrast']:.3f}")
     m = g["measured"]
     print(f"  measured: S0 {m.s0.mean_a:.2f} vs {m.s0.mean_b:.2f} -> Michelson {m.s0.contrast:.3f}; "
           f"AoP {m.aop.mean_a:.1f} vs {m.aop.mean_b:.1f} deg -> axial {m.aop.difference:.1f} deg "

@@ -58,6 +58,7 @@ __all__ = [
     "facet_outlines_px",
     "outlines_from_simulation",
     "outlines_from_truth",
+    "scenario_mask",
     "score_frame",
     "sky_vs_sky_mask",
     "success_rate",
@@ -324,16 +325,18 @@ def _visible(points: NDArray[np.float64], outlines: FacetOutlines, labels: NDArr
     return inside
 
 
-def sky_vs_sky_mask(labels: ArrayLike, heliostat: int, *, width_px: int = 6) -> NDArray[np.bool_]:
-    """Sensor pixels along a heliostat's sky-vs-sky edges (reads the label image: truth).
+def scenario_mask(labels: ArrayLike, heliostat: int, background: str = "sky", *,
+                  width_px: int = 6) -> NDArray[np.bool_]:
+    """Sensor pixels along a heliostat's sky-vs-sky or ground-vs-ground edges (reads the label image: truth).
 
-    The paper's sky-vs-sky case (section 4.1): the heliostat's mirror
-    reflects sky, and across its edge lies another surface that shows sky
-    too, another heliostat's mirror reflecting sky (its own facet gaps
-    included, where they show the heliostat behind) or the sky itself. The
-    mask holds the pixels within ``width_px`` (Chebyshev distance) of both
-    kinds of pixel, a band around exactly those stretches of the outline;
-    pass it to :func:`edge_success` (``mask=``) to judge only them.
+    The paper's two scenarios (sections 4.1 and 4.2): the heliostat's mirror
+    reflects ``background`` (the sky, or the ground), and across its edge
+    lies another surface showing the same kind of thing: another heliostat's
+    mirror reflecting it (its own facet gaps included, where they show what
+    is behind) or the sky or ground itself. The mask holds the pixels within
+    ``width_px`` (Chebyshev distance) of both kinds of pixel, a band around
+    exactly those stretches of the outline; pass it to :func:`edge_success`
+    (``mask=``) to judge only them.
 
     Parameters
     ----------
@@ -342,6 +345,8 @@ def sky_vs_sky_mask(labels: ArrayLike, heliostat: int, *, width_px: int = 6) -> 
         ``direct_facet``, ``end_kind``; :data:`pihim.render.frame.LABEL_CHANNELS`).
     heliostat : int
         Label index of the heliostat.
+    background : {"sky", "ground"}
+        The scenario: sky-vs-sky or ground-vs-ground.
     width_px : int
         Half-width of the band, pixels (>= 1).
 
@@ -351,19 +356,28 @@ def sky_vs_sky_mask(labels: ArrayLike, heliostat: int, *, width_px: int = 6) -> 
     """
     from scipy.ndimage import maximum_filter
 
-    from pihim.render.paths import MIRROR, SKY
+    from pihim.render.paths import GROUND, MIRROR, SKY
 
+    kinds = {"sky": SKY, "ground": GROUND}
+    if background not in kinds:
+        raise PihimInputError(f"background must be 'sky' or 'ground', got {background!r}")
     lab = np.asarray(labels)
     if lab.ndim != 3 or lab.shape[2] < 4:
         raise PihimInputError(f"labels must have shape (H, W, >= 4), got {lab.shape}")
     if isinstance(width_px, bool) or not isinstance(width_px, (int, np.integer)) or width_px < 1:
         raise PihimInputError(f"width_px must be an integer >= 1, got {width_px!r}")
+    code = kinds[background]
     kind, helio, end = lab[..., 0], lab[..., 1], lab[..., 3]
-    mirror_sky = (kind == MIRROR) & (end == SKY)
-    own = mirror_sky & (helio == int(heliostat))
-    other = (mirror_sky & (helio != int(heliostat))) | (kind == SKY)
+    mirror_bg = (kind == MIRROR) & (end == code)
+    own = mirror_bg & (helio == int(heliostat))
+    other = (mirror_bg & (helio != int(heliostat))) | (kind == code)
     size = 2 * int(width_px) + 1
     return (maximum_filter(own.view(np.uint8), size=size) > 0) & (maximum_filter(other.view(np.uint8), size=size) > 0)
+
+
+def sky_vs_sky_mask(labels: ArrayLike, heliostat: int, *, width_px: int = 6) -> NDArray[np.bool_]:
+    """:func:`scenario_mask` for the sky-vs-sky scenario."""
+    return scenario_mask(labels, heliostat, "sky", width_px=width_px)
 
 
 def edge_success(

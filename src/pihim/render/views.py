@@ -1,4 +1,4 @@
-"""Camera positions that show the paper's sky-vs-sky scenario in a rendered field.
+"""Camera positions that show the paper's contrast scenarios (sky-vs-sky, ground-vs-ground) in a rendered field.
 
 The paper's sky-vs-sky test (Tian et al., section 4.1, Figs. 4 and 6a-e)
 looks at a front heliostat whose top edge lies, in the image, over a back
@@ -9,6 +9,13 @@ positions for the one where :func:`pihim.scenarios.sky_vs_sky` predicts the
 largest DoLP difference along that edge, with every condition of the
 scenario checked in the scene itself (ray casts through its BVH), so that a
 render from there shows what the prediction says.
+
+The ground-vs-ground test (section 4.2, Figs. 5 and 6f-g) looks down at a
+heliostat's lower edge: the mirror reflects the ground and the real ground
+lies beyond the edge, so S0 shows little contrast while the AoP of the two
+differs (the paper asks for more than 50 deg). :func:`ground_vs_ground_view`
+searches the camera for it the same way, with
+:func:`pihim.scenarios.ground_vs_ground`.
 
 This module chooses *where to look from*; it reads the scene's true geometry
 and is meant for building test sets of rendered frames, never for the
@@ -28,9 +35,10 @@ from pihim.errors import PihimInputError
 from pihim.render.bvh import cast_rays
 from pihim.render.scene import Scene, field_scene
 from pihim.render.shading import Environment
-from pihim.scenarios import sky_vs_sky
+from pihim.scenarios import GROUND_AOP_DIFFERENCE_MIN_DEG, ground_vs_ground, sky_vs_sky
 
-__all__ = ["SkyVsSkyView", "sky_overlap", "sky_vs_sky_view"]
+__all__ = ["GroundVsGroundView", "SkyOverlap", "SkyVsSkyView", "ground_vs_ground_view", "sky_overlap",
+           "sky_vs_sky_view"]
 
 
 def _unit(v: NDArray) -> NDArray:
@@ -42,6 +50,28 @@ def _clear(scene: Scene, origins: NDArray, targets: NDArray, stop: float = 1.0) 
     o = np.ascontiguousarray(np.broadcast_to(origins, np.shape(targets)), dtype=float)
     _, prim = cast_rays(scene.bvh, o, np.asarray(targets, float) - o, t_max=stop)
     return prim < 0
+
+
+def _sunlit(scene: Scene, points: NDArray, sun_vec: NDArray) -> NDArray[np.bool_]:
+    """Whether the sun (its centre) is seen from ``points``: nothing of the scene toward it."""
+    p = np.ascontiguousarray(points, dtype=float)
+    _, prim = cast_rays(scene.bvh, p + 1e-6 * sun_vec, np.ascontiguousarray(np.broadcast_to(sun_vec, p.shape)))
+    return prim < 0
+
+
+def _ground_hit(origin: NDArray, d: NDArray, plane: tuple[float, float, float]) -> NDArray:
+    """Where rays meet the ground plane ``z = a + b x + c y``."""
+    a, b, c = plane
+    t = (a + b * origin[..., 0] + c * origin[..., 1] - origin[..., 2]) / (d[..., 2] - b * d[..., 0] - c * d[..., 1])
+    return origin + t[..., None] * d
+
+
+def _grid(centre: NDArray, radius_m: float, heights_m: tuple[float, float], step_m: float) -> NDArray:
+    r = np.arange(-radius_m, radius_m + 1e-9, step_m)
+    zs = np.arange(heights_m[0], heights_m[1] + 1e-9, 1.0)
+    gx, gy, gz = np.meshgrid(centre[0] + r, centre[1] + r, zs, indexing="ij")
+    cams = np.stack([gx, gy, gz], axis=-1).reshape(-1, 3)
+    return cams[np.linalg.norm(cams[:, :2] - centre[:2], axis=1) <= radius_m]
 
 
 @dataclass(frozen=True)
@@ -217,12 +247,8 @@ def sky_vs_sky_view(
     top = 0.5 * (fo[0] + fo[1])
     away = field_pose.mirror_centres[front][:2] - field_pose.mirror_centres[back][:2]
     away = away / (np.linalg.norm(away) or 1.0)
-    r = np.arange(-radius_m, radius_m + 1e-9, step_m)
-    zs = np.arange(heights_m[0], heights_m[1] + 1e-9, 1.0)
-    gx, gy, gz = np.meshgrid(top[0] + r, top[1] + r, zs, indexing="ij")
-    cams = np.stack([gx, gy, gz], axis=-1).reshape(-1, 3)
-    rel = cams[:, :2] - top[:2]
-    cams = cams[(np.linalg.norm(rel, axis=1) <= radius_m) & (rel @ away >= 0.0)]
+    cams = _grid(top, radius_m, heights_m, step_m)
+    cams = cams[(cams[:, :2] - top[:2]) @ away >= 0.0]
     k = int(edge_samples)
     edge = fo[0] + ((np.arange(k) + 0.5) / k)[:, None] * (fo[1] - fo[0])  # (K, 3)
     c = np.broadcast_to(cams[:, None, :], (len(cams), k, 3))
@@ -275,3 +301,121 @@ def sky_vs_sky_view(
                 int(good.sum()),
             )
     return None
+
+
+@dataclass(frozen=True)
+class GroundVsGroundView:
+    """A camera position looking down at a heliostat's lower edge, mirror-reflected ground against real ground.
+
+    Attributes
+    ----------
+    heliostat : int
+        Heliostat index.
+    camera_m, look_at_m : ndarray, shape (3,)
+        Camera position and the point of the lower edge it looks at, ENU metres.
+    aop_difference_deg : float
+        Predicted mean axial AoP difference, mirror vs ground, deg in [0, 90].
+    mirror_dolp, ground_dolp : float
+        Predicted mean DoLP of the reflected and the real ground.
+    s0_contrast : float
+        Predicted Michelson contrast of their S0.
+    candidates : int
+        Camera positions that met every condition.
+    """
+
+    heliostat: int
+    camera_m: NDArray[np.float64]
+    look_at_m: NDArray[np.float64]
+    aop_difference_deg: float
+    mirror_dolp: float
+    ground_dolp: float
+    s0_contrast: float
+    candidates: int
+
+    def camera_pose(self, roll_deg: float = 0.0) -> CameraPose:
+        """The camera pose (looking at :attr:`look_at_m`)."""
+        return CameraPose.look_at(self.camera_m, self.look_at_m, roll_deg)
+
+
+def ground_vs_ground_view(
+    field_pose,
+    heliostat: int,
+    environment: Environment,
+    *,
+    heights_m: tuple[float, float] = (15.0, 30.0),
+    radius_m: float = 40.0,
+    step_m: float = 1.0,
+    edge_stretch: tuple[float, float] = (0.15, 0.45),
+    max_pitch_deg: float = -40.0,
+    max_s0_contrast: float = 0.1,
+    min_aop_difference_deg: float = GROUND_AOP_DIFFERENCE_MIN_DEG,
+    scene: Scene | None = None,
+) -> GroundVsGroundView | None:
+    """The camera position looking down at the heliostat's lower edge where the AoP tells mirror from ground.
+
+    Three points of the stretch ``edge_stretch`` of the lower edge (0 = left
+    end, 1 = right end seen from the front) are evaluated from every position
+    of a ``step_m`` grid within ``radius_m`` (horizontally) of the stretch's
+    middle, ``heights_m`` up, in front of the mirror and looking down at
+    least as steeply as ``max_pitch_deg``. A position is kept where, at every
+    point, the real ground just past the edge is in view and sunlit, the
+    mirror 0.3 and 0.7 m inside the edge is in view and shows sunlit ground
+    that nothing hides, the mean axial AoP difference
+    (:func:`pihim.scenarios.ground_vs_ground`) exceeds
+    ``min_aop_difference_deg`` and the predicted S0 Michelson contrast is at
+    most ``max_s0_contrast``; of those, the one whose weaker DoLP (mirror or
+    ground) is largest wins, so that both AoPs are as measurable as possible.
+
+    Returns
+    -------
+    GroundVsGroundView or None
+        None when no position meets the conditions.
+
+    References
+    ----------
+    Tian et al., PIHIM, section 4.2 and Table 1 (AoP difference > 50 deg).
+    """
+    scene = field_scene(field_pose) if scene is None else scene
+    s = np.asarray(environment.sun_dir, float)
+    o = field_pose.mirror_outline()[heliostat]
+    up = _unit(o[0] - o[3])
+    n = field_pose.normals[heliostat]
+    f0, f1 = edge_stretch
+    edge = o[3] + np.linspace(f0, f1, 3)[:, None] * (o[2] - o[3])
+    aim = o[3] + 0.5 * (f0 + f1) * (o[2] - o[3])
+    cams = _grid(aim, radius_m, heights_m, step_m)
+    v = aim - cams
+    pitch = np.degrees(np.arctan2(v[:, 2], np.linalg.norm(v[:, :2], axis=1)))
+    cams = cams[((cams - aim) @ n > 0.5) & (pitch <= max_pitch_deg)]
+    if not len(cams):
+        return None
+    env = environment
+    ok = np.ones(len(cams), bool)
+    results = []
+    for e in edge:
+        g = _ground_hit(cams, _unit(e - 0.05 * up - cams), scene.ground)
+        ok &= _clear(scene, cams, g) & _sunlit(scene, g, s)
+        r = ground_vs_ground(cams, e + 0.3 * up, n, s, env.sky, env.mirror, env.ground, ground_point=g)
+        ok &= r.usable
+        for h in (0.3, 0.7):
+            p = e + h * up + 0.01 * n
+            src = r.mirror.source_dir if h == 0.3 else ground_vs_ground(
+                cams, e + h * up, n, s, env.sky, env.mirror, env.ground, ground_point=g).mirror.source_dir
+            ok &= (src[:, 2] < 0) & _clear(scene, cams, np.broadcast_to(p, cams.shape), stop=0.98)
+            g_refl = _ground_hit(np.broadcast_to(p, cams.shape), src, scene.ground)
+            ok &= _clear(scene, np.broadcast_to(p, cams.shape), g_refl) & _sunlit(scene, g_refl, s)
+        results.append(r)
+    axial = np.mean([r.aop_difference_deg for r in results], axis=0)
+    s0_m = np.mean([r.mirror.stokes[:, 0] for r in results], axis=0)
+    s0_g = np.mean([r.ground_stokes[:, 0] for r in results], axis=0)
+    dolp_m = np.mean([r.mirror.dolp for r in results], axis=0)
+    dolp_g = np.mean([r.ground_dolp for r in results], axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        contrast = np.abs(s0_m - s0_g) / (s0_m + s0_g)
+    ok &= (contrast <= max_s0_contrast) & (axial > min_aop_difference_deg)
+    if not ok.any():
+        return None
+    cand = np.flatnonzero(ok)
+    j = cand[np.argmax(np.minimum(dolp_m, dolp_g)[cand])]
+    return GroundVsGroundView(int(heliostat), cams[j].copy(), aim.copy(), float(axial[j]), float(dolp_m[j]),
+                              float(dolp_g[j]), float(contrast[j]), int(ok.sum()))
