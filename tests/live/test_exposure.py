@@ -202,9 +202,8 @@ def test_closed_loop_brightness_step(scene, step, cam_latency):
 def test_closed_loop_quiet_scene_never_hunts(scene):
     rate, mirrors = scene
     log = _run_loop(rate, mirrors, 1.0, cam_latency=2, frames=200)
-    # at most a first trim from the initial 4000 us, then 190 frames of shot and read noise without a command
-    assert sum(r["changed"] for r in log[:10]) <= 2
-    assert not any(r["changed"] for r in log[10:])
+    # 200 frames of shot and read noise in a well exposed scene: not a single command
+    assert not any(r["changed"] for r in log)
 
 
 def test_params_validation():

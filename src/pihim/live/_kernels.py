@@ -10,6 +10,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+#: LLVM fast-math flags that keep NaN and inf semantics: masked (saturated) pixels are NaN and
+#: must stay detectable (full ``fastmath=True`` would let LLVM drop the ``isfinite`` tests).
+_FASTMATH = {"contract", "afn", "reassoc", "arcp", "nsz"}
+
 
 @njit(nogil=True, cache=True)
 def histogram_all(raw, shift, nbins, out):  # pragma: no cover - compiled
@@ -43,7 +47,7 @@ def histogram_masked(raw, shift, mask, block, nbins, out):  # pragma: no cover -
                 out[v] += 1
 
 
-@njit(nogil=True, parallel=True, cache=True, fastmath=True)
+@njit(nogil=True, parallel=True, cache=True, fastmath=_FASTMATH)
 def expose(rate, row0, col0, scale, dark, full_scale, shot_var_per_dn, read_var_dn2,
            gain_lin, table, offset, out):  # pragma: no cover - compiled
     """Linear sensor response with Gaussian-approximated shot and read noise, into ``out`` (uint16).
@@ -108,7 +112,7 @@ def histogram_rows(raw, shift, mask, use_mask, stride, nbins, n_chunks, out):  #
             out[k] += part[c, k]
 
 
-@njit(nogil=True, parallel=True, cache=True, fastmath=True)
+@njit(nogil=True, parallel=True, cache=True, fastmath=_FASTMATH)
 def colorize(s0, dolp, aop, step, lo, scale, dolp_scale, dolp_lut, aop_bins, dolp_levels, aop_lut,
              out_s0, out_dolp, out_aop):  # pragma: no cover - compiled
     """Decimate and colour S0 (grey), DoLP (table) and AoP (2-D table) in one pass.

@@ -318,7 +318,7 @@ class LiveEngine:
             except SourceLost as exc:
                 self.counters["source_lost"] += 1
                 self._set_error(f"{exc}; retrying")
-                self._reconnect()
+                self._reconnect(str(exc))
                 continue
             except Exception as exc:  # noqa: BLE001 - keep serving; show what happened
                 self.counters["source_errors"] += 1
@@ -343,16 +343,16 @@ class LiveEngine:
         pol = polar_image(tiny, bit_depth=12)
         self.preview.render(pol.s0, pol.dolp, pol.aop_deg)
 
-    def _reconnect(self) -> None:
+    def _reconnect(self, cause: str) -> None:
         while not self._stop.is_set():
             try:
                 self.source.reconnect()
             except SourceLost as exc:
-                self._set_error(f"{exc}; retrying")
+                self._set_error(f"{cause}; reconnecting: {exc}; retrying")
                 self._stop.wait(1.0)
                 continue
             except Exception as exc:  # noqa: BLE001
-                self._set_error(f"reconnect failed: {type(exc).__name__}: {exc}; retrying")
+                self._set_error(f"{cause}; reconnect failed: {type(exc).__name__}: {exc}; retrying")
                 self._stop.wait(1.0)
                 continue
             if self._commanded is not None:

@@ -30,9 +30,9 @@ middle:
      with its margin) and ``median_target / median`` (the soft target),
      **damped in log space**: only ``damping`` of the log error is corrected
      per step, so noise in the statistics does not make the loop ring;
-   * changes smaller than ``deadband`` are not sent. Together with the band
-     between ``aim`` and ``limit``, where nothing is done from the bright
-     side, this is a hysteresis: a converged loop does not oscillate.
+   * an increase smaller than ``deadband`` (10 %) is not made, and nothing
+     is done while ``p_hi`` lies between ``aim`` and ``limit``: together a
+     hysteresis band, so that a converged loop does not hunt on noise.
 3. **Actuation, exposure before gain**: the wanted brightness (exposure time
    times linear gain) is met with exposure time up to its cap, and only the
    rest with analog gain, because gain amplifies the read noise with the
@@ -159,7 +159,8 @@ class ExposureParams:
     damping : float
         Fraction (0, 1] of the log error corrected by an upward step.
     deadband : float
-        Relative changes of brightness smaller than this are not sent (> 0).
+        The frame is left alone while the brightness it asks for is less
+        than ``1 + deadband`` times the current one (the soft side; > 0).
     clipped_step : float
         Factor the brightness is divided by when the median itself is clipped.
     latency_frames : int
@@ -177,7 +178,7 @@ class ExposureParams:
     percentile: float = 99.9
     median_target: float = 0.35
     damping: float = 0.7
-    deadband: float = 0.05
+    deadband: float = 0.10
     clipped_step: float = 8.0
     latency_frames: int = 2
     exposure_min_us: float = 20.0
@@ -277,6 +278,8 @@ class RegionStats:
         }
 
 
+#: Smallest relative change of brightness that is sent to the camera.
+_MIN_CHANGE = 0.01
 #: Parallel chunks of the histogram kernel.
 _CHUNKS = 8
 
@@ -471,13 +474,12 @@ def next_exposure(
             want = min(want, params.median_target / median)
         if not math.isfinite(want):  # a black frame: open up by the largest step
             want = params.clipped_step
-        if want <= 1.0:
+        if want <= 1.0 + params.deadband:
             return ExposureDecision(current, state, False, "in band")
         scale, reason = math.exp(params.damping * math.log(want)), "brighten"
     new = _allocate(current.brightness * scale, params, cap)
-    if abs(math.log(new.brightness / current.brightness)) < math.log1p(params.deadband):
-        why = "in band" if abs(math.log(scale)) < math.log1p(params.deadband) else "at range limit"
-        return ExposureDecision(current, state, False, why, scale)
+    if abs(math.log(new.brightness / current.brightness)) < math.log1p(_MIN_CHANGE):
+        return ExposureDecision(current, state, False, "at range limit", scale)
     return ExposureDecision(new, ExposureState(params.latency_frames - 1), True, reason, scale)
 
 
