@@ -76,7 +76,8 @@
     $("controller").textContent = c ? (c.applies ? c.reason : "advice: " + fmt(c.next.exposure_us, 0, " \u00b5s")) : "off";
     const rs = header.region_stats;
     const satEl = $("saturated");
-    satEl.textContent = fmt(100 * rs.fraction_saturated, 2, " %") + " (" + header.region + ")";
+    const where = { source: "mirrors", outlines: "in outlines", frame: "whole frame" }[header.region] || header.region;
+    satEl.textContent = fmt(100 * rs.fraction_saturated, 2, " %") + " (" + where + ")";
     setClass(satEl, rs.fraction_saturated > 0.001 ? "bad" : "good");
     const dEl = $("dolp");
     dEl.textContent = fmt(header.dolp_mirrors, 2) + (header.region === "frame" ? " (whole frame)" : "");
