@@ -121,3 +121,41 @@ def test_preview_colours_match_visualize():
                      np.kron(aop, np.ones((4, 4), np.float32)))
     assert imgs.step == 4 and (imgs.height, imgs.width) == (48, 64)  # 192x256 in 64 px: every 4th
     assert cv2.imdecode(np.frombuffer(imgs.aop, np.uint8), cv2.IMREAD_COLOR).shape == (48, 64, 3)
+
+
+def test_rendered_flight_source(frontal, tmp_path):
+    """A folder laid out as ``pihim simulate`` writes it: re-exposed live, mirrors from labels, pose for outlines."""
+    from pihim.live.exposure import ExposureSettings
+    from pihim.live.sources import open_source
+    from pihim.render.scenes import edge_scene
+
+    field, fp, i, pose = frontal
+    cam = CameraModel(width_px=80, height_px=64, focal_length_mm=35.0 * 80 / 2448)
+    s0, s1, s2 = edge_scene((64, 80), rng=2)
+    labels = np.zeros((64, 80, 7), np.int32)
+    labels[..., 0] = np.where(np.hypot(s1, s2) / s0 > 0.12, 4, 2)  # mirror / ground
+    d = tmp_path / "flight"
+    d.mkdir()
+    tifffile.imwrite(d / "v0.S0.tiff", s0.astype(np.float32))
+    tifffile.imwrite(d / "v0.DoLP.tiff", (np.hypot(s1, s2) / s0).astype(np.float32))
+    tifffile.imwrite(d / "v0.AoP.tiff", np.mod(np.degrees(0.5 * np.arctan2(s2, s1)), 180).astype(np.float32))
+    tifffile.imwrite(d / "v0.labels.tiff", labels)
+    log = {**_log(field, pose, cam), "sensor": {"exposure": {"gain_dn": 1.0}}}
+    (d / "v0.json").write_text(json.dumps({"schema": "pihim.simulated-frame/1", "log": log, "truth": {}}))
+    src = open_source(f"synthetic:{d}", fps=1000.0)
+    assert src.controllable and src.shape == (64, 80)
+    f = src.read()
+    from pihim.render.mosaic import mosaic_from_stokes
+
+    mosaic_ideal = mosaic_from_stokes(s0, s1, s2, bit_depth=None)
+    # 1000 us at 0 dB reproduces the rendered exposure, up to shot and read noise
+    assert np.median(f.raw.astype(float) - mosaic_ideal) == pytest.approx(0.0, abs=2.0)
+    sp = (labels[..., 0] == 4).reshape(32, 2, 40, 2).all(axis=(1, 3))
+    assert np.array_equal(f.region, sp)
+    assert f.meta["log"]["pose"] == pose.to_dict()
+    src.set_exposure(ExposureSettings(500.0))
+    src.read()
+    g = src.read()
+    assert g.settings == ExposureSettings(500.0)
+    assert np.median(g.raw[np.kron(sp, np.ones((2, 2), bool))].astype(float)) == pytest.approx(
+        0.5 * np.median(mosaic_ideal[np.kron(sp, np.ones((2, 2), bool))]), rel=0.05)

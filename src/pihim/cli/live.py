@@ -50,7 +50,7 @@ def _token(option: str | None) -> tuple[str | None, bool]:
 
 
 def live(
-    source: Annotated[str, typer.Option("--source", help="A folder of raw frames, 'synthetic', or 'genicam[:SERIAL]'.",
+    source: Annotated[str, typer.Option("--source", help="A folder of raw frames, 'synthetic' (synthetic scenes), 'synthetic:DIR' (a flight rendered by pihim simulate) or 'genicam[:SERIAL]'.",
                                         show_default=False)],
     host: Annotated[str, typer.Option(help="Address to listen on; anything but loopback needs --token.")] = "127.0.0.1",
     port: Annotated[int, typer.Option(help="TCP port (0: any free port).")] = 8765,
@@ -131,7 +131,7 @@ def live(
 
     field_obj = None
     overlay = None
-    if plan is not None or not source.lower().startswith(("synthetic", "genicam")):
+    if plan is not None or not (source.lower() == "synthetic" or source.lower().startswith("genicam")):
         field_obj = load_field_option(field, None)
     if plan is not None:
         from pihim.live.overlay import overlay_from_plan

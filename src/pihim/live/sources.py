@@ -31,6 +31,10 @@ Sources
     heliostat scenes (:func:`pihim.render.scenes.edge_scene`) that drifts
     across the scene and changes the scene brightness every few seconds, so
     the adaptive exposure has something to do; the mirror pixels are known.
+:class:`RenderedSource`
+    The renderer flying a plan: the views ``pihim simulate`` rendered at a
+    plan's capture waypoints, re-exposed live by the simulated camera, with
+    the mirror pixels from the render's labels and the logged pose.
 :class:`GenICamSource`
     A GenICam camera (e.g. the Lucid Triton TRI050S-P) through
     ``harvesters`` and the camera vendor's GenTL producer (``.cti``).
@@ -62,6 +66,7 @@ __all__ = [
     "FrameSource",
     "GenICamSource",
     "LiveFrame",
+    "RenderedSource",
     "SourceLost",
     "SyntheticSource",
     "open_source",
@@ -470,6 +475,134 @@ class SyntheticSource:
         self._pacer.interrupt()
 
 
+def rendered_scene(json_path: Path) -> tuple[NDArray[np.float32], NDArray[np.bool_], dict[str, Any]]:
+    """Signal rate, mirror mask and log of one frame rendered by ``pihim simulate``.
+
+    Reads ``FRAME.json`` (``pihim.simulated-frame/1``) and the noise-free
+    truth images beside it (``FRAME.S0/DoLP/AoP.tiff``, ``FRAME.labels.tiff``).
+    The rate is the ideal mosaic at the frame's logged exposure
+    (``log.sensor.exposure.gain_dn``) per 1000 us: with 1000 us at 0 dB the
+    simulated camera reproduces the rendered exposure. Mirror pixels are
+    those whose first surface is a mirror (label ``direct_kind`` 4).
+    """
+    import tifffile
+
+    from pihim.render.mosaic import mosaic_from_stokes
+    from pihim.render.paths import MIRROR
+
+    stem = json_path.with_suffix("")
+    try:
+        doc = json.loads(json_path.read_text(encoding="utf-8"))
+        log = doc["log"]
+        gain = float(log["sensor"]["exposure"]["gain_dn"])
+        s0 = tifffile.imread(f"{stem}.S0.tiff").astype(np.float32)
+        dolp = np.nan_to_num(tifffile.imread(f"{stem}.DoLP.tiff").astype(np.float32))
+        aop = np.radians(np.nan_to_num(tifffile.imread(f"{stem}.AoP.tiff").astype(np.float32)))
+        kind = tifffile.imread(f"{stem}.labels.tiff")[..., 0]
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+        raise PihimInputError(f"{json_path}: not a complete pihim simulate frame ({type(exc).__name__}: {exc})") from None
+    h, w = s0.shape
+    if h % 2 or w % 2 or dolp.shape != s0.shape or aop.shape != s0.shape or kind.shape != s0.shape:
+        raise PihimInputError(f"{json_path}: truth images of different or odd sizes")
+    lin = s0 * dolp
+    mosaic = mosaic_from_stokes(gain * s0, gain * lin * np.cos(2 * aop), gain * lin * np.sin(2 * aop), bit_depth=None)
+    rate = (np.asarray(mosaic, np.float32) / np.float32(1000.0)).clip(0, None)
+    mirrors = (kind == MIRROR).reshape(h // 2, 2, w // 2, 2).all(axis=(1, 3))
+    return rate, mirrors, log
+
+
+class RenderedSource:
+    """The renderer flying a plan: frames of ``pihim simulate`` re-exposed live by a simulated camera.
+
+    Rendering a 5 MP frame takes tens of seconds, so the flight is rendered
+    once (``pihim simulate --waypoint plan.json:I`` for each capture
+    waypoint, into one folder) and this source cycles through the views,
+    ``period_s`` seconds each, as a drone hovering at each capture point. Each
+    view's noise-free Stokes images become the scene of a
+    :class:`~pihim.live.simcam.SimulatedCamera`, so the adaptive exposure acts
+    on it; the mirror pixels come from the render's labels and the logged
+    pose travels with the frame (heliostat outlines).
+
+    Parameters
+    ----------
+    folder : path
+        Folder with ``NAME.json`` + ``NAME.S0/DoLP/AoP/labels.tiff`` sets.
+    fps, period_s, brightness, latency_frames, settings :
+        As :class:`SyntheticSource`.
+    """
+
+    controllable = True
+
+    def __init__(self, folder: str | os.PathLike[str], fps: float = 15.0, *, period_s: float = 4.0,
+                 brightness: tuple[float, ...] = (1.0,), latency_frames: int = 2,
+                 settings: ExposureSettings = ExposureSettings(1000.0)) -> None:
+        from pihim.live.simcam import SimulatedCamera
+
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise PihimInputError(f"--source synthetic:{folder}: no such folder")
+        docs = []
+        for p in sorted(self.folder.glob("*.json"), key=_natural_key):
+            try:
+                if json.loads(p.read_text(encoding="utf-8")).get("schema", "").startswith("pihim.simulated-frame/"):
+                    docs.append(p)
+            except (OSError, ValueError, AttributeError):
+                continue
+        if not docs:
+            raise PihimInputError(f"--source synthetic:{folder}: no frames rendered by pihim simulate in the folder "
+                                  f"(FRAME.json with its S0/DoLP/AoP/labels TIFFs)")
+        self._scenes = [rendered_scene(p) for p in docs]
+        shapes = {r.shape for r, _, _ in self._scenes}
+        if len(shapes) != 1:
+            raise PihimInputError(f"--source synthetic:{folder}: rendered frames of different sizes {sorted(shapes)}")
+        self.names = [p.stem for p in docs]
+        self.shape = next(iter(shapes))  # type: ignore[assignment]
+        self.fps = float(fps)
+        self.period_s = float(period_s)
+        self.brightness = tuple(float(b) for b in brightness)
+        self._pacer = _Pacer(fps)
+        self._cam = SimulatedCamera(self._scenes[0][0], settings, latency_frames=latency_frames)
+        self._index = 0
+        self._t0: float | None = None
+        self._lock = threading.Lock()
+
+    def describe(self) -> dict[str, Any]:
+        """Kind, folder, views, rate and size."""
+        return {"kind": "synthetic", "name": f"rendered flight {self.folder} ({len(self._scenes)} views)",
+                "fps": self.fps, "width": self.shape[1], "height": self.shape[0], "views": self.names,
+                "period_s": self.period_s, "controllable": True, "latency_frames": self._cam.latency_frames}
+
+    def read(self) -> LiveFrame:
+        """The current view, taken by the simulated camera."""
+        self._pacer.wait()
+        now = time.monotonic()
+        if self._t0 is None:
+            self._t0 = now
+        period = int((now - self._t0) // self.period_s)
+        k = period % len(self._scenes)
+        b = self.brightness[period % len(self.brightness)]
+        rate, mirrors, log = self._scenes[k]
+        with self._lock:
+            self._cam.rate = rate
+            raw, used = self._cam.capture(b)
+        idx = self._index
+        self._index += 1
+        return LiveFrame(raw, idx, time.time(), time.monotonic(), 12, "simulated", used, mirrors,
+                         {"view": self.names[k], "brightness": b, "log": log})
+
+    def set_exposure(self, settings: ExposureSettings) -> None:
+        """Command the simulated camera."""
+        with self._lock:
+            self._cam.request(settings)
+
+    def reconnect(self) -> None:
+        """Nothing to reconnect."""
+
+    def close(self) -> None:
+        """Stop waiting."""
+        self._pacer.interrupt()
+
+
 # --------------------------------------------------------------------------- GenICam
 
 
@@ -731,12 +864,14 @@ class GenICamSource:
 def open_source(spec: str, *, fps: float = 15.0, size: tuple[int, int] | None = None, seed: int = 0,
                 cti: str | None = None, pixel_format: str | None = None, width: int | None = None,
                 height: int | None = None, bit_depth: int | None = None) -> FrameSource:
-    """Make a source from ``--source DIR|synthetic|genicam[:SERIAL]``.
+    """Make a source from ``--source DIR|synthetic[:DIR]|genicam[:SERIAL]``.
 
     Parameters
     ----------
     spec : str
-        A folder of frames, ``synthetic``, ``genicam`` or ``genicam:SERIAL``.
+        A folder of frames, ``synthetic`` (synthetic scenes),
+        ``synthetic:DIR`` (a flight rendered by ``pihim simulate``,
+        :class:`RenderedSource`), ``genicam`` or ``genicam:SERIAL``.
     fps : float
         Frame rate (the camera's acquisition rate for GenICam).
     size : (rows, columns), optional
@@ -751,6 +886,8 @@ def open_source(spec: str, *, fps: float = 15.0, size: tuple[int, int] | None = 
     low = text.lower()
     if low == "synthetic":
         return SyntheticSource(size or (2048, 2448), fps, seed=seed)
+    if low.startswith("synthetic:"):
+        return RenderedSource(text.split(":", 1)[1], fps)
     if low == "genicam" or low.startswith("genicam:"):
         serial = text.split(":", 1)[1].strip() if ":" in text else None
         return GenICamSource(serial or None, cti=cti, fps=fps, pixel_format=pixel_format)

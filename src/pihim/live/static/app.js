@@ -45,7 +45,16 @@
         g.beginPath();
         o.points.forEach((p, i) => (i ? g.lineTo(p[0] * w, p[1] * h) : g.moveTo(p[0] * w, p[1] * h)));
         g.closePath(); g.stroke();
-        g.fillText(o.name, o.points[0][0] * w + 3, o.points[0][1] * h + 12);
+        // label at the highest outline point inside the image (or the clamped centroid if none is)
+        const inside = o.points.filter((p) => p[0] >= 0 && p[0] <= 1 && p[1] >= 0 && p[1] <= 1);
+        let at;
+        if (inside.length) at = inside.reduce((a, b) => (b[1] < a[1] ? b : a));
+        else {
+          const cx = o.points.reduce((s, p) => s + p[0], 0) / o.points.length;
+          const cy = o.points.reduce((s, p) => s + p[1], 0) / o.points.length;
+          at = [Math.min(Math.max(cx, 0.02), 0.9), Math.min(Math.max(cy, 0.02), 0.95)];
+        }
+        g.fillText(o.name, Math.min(at[0] * w + 3, w - 30), Math.min(at[1] * h + 12, h - 4));
       }
     }
   }
