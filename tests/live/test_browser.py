@@ -42,32 +42,42 @@ def _wait(cond, timeout, what):
     raise AssertionError(f"timed out waiting for {what}")
 
 
-@pytest.fixture
-def server(tmp_path):
-    """``pihim live --source synthetic`` on a free port, in its own process."""
+def _start(source: str, captures: Path) -> tuple[str, subprocess.Popen]:
+    """``pihim live --source SOURCE`` on a free port, in its own process; returns its URL and process."""
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2] / "src")}
-    cmd = [sys.executable, "-m", "pihim", "live", "--source", "synthetic", "--size", "640x512", "--port", "0",
-           "--captures", str(tmp_path / "captures"), "--duration", "120", "--json"]
+    cmd = [sys.executable, "-m", "pihim", "live", "--source", source, "--size", "640x512", "--port", "0",
+           "--captures", str(captures), "--duration", "120", "--json", "--fps", "15"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)
     line = proc.stderr.readline()  # "pihim live: ... at http://127.0.0.1:PORT/ (Ctrl-C to stop)"
     m = re.search(r"(http://127\.0\.0\.1:\d+/)", line)
     if m is None:
         proc.kill()
         raise AssertionError(f"server did not start: {line}{proc.stderr.read()}")
-    yield m.group(1), proc, tmp_path / "captures"
+    return m.group(1), proc
+
+
+@pytest.fixture
+def server(tmp_path):
+    """``pihim live --source synthetic`` on a free port."""
+    url, proc = _start("synthetic", tmp_path / "captures")
+    yield url, proc, tmp_path / "captures"
     if proc.poll() is None:
         proc.kill()
         proc.wait()
 
 
-def test_page_shows_frames_and_captures_a_raw_frame(server, tmp_path):
-    url, proc, captures = server
+def _driver(tmp_path: Path) -> webdriver.Chrome:
     opts = webdriver.ChromeOptions()
     opts.binary_location = CHROMIUM
     for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
                 f"--user-data-dir={tmp_path / 'chrome'}", "--window-size=1400,760"):
         opts.add_argument(arg)
-    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
+    return webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
+
+
+def test_page_shows_frames_and_captures_a_raw_frame(server, tmp_path):
+    url, proc, captures = server
+    driver = _driver(tmp_path)
     try:
         driver.get(url)
         frames = _wait(lambda: int(driver.execute_script("return document.body.dataset.frames || 0")) >= 10, 60,
@@ -107,3 +117,32 @@ def test_page_shows_frames_and_captures_a_raw_frame(server, tmp_path):
     assert proc.returncode == 130, err
     assert "Traceback" not in err
     assert json.loads(out.strip().splitlines()[-1])["captures"] == 1
+
+
+def test_page_shows_a_bad_frame_while_serving(tmp_path):
+    """A frame of the wrong size in a replayed folder: the page shows the error, frames keep coming."""
+    import tifffile
+
+    from .conftest import mosaic
+
+    d = tmp_path / "replay"
+    d.mkdir()
+    for k in range(3):
+        tifffile.imwrite(d / f"f{k}.tiff", mosaic(shape=(64, 80), value=1000 + 500 * k))
+    tifffile.imwrite(d / "f3.tiff", mosaic(shape=(32, 40)))
+    url, proc = _start(str(d), tmp_path / "captures")
+    driver = _driver(tmp_path)
+    try:
+        driver.get(url)
+        _wait(lambda: "f3.tiff: frame is 40x32 (WxH) but the stream is 80x64; skipped"
+              in driver.find_element(By.ID, "error").text, 60, "the error banner")
+        n0 = int(driver.execute_script("return document.body.dataset.frames || 0"))
+        _wait(lambda: int(driver.execute_script("return document.body.dataset.frames")) >= n0 + 10, 30,
+              "frames after the error")
+        assert driver.find_element(By.ID, "conn").text == "live"
+    finally:
+        driver.quit()
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 143 and "Traceback" not in err
+    assert json.loads(out.strip().splitlines()[-1])["frames_skipped"] >= 1

@@ -15,7 +15,11 @@ import pytest
 
 pytest.importorskip("starlette")
 pytest.importorskip("httpx")
-from starlette.testclient import TestClient  # noqa: E402
+import warnings  # noqa: E402
+
+with warnings.catch_warnings():  # starlette >= 1.x asks for httpx2; httpx works the same for these tests
+    warnings.simplefilter("ignore")
+    from starlette.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect  # noqa: E402
 
 from pihim.camera.frames import read_frame  # noqa: E402
