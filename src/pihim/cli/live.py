@@ -195,6 +195,8 @@ def live(
             "fps": status["fps"],
             "latency_ms": status["latency_ms"],
             "process_ms": status["process_ms"],
+            "process_cpu_ms": status["process_cpu_ms"],
+            "source_cpu_ms": status["source_cpu_ms"],
             "captures": status["counters"].get("captures", 0),
             "recorded": status["counters"].get("recorded", 0),
             "record_dropped": status["counters"].get("record_dropped", 0),

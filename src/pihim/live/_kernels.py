@@ -64,17 +64,20 @@ def expose(rate, row0, col0, scale, dark, full_scale, shot_var_per_dn, read_var_
     h, w = out.shape
     n_table = table.shape[0]
     for i in prange(h):
-        base = offset + i * w
+        t = (offset + i * w) % n_table
         for j in range(w):
-            x = rate[row0 + i, col0 + j] * scale
+            x = np.float32(rate[row0 + i, col0 + j] * scale)
             if x < 0.0:
-                x = 0.0
-            sigma = np.sqrt(x * shot_var_per_dn + read_var_dn2)
-            v = dark + gain_lin * (x + sigma * table[(base + j) % n_table]) + 0.5
+                x = np.float32(0.0)
+            sigma = np.sqrt(x * np.float32(shot_var_per_dn) + np.float32(read_var_dn2))
+            v = np.float32(dark) + np.float32(gain_lin) * (x + sigma * table[t]) + np.float32(0.5)
+            t += 1
+            if t == n_table:
+                t = 0
             if v < 0.0:
-                v = 0.0
+                v = np.float32(0.0)
             if v > full_scale:
-                v = full_scale
+                v = np.float32(full_scale)
             out[i, j] = np.uint16(v)
 
 

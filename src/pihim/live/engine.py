@@ -246,6 +246,8 @@ class LiveEngine:
         self.counters = collections.Counter()
         self.latencies_ms: collections.deque[float] = collections.deque(maxlen=2048)
         self.process_ms: collections.deque[float] = collections.deque(maxlen=2048)
+        self.process_cpu_ms: collections.deque[float] = collections.deque(maxlen=2048)
+        self.source_cpu_ms: collections.deque[float] = collections.deque(maxlen=2048)
         self._frame_times: collections.deque[float] = collections.deque(maxlen=64)
         self._state = ExposureState()
         self._commanded: ExposureSettings | None = None
@@ -309,6 +311,7 @@ class LiveEngine:
             numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
         self._warm_up()
         while not self._stop.is_set():
+            c0 = time.thread_time()
             try:
                 frame = self.source.read()
             except FrameError as exc:
@@ -327,6 +330,7 @@ class LiveEngine:
                 continue
             if self._stop.is_set():
                 break
+            self.source_cpu_ms.append(1e3 * (time.thread_time() - c0))
             try:
                 self._process(frame)
             except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the view
@@ -380,6 +384,7 @@ class LiveEngine:
 
         t0 = frame.t_monotonic
         tp = time.monotonic()
+        cpu0 = time.thread_time()
         cfg = self.config
         overlay = self._overlay_for(frame)
         region = frame.region
@@ -467,6 +472,7 @@ class LiveEngine:
             self.frame = frame
             self.frame_info = info
             self.process_ms.append(1e3 * (time.monotonic() - tp))
+            self.process_cpu_ms.append(1e3 * (time.thread_time() - cpu0))
             self.counters["frames"] += 1
         if self.error is not None and not self.error.startswith("overlay"):
             self._set_error(None)
@@ -525,6 +531,7 @@ class LiveEngine:
 
         with self._lock:
             lat, proc = collections.deque(self.latencies_ms), collections.deque(self.process_ms)
+            pcpu, scpu = collections.deque(self.process_cpu_ms), collections.deque(self.source_cpu_ms)
             times = list(self._frame_times)
         fps = (len(times) - 1) / (times[-1] - times[0]) if len(times) >= 2 and times[-1] > times[0] else None
         return {
@@ -535,6 +542,8 @@ class LiveEngine:
             "fps": fps,
             "latency_ms": pct(lat),
             "process_ms": pct(proc),
+            "process_cpu_ms": pct(pcpu),
+            "source_cpu_ms": pct(scpu),
             "source": self.source.describe(),
             "commanded": None if self._commanded is None else self._commanded.to_dict(),
             "uptime_s": time.monotonic() - self.started_monotonic,

@@ -77,6 +77,9 @@
     document.body.dataset.frames = String(frames);
     document.body.dataset.seq = String(header.seq);
     $("frames").textContent = String(frames);
+    const src = header.source || {};
+    const what = src.view ? "view " + src.view : src.file ? src.file : src.serial ? "camera " + src.serial : "";
+    $("frame-src").textContent = what ? "\u00b7 " + what : "";
     $("fps").textContent = fmt(header.fps, 1, " fps");
     const e = header.exposure;
     $("exposure").textContent = e ? fmt(e.exposure_us, 0, " \u00b5s") : "-";
