@@ -144,7 +144,10 @@ def live(
         from pihim.live.engine import LiveConfig, LiveEngine
         from pihim.live.sources import open_source
 
-        make_out_dir(captures, option="--captures")
+        if captures.is_dir():  # created at the first capture; only clean what killed runs left
+            from pihim._atomic import clean_stale_temporaries
+
+            clean_stale_temporaries(captures)
         if record is not None:
             make_out_dir(record, option="--record")
         src = open_source(source, fps=fps, size=syn_size, seed=seed, cti=None if cti is None else str(cti),

@@ -397,6 +397,7 @@ class LiveEngine:
                              stride=cfg.stats_stride)
         t_stats = time.monotonic()
         decision = None
+        current = ExposureSettings(1000.0)
         if cfg.exposure is not None:
             current = self._commanded or frame.settings or ExposureSettings(1000.0)
             decision = next_exposure(stats, current, cfg.exposure, self._state, exposure_cap_us=cfg.exposure_cap_us)
@@ -438,6 +439,7 @@ class LiveEngine:
             "controller": None if decision is None else {
                 "reason": decision.reason,
                 "next": decision.settings.to_dict(),
+                "scale": decision.settings.brightness / current.brightness,
                 "applies": self.source.controllable,
             },
             "region": region_kind,

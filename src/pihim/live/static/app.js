@@ -85,7 +85,7 @@
     $("exposure").textContent = e ? fmt(e.exposure_us, 0, " \u00b5s") : "-";
     $("gain").textContent = e ? fmt(e.gain_db, 1, " dB") : "-";
     const c = header.controller;
-    $("controller").textContent = c ? (c.applies ? c.reason : "advice: " + fmt(c.next.exposure_us, 0, " \u00b5s")) : "off";
+    $("controller").textContent = c ? (c.applies ? c.reason : c.reason + " (advice \u00d7" + fmt(c.scale, 2) + ")") : "off";
     const rs = header.region_stats;
     const satEl = $("saturated");
     const where = { source: "mirrors", outlines: "in outlines", frame: "whole frame" }[header.region] || header.region;
