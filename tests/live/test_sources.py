@@ -15,7 +15,6 @@ from pihim.live.sources import (
     FolderSource,
     FrameError,
     GenICamSource,
-    SourceLost,
     SyntheticSource,
     open_source,
 )

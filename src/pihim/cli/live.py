@@ -12,7 +12,7 @@ import secrets
 import signal
 import sys
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 
@@ -158,10 +158,11 @@ def live(
 
     log_overlay = None
     if field_obj is not None:
+        import functools
+
         from pihim.live.overlay import overlay_from_log
 
-        def log_overlay(log: dict[str, Any], _f: Any = field_obj) -> Any:
-            return overlay_from_log(_f, log)
+        log_overlay = functools.partial(overlay_from_log, field_obj)
 
     config = LiveConfig(exposure=params, exposure_cap_us=cap, initial_settings=ExposureSettings(exposure_us),
                         preview_max_side=preview_size, jpeg_quality=jpeg_quality, layout=mosaic_layout,

@@ -16,21 +16,10 @@ _FASTMATH = {"contract", "afn", "reassoc", "arcp", "nsz"}
 
 
 @njit(nogil=True, cache=True)
-def histogram_all(raw, shift, nbins, out):  # pragma: no cover - compiled
-    """Add the (right-shifted) values of every pixel of ``raw`` into ``out`` (values >= nbins clip)."""
-    h, w = raw.shape
-    top = nbins - 1
-    for i in range(h):
-        for j in range(w):
-            v = np.int64(raw[i, j]) >> shift
-            if v > top:
-                v = top
-            out[v] += 1
-
-
-@njit(nogil=True, cache=True)
 def histogram_masked(raw, shift, mask, block, nbins, out):  # pragma: no cover - compiled
-    """As :func:`histogram_all`, over the pixels whose ``mask[i // block, j // block]`` is true.
+    """Add the (right-shifted) values of the pixels whose ``mask[i // block, j // block]`` is true into ``out``.
+
+    Values at or above ``nbins`` count in the last bin.
 
     ``block`` is 1 for a mask of the mosaic's shape and 2 for a super-pixel
     (half-resolution) mask: a super-pixel counts with its four raw pixels.

@@ -100,37 +100,12 @@ class PreviewRenderer:
             raise RuntimeError("JPEG encoding failed")
         return buf.tobytes()
 
-    def s0_gray(self, s0: NDArray) -> NDArray[np.uint8]:
-        """S0 as grey, 0.5-99.5 percentile stretch (from a sub-sample of at most about 40,000 pixels)."""
-        sub = s0[:: max(1, s0.shape[0] // 200), :: max(1, s0.shape[1] // 200)]
-        finite = sub[np.isfinite(sub)]
-        if finite.size == 0:
-            return np.zeros(s0.shape, np.uint8)
-        lo, hi = np.percentile(finite, (0.5, 99.5))
-        scale = 255.0 / (hi - lo) if hi > lo else 0.0
-        return cv2.convertScaleAbs(np.nan_to_num(s0, nan=lo), alpha=scale, beta=-lo * scale)
-
-    def dolp_bgr(self, dolp: NDArray) -> NDArray[np.uint8]:
-        """DoLP through the viridis table; NaN black."""
-        idx = np.rint(np.clip(dolp * (255.0 / self.dolp_max), 0.0, 255.0))
-        idx = np.where(np.isfinite(dolp), idx, 256.0).astype(np.intp)
-        return self._dolp_lut[idx]
-
-    def aop_bgr(self, aop_deg: NDArray, dolp: NDArray) -> NDArray[np.uint8]:
-        """AoP hue with DoLP brightness through the 2-D table; NaN black."""
-        a = np.clip((aop_deg * (_AOP_BINS / 180.0)).astype(np.float32), 0, _AOP_BINS - 1)
-        d = np.rint(np.clip(dolp * ((_DOLP_LEVELS - 1) / self.dolp_max), 0.0, _DOLP_LEVELS - 1))
-        idx = np.where(np.isfinite(aop_deg) & np.isfinite(dolp),
-                       np.nan_to_num(a).astype(np.intp) * _DOLP_LEVELS + np.nan_to_num(d).astype(np.intp),
-                       _AOP_BINS * _DOLP_LEVELS)
-        return self._aop_lut[idx]
-
     def render(self, s0: NDArray, dolp: NDArray, aop_deg: NDArray) -> PreviewImages:
         """JPEG previews of one polar image (float32 arrays of the same 2-D shape).
 
-        One compiled pass decimates and colours the three images (the same
-        colours as :meth:`s0_gray`, :meth:`dolp_bgr` and :meth:`aop_bgr`),
-        then OpenCV encodes them.
+        One compiled pass (:func:`pihim.live._kernels.colorize`) decimates
+        and colours the three images through the tables, then OpenCV encodes
+        them.
         """
         from pihim.live import _kernels
 

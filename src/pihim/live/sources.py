@@ -48,7 +48,7 @@ import os
 import re
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -892,16 +892,3 @@ def open_source(spec: str, *, fps: float = 15.0, size: tuple[int, int] | None = 
         serial = text.split(":", 1)[1].strip() if ":" in text else None
         return GenICamSource(serial or None, cti=cti, fps=fps, pixel_format=pixel_format)
     return FolderSource(text, fps, width=width, height=height, pixel_format=pixel_format, bit_depth=bit_depth)
-
-
-def iter_frames(source: FrameSource, count: int) -> Iterator[LiveFrame]:
-    """Up to ``count`` frames of ``source``, skipping unusable frames (for scripts and tests)."""
-    got = 0
-    while got < count:
-        try:
-            frame = source.read()
-        except FrameError:
-            continue
-        got += 1
-        yield frame
-
