@@ -26,7 +26,7 @@ try:  # typer >= 0.2x vendors click; its exceptions live there
 except ImportError:  # pragma: no cover - older typer uses click itself
     from click import exceptions as _click_exc
 
-from pihim.cli import calibrate, calibrate_camera, canting, demo, edges, ground, plan, polar, simulate, sky, windows
+from pihim.cli import calibrate, calibrate_camera, campaign, canting, demo, edges, ground, plan, polar, simulate, sky, windows
 from pihim.errors import PihimInputError
 
 app = typer.Typer(
@@ -47,6 +47,8 @@ app.command("demo")(demo.demo)
 app.command("simulate")(simulate.simulate)
 app.command("edges")(edges.edges)
 app.command("canting")(canting.canting)
+app.command("simulate-flight")(campaign.simulate_flight)
+app.add_typer(campaign.app, name="campaign")
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
