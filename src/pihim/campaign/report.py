@@ -17,7 +17,8 @@
 The canting RMS of a heliostat is ``sqrt(mean(az^2 + el^2) / 2)`` over its
 used facets (:func:`pihim.campaign.run.canting_rms_mrad`), in mrad, relative
 to its best-fit orientation. All files are written under temporary names and
-renamed together.
+renamed together at the end (figures are drawn and saved one at a time, so memory does not grow
+with the field).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from __future__ import annotations
 import html
 import json
 import math
+import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -147,14 +149,28 @@ def write_report(store: Any, out_dir: str | Path, *, campaign: str | None = None
     counts = store.counts(cid)
     out = make_out_dir(Path(out_dir))
     files: dict[str, Path] = {"index": out / "index.html", "json": out / "report.json", "field": out / "field.png"}
-    figures: dict[Path, Any] = {}
+    staged: list[tuple[Path, Path]] = []  # (temporary, final): figures saved as soon as drawn, renamed at the end
     texts: dict[Path, str] = {}
+
+    def stage(fig: Any, final: Path) -> None:
+        from pihim._atomic import temp_sibling
+
+        final.parent.mkdir(parents=True, exist_ok=True)
+        made: list[Path] = []
+        try:
+            temp_sibling(final, made)
+            _save(fig, made[0])
+        except BaseException:
+            for t in made:
+                t.unlink(missing_ok=True)
+            raise
+        staged.append((made[0], final))
 
     vmax = max([1.0, *rms.values()])
     fig, ax = plt.subplots(figsize=(10.5, 7.0), constrained_layout=True)
     _field_map(ax, hel, rms, cmap="viridis", label="canting RMS (mrad)", norm=Normalize(0.0, vmax))
     ax.set_title(f"Canting RMS per heliostat, campaign {cur['name']} ({len(rms)} of {len(hel)} measured)")
-    figures[files["field"]] = fig
+    stage(fig, files["field"])
 
     worst = sorted(rms.items(), key=lambda kv: -kv[1])[:_WORST]
     hel_by_name = {h["name"]: h for h in hel}
@@ -185,7 +201,7 @@ def write_report(store: Any, out_dir: str | Path, *, campaign: str | None = None
                        label="change of canting RMS (mrad)", norm=TwoSlopeNorm(0.0, -lim, lim))
             ax.set_title(f"Change of canting RMS, {prev['name']} -> {cur['name']} "
                          f"({len(change_rows)} heliostats measured in both)")
-            figures[files["change"]] = fig
+            stage(fig, files["change"])
 
     # --- per-heliostat pages
     for h in measured:
@@ -205,7 +221,7 @@ def write_report(store: Any, out_dir: str | Path, *, campaign: str | None = None
         }
         png = out / "heliostats" / f"{h['name']}.png"
         page = out / "heliostats" / f"{h['name']}.html"
-        figures[png] = canting_figure(record)
+        stage(canting_figure(record), png)
         frames = json.loads(facets[0]["frame_ids"]) if facets else []
         trs = "".join(
             f"<tr><td>{f['facet']}</td><td>{'yes' if f['used'] else 'no'}</td><td>{_fmt(f['az_mrad'])}</td>"
@@ -287,13 +303,15 @@ used facets, relative to its best-fit orientation.</p>
     }
     texts[files["json"]] = json.dumps(summary, indent=2, allow_nan=False) + "\n"
     (out / "heliostats").mkdir(exist_ok=True)
-    targets = list(figures) + list(texts)
-    with atomic_group(targets) as tmps:
-        for final, tmp in zip(targets, tmps, strict=True):
-            if final in figures:
-                _save(figures[final], tmp)
-            else:
+    targets = list(texts)
+    try:
+        with atomic_group(targets) as tmps:
+            for final, tmp in zip(targets, tmps, strict=True):
                 tmp.write_text(texts[final], encoding="utf-8")
-    for fig in figures.values():
-        plt.close(fig)
+            for tmp, final in staged:
+                os.replace(tmp, final)
+    except BaseException:
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
+        raise
     return summary
