@@ -101,6 +101,33 @@ def _field(spec: tuple[str, str | None]) -> Any:
     return load_field(Path(src), None if facets is None else Path(facets), tower=NSTTF_TOWER)
 
 
+_POSE_CACHE: dict[str, Any] = {}
+
+
+def _field_pose(fld: Any, log: Mapping[str, Any]) -> Any:
+    """The field tracked at the frame's time rounded to the second, cached per worker process.
+
+    The sun moves 0.07 mrad per second, the tracking normals half that: far
+    below what the selection looks at; one tracking serves 15 frames at 15 fps.
+    """
+    import json
+    from datetime import datetime, timezone
+
+    from pihim.inspection.pipeline import field_pose_from_log
+
+    t = datetime.fromisoformat(str(log["time"]).replace("Z", "+00:00")).timestamp()
+    when = datetime.fromtimestamp(round(t), tz=timezone.utc).isoformat()
+    key = json.dumps([id(fld), when, log.get("site"), log.get("aim_point_m"), log.get("heliostats")],
+                     sort_keys=True, default=str)
+    pose = _POSE_CACHE.get(key)
+    if pose is None:
+        if len(_POSE_CACHE) > 64:
+            _POSE_CACHE.clear()
+        pose = field_pose_from_log(fld, {**log, "time": when})
+        _POSE_CACHE[key] = pose
+    return pose
+
+
 def _read_raw(path: str) -> np.ndarray:
     from pihim.camera.frames import read_frame
 
@@ -115,7 +142,8 @@ def select_task(path: str, log: Mapping[str, Any], field_spec: tuple[str, str | 
     t0 = _time.perf_counter()
     try:
         raw = _read_raw(path)
-        out = select_pairs(raw, log, _field(field_spec), SelectionCriteria(**criteria))
+        fld = _field(field_spec)
+        out = select_pairs(raw, log, fld, SelectionCriteria(**criteria), field_pose=_field_pose(fld, log))
         out["error"] = None
     except PihimInputError as exc:
         out = {"candidates": [], "error": " ".join(str(exc).split())}
@@ -192,8 +220,12 @@ def connect(scheduler: str | None, workers: int | None, *, processes: bool = Tru
     n = workers if workers is not None else (os.cpu_count() or 1)
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise PihimInputError(f"--workers must be an integer >= 1, got {workers!r}")
+    # one thread per worker: parallelism comes from the workers; numba's and OpenCV's own thread pools would
+    # oversubscribe the cores (set before the worker processes import them)
+    env = {k: "1" for k in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+    kwargs: dict[str, Any] = {"env": env} if processes else {}
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, dashboard_address=None,
-                           silence_logs=logging.ERROR)
+                           silence_logs=logging.ERROR, **kwargs)
     return Client(cluster, set_as_default=False), cluster
 
 

@@ -124,13 +124,17 @@ def pair_candidates(camera: Any, pose: Any, field_pose: Any, criteria: Selection
     idx = idx[inside]
     if idx.size == 0:
         return []
-    corners = fp.facet_corners()[idx]  # (n, F, 4, 3)
+    from pihim.field.kinematics import facet_corners, mirror_outline
+
+    rot_all = np.asarray(fp.rotations, float)
+    corners = facet_corners(rot_all[idx], centres[idx], spec.facet_centroids,
+                            np.asarray(fp.facet_normals_local)[idx], spec.facet_width_m,
+                            spec.facet_height_m)  # (n, F, 4, 3), the candidates only (fields of 100,000)
     uv_f, depth_f = _project(camera, pose, corners)
     ok = (depth_f > 0) & np.all(np.isfinite(uv_f), axis=-1)
     ok &= (uv_f[..., 0] >= 0) & (uv_f[..., 0] < w) & (uv_f[..., 1] >= 0) & (uv_f[..., 1] < h)
     share = ok.reshape(len(idx), -1).mean(axis=1)
-    outline = fp.mirror_outline()
-    uv_o, _ = _project(camera, pose, outline[idx])  # (n, 4, 2)
+    uv_o, _ = _project(camera, pose, mirror_outline(rot_all[idx], centres[idx], spec))  # (n, 4, 2)
     x, y = uv_o[..., 0], uv_o[..., 1]
     area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))
     # targets: the reflected centre ray against every other mirror rectangle
@@ -197,7 +201,7 @@ def _sensor_settings(log: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def select_pairs(raw: NDArray, log: Mapping[str, Any], field: Any,
-                 criteria: SelectionCriteria = SelectionCriteria()) -> dict[str, Any]:
+                 criteria: SelectionCriteria = SelectionCriteria(), *, field_pose: Any = None) -> dict[str, Any]:
     """Select the HUA-target pairs of one frame (module notes).
 
     Parameters
@@ -209,6 +213,9 @@ def select_pairs(raw: NDArray, log: Mapping[str, Any], field: Any,
         ``site``, ``camera``, ``pose``, ``sensor``, ``aim_point_m``, ``heliostats``).
     field : pihim.field.Field
     criteria : SelectionCriteria
+    field_pose : FieldPose, optional
+        The field as logged at the frame's time, if already computed (a run
+        tracks once per second of flight); default computed from ``log``.
 
     Returns
     -------
@@ -228,7 +235,7 @@ def select_pairs(raw: NDArray, log: Mapping[str, Any], field: Any,
     if arr.ndim != 2 or (arr.shape[1], arr.shape[0]) != (camera.width_px, camera.height_px):
         raise PihimInputError(f"the frame is {arr.shape[::-1]} but the camera is {camera.width_px}x{camera.height_px}")
     pose = CameraPose.from_dict(log["pose"])
-    fp = field_pose_from_log(field, log)
+    fp = field_pose_from_log(field, log) if field_pose is None else field_pose
     geo = pair_candidates(camera, pose, fp, criteria)
     t1 = _time.perf_counter()
     names = fp.field.names
