@@ -120,7 +120,8 @@ def test_sigkill_mid_run_then_rerun_loses_and_duplicates_nothing(flight_copy, tm
             time.sleep(0.02)
     finally:
         proc.wait(timeout=30)
-        os.killpg(proc.pid, signal.SIGKILL) if _group_alive(proc.pid) else None
+        if _group_alive(proc.pid):  # the local cluster's worker processes
+            os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
     db = sqlite3.connect(store)
     finished_first = dict(db.execute("SELECT frame_key, run_id FROM frame WHERE stage != 'pending'").fetchall())
@@ -178,9 +179,9 @@ def test_log_not_covering_the_frames_exit_2(flight_copy, tmp_path, capsys) -> No
 
     frames = read_frames_csv(flight_copy / "frames.csv")
     t = np.linspace(frames[0].time_utc_s - 1, frames[0].time_utc_s + 1, 21)
-    lat, lon, h = enu_to_geodetic(np.zeros((21, 3)) + [0, 0, 25.0], settings["site"]["latitude_deg"] and
-                                  (settings["site"]["latitude_deg"], settings["site"]["longitude_deg"],
-                                   settings["site"]["height_m"]))
+    site = settings["site"]
+    lat, lon, h = enu_to_geodetic(np.zeros((21, 3)) + [0, 0, 25.0],
+                                  (site["latitude_deg"], site["longitude_deg"], site["height_m"]))
     write_ulog(flight_copy / "flight.ulg", boot_utc_s=t[0] - 5, attitude={"t": t, "quat": np.tile([0, 0, 0, 1.0], (21, 1))},
                position={"t": t, "latitude_deg": lat, "longitude_deg": lon, "height_m": h})
     write_frames_csv(flight_copy / "frames.csv", [FrameRecord(f.frame_id, f.file, f.time_utc_s) for f in frames])
