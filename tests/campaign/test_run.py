@@ -100,7 +100,7 @@ def _cli(*args: str, **kw) -> subprocess.Popen:
 
 
 def test_sigkill_mid_run_then_rerun_loses_and_duplicates_nothing(flight_copy, tmp_path) -> None:
-    n = 240
+    n = 160
     _many_frames(flight_copy, n)
     store = tmp_path / "c.sqlite"
     proc = _cli("campaign", "run", str(flight_copy), "--store", str(store), "--stages", "select", "--workers", "1")
@@ -165,7 +165,8 @@ def _sha(p: Path) -> str:
 
 
 def _prime_store(flight: Path, store: Path) -> str:
-    assert main(["campaign", "run", str(flight), "--store", str(store), "--stages", "select", "--workers", "1"]) == 0
+    """A store with the flight's selection (in-process cluster: no worker start-up); its digest."""
+    run_campaign([flight], store, workers=1, processes=False, parameters=RunParameters(stages="select"))
     return _sha(store)
 
 
