@@ -147,6 +147,8 @@ def select_task(path: str, log: Mapping[str, Any], field_spec: tuple[str, str | 
         out["error"] = None
     except PihimInputError as exc:
         out = {"candidates": [], "error": " ".join(str(exc).split())}
+    except Exception as exc:  # noqa: BLE001 - one frame's internal error must not stop a campaign; it is counted
+        out = {"candidates": [], "error": f"internal error: {type(exc).__name__}: {' '.join(str(exc).split())}"}
     out["seconds_total"] = _time.perf_counter() - t0
     return out
 
