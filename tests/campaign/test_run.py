@@ -254,7 +254,7 @@ def test_unreachable_scheduler_exit_2(flight_copy, tmp_path, capsys) -> None:
 def test_existing_scheduler_is_used(flight_copy, tmp_path) -> None:
     from distributed import LocalCluster
 
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
         s = run_campaign([flight_copy], tmp_path / "c.sqlite", scheduler=cluster.scheduler_address,
                          parameters=RunParameters(stages="select"))
     assert s["scheduler"] == cluster.scheduler_address and s["counts"]["frames"]["selected"] == 2

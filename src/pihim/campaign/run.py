@@ -222,11 +222,12 @@ def connect(scheduler: str | None, workers: int | None, *, processes: bool = Tru
     n = workers if workers is not None else (os.cpu_count() or 1)
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise PihimInputError(f"--workers must be an integer >= 1, got {workers!r}")
-    # one thread per worker: parallelism comes from the workers; numba's and OpenCV's own thread pools would
+    # the scheduler's HTTP server on a free port (":0": 8787 may be taken); one thread per worker: parallelism
+    # comes from the workers; numba's and OpenCV's own thread pools would
     # oversubscribe the cores (set before the worker processes import them)
     env = {k: "1" for k in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
     kwargs: dict[str, Any] = {"env": env} if processes else {}
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, dashboard_address=None,
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, dashboard_address=":0",
                            silence_logs=logging.ERROR, **kwargs)
     return Client(cluster, set_as_default=False), cluster
 
