@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+import math
 import os
 import signal
 import sqlite3
@@ -271,3 +272,12 @@ def test_export_cli(flight_copy, tmp_path) -> None:
 def test_frames_csv_times_are_utc(flight_copy) -> None:
     frames = read_frames_csv(flight_copy / "frames.csv")
     assert format_utc(frames[0].time_utc_s).startswith("2021-05-13T19:00")  # 13:00 MDT = 19:00 UTC
+
+
+def test_canting_rms_needs_two_facets() -> None:
+    from pihim.campaign.run import canting_rms_mrad
+
+    f = [{"used": True, "az_mrad": 1.0, "el_mrad": 0.0}, {"used": True, "az_mrad": -1.0, "el_mrad": 0.0},
+         {"used": False, "az_mrad": None, "el_mrad": None}]
+    assert canting_rms_mrad(f) == pytest.approx(math.sqrt(0.5))  # sqrt(mean(az^2 + el^2) / 2)
+    assert canting_rms_mrad(f[:1]) is None  # one facet is its own reference

@@ -8,14 +8,15 @@
   heliostats** (highest canting RMS) with links, and the **change since
   another campaign of the same field** (map of the RMS difference and the
   heliostats that changed most, with the per-facet RMS change);
-* ``heliostats/NAME.html`` + ``NAME.png`` -- per measured heliostat, the
+* ``heliostats/NAME.html`` + ``NAME.png`` -- per heliostat with a used facet, the
   paper's Fig. 8-style facet maps of the azimuth and elevation deviations
   (:func:`pihim.cli.canting.canting_figure`) and the facet table with its
   provenance (frames, pihim version);
 * ``field.png``, ``change.png``, ``report.json`` (``pihim.campaign-report/1``).
 
 The canting RMS of a heliostat is ``sqrt(mean(az^2 + el^2) / 2)`` over its
-used facets (:func:`pihim.campaign.run.canting_rms_mrad`), in mrad, relative
+used facets (a heliostat counts as measured with at least two: one facet is
+its own reference) (:func:`pihim.campaign.run.canting_rms_mrad`), in mrad, relative
 to its best-fit orientation. All files are written under temporary names and
 renamed together at the end (figures are drawn and saved one at a time, so memory does not grow
 with the field).
@@ -144,7 +145,7 @@ def write_report(store: Any, out_dir: str | Path, *, campaign: str | None = None
     cur, prev = _pick(store, campaign, compare)
     cid = int(cur["id"])
     hel = _heliostats(store, cid)
-    measured = [h for h in hel if h["facets_used"]]
+    measured = [h for h in hel if h["facets_used"]]  # pages for every heliostat with a used facet
     rms = {h["name"]: float(h["canting_rms_mrad"]) for h in measured if h["canting_rms_mrad"] is not None}
     counts = store.counts(cid)
     out = make_out_dir(Path(out_dir))

@@ -276,9 +276,13 @@ def _canting_from_dict(d: Mapping[str, Any]) -> Any:
 
 
 def canting_rms_mrad(facets: Sequence[Mapping[str, Any]]) -> float | None:
-    """RMS of the used facets' deviations over both axes, mrad: ``sqrt(mean(az^2 + el^2) / 2)``."""
+    """RMS of the used facets' deviations over both axes, mrad: ``sqrt(mean(az^2 + el^2) / 2)``.
+
+    None with fewer than two used facets: deviations are relative to the used
+    facets' mean, so one facet is its own reference (always 0).
+    """
     v = [(f["az_mrad"], f["el_mrad"]) for f in facets if f.get("used") and f.get("az_mrad") is not None]
-    if not v:
+    if len(v) < 2:
         return None
     a = np.asarray(v, float)
     return float(np.sqrt(np.mean(a**2)))

@@ -471,7 +471,7 @@ class CampaignStore:
         cand = q("SELECT count(*), coalesce(sum(selected), 0), coalesce(sum(chosen), 0) FROM candidate JOIN frame "
                  "ON frame.id = candidate.frame_id JOIN flight ON flight.id = frame.flight_id WHERE campaign_id = ?",
                  (campaign_id,)).fetchone()
-        measured = q("SELECT count(*) FROM heliostat WHERE campaign_id = ? AND facets_used > 0",
+        measured = q("SELECT count(*) FROM heliostat WHERE campaign_id = ? AND canting_rms_mrad IS NOT NULL",
                      (campaign_id,)).fetchone()[0]
         return {
             "frames": {s: int(stages.get(s, 0)) for s in ("pending", "selected", "done", "skipped")},
