@@ -26,7 +26,21 @@ try:  # typer >= 0.2x vendors click; its exceptions live there
 except ImportError:  # pragma: no cover - older typer uses click itself
     from click import exceptions as _click_exc
 
-from pihim.cli import calibrate, calibrate_camera, canting, demo, edges, ground, live, plan, polar, simulate, sky, windows
+from pihim.cli import (
+    calibrate,
+    calibrate_camera,
+    campaign,
+    canting,
+    demo,
+    edges,
+    ground,
+    live,
+    plan,
+    polar,
+    simulate,
+    sky,
+    windows,
+)
 from pihim.errors import PihimInputError
 
 app = typer.Typer(
@@ -48,6 +62,8 @@ app.command("simulate")(simulate.simulate)
 app.command("edges")(edges.edges)
 app.command("canting")(canting.canting)
 app.command("live")(live.live)
+app.command("simulate-flight")(campaign.simulate_flight)
+app.add_typer(campaign.app, name="campaign")
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
