@@ -46,7 +46,7 @@ import _harness as harness
 RESULTS_PATH = Path(__file__).resolve().parent / "results" / "cli.json"
 SRC = Path(__file__).resolve().parents[1] / "src"
 COMMANDS = ("polar", "calibrate-polarizer", "calibrate-camera", "sky", "ground", "plan", "windows", "demo",
-            "simulate", "edges", "canting")
+            "simulate", "edges", "canting", "live", "simulate-flight", "campaign")
 #: Real runs whose start-up is measured: (label, arguments after ``pihim``; OUT is replaced by a folder).
 REAL_RUNS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("polar (1 frame, --json)", ("polar", "FRAME", "--out", "OUT", "--json")),

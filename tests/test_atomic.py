@@ -13,6 +13,7 @@ from pihim._atomic import (
     atomic_group,
     clean_stale_temporaries,
     temp_sibling,
+    write_group,
 )
 
 
@@ -57,3 +58,17 @@ def test_atomic_group_all_or_nothing(tmp_path):
         for t, text in zip(tmps, "ab", strict=True):
             t.write_text(text)
     assert [p.read_text() for p in finals] == ["a", "b"] and len(list(tmp_path.iterdir())) == 2
+
+
+def test_write_group_runs_every_writer_before_any_rename(tmp_path):
+    a, b = tmp_path / "a.json", tmp_path / "b.png"
+
+    def fail(path):
+        path.write_bytes(b"half")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError):
+        write_group({a: lambda p: p.write_text("{}"), b: fail})
+    assert list(tmp_path.iterdir()) == []
+    assert write_group({a: lambda p: p.write_text("{}"), b: lambda p: p.write_bytes(b"png")}) == [a, b]
+    assert a.read_text() == "{}" and b.read_bytes() == b"png" and len(list(tmp_path.iterdir())) == 2

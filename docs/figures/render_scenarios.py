@@ -82,12 +82,12 @@ from pihim.inspection.contrast import PAPER_ROI_SIZE, RoiPairContrast, contrast_
 from pihim.inspection.edges import axial_gradient_magnitude, gradient_magnitude
 from pihim.planning.pipeline import build_plan
 from pihim.polarimetry.stokes import aop_deg, dolp
-from pihim.render.bvh import cast_rays
 from pihim.render.frame import RenderedFrame, render_frame
 from pihim.render.paths import FACET_BACK, GROUND, MIRROR, SKY, STRUCTURE_HIT
 from pihim.render.scene import field_scene
 from pihim.render.shading import Environment
-from pihim.scenarios import GROUND_AOP_DIFFERENCE_MIN_DEG, SKY_DOLP_DIFFERENCE_MIN, ground_vs_ground, sky_vs_sky
+from pihim.render.views import ground_vs_ground_view, sky_overlap, sky_vs_sky_view
+from pihim.scenarios import SKY_DOLP_DIFFERENCE_MIN
 from pihim.sky.sun import NSTTF, parse_time, sun_position
 from pihim.visualize import POLAR_MAP_STYLES
 
@@ -115,38 +115,8 @@ ROI_COLOURS = ("#e8202a", "#1f8fff")
 # --------------------------------------------------------------------------- small geometry helpers
 
 
-def _clear(scene, origins: NDArray, targets: NDArray, stop: float = 1.0) -> NDArray[np.bool_]:
-    """Whether no scene rectangle lies on the segments ``origin -> origin + stop (target - origin)``."""
-    o = np.ascontiguousarray(np.broadcast_to(origins, np.shape(targets)), dtype=float)
-    _, prim = cast_rays(scene.bvh, o, np.asarray(targets, float) - o, t_max=stop)
-    return prim < 0
-
-
-def _sunlit(scene, points: NDArray, sun_vec: NDArray) -> NDArray[np.bool_]:
-    """Whether the sun (its centre) is seen from ``points``: no rectangle toward it."""
-    p = np.ascontiguousarray(points, dtype=float)
-    _, prim = cast_rays(scene.bvh, p + 1e-6 * sun_vec, np.broadcast_to(sun_vec, p.shape))
-    return prim < 0
-
-
-def _ground_hit(origin: NDArray, d: NDArray, plane: tuple[float, float, float]) -> NDArray:
-    """Where rays meet the ground plane ``z = a + b x + c y``."""
-    a, b, c = plane
-    t = (a + b * origin[..., 0] + c * origin[..., 1] - origin[..., 2]) / (d[..., 2] - b * d[..., 0] - c * d[..., 1])
-    return origin + t[..., None] * d
-
-
 def _unit(v: NDArray) -> NDArray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _camera_grid(centre: NDArray, dx: tuple[float, float], dy: tuple[float, float], z: tuple[float, float],
-                 step: float = 1.0) -> NDArray:
-    xs = np.arange(centre[0] + dx[0], centre[0] + dx[1] + 1e-9, step)
-    ys = np.arange(centre[1] + dy[0], centre[1] + dy[1] + 1e-9, step)
-    zs = np.arange(z[0], z[1] + 1e-9, 1.0)
-    g = np.stack(np.meshgrid(xs, ys, zs, indexing="ij"), axis=-1)
-    return g.reshape(-1, 3)
 
 
 # --------------------------------------------------------------------------- regions of interest
@@ -365,91 +335,11 @@ def ufacet(field: object) -> dict:
 # --------------------------------------------------------------------------- scene 2: sky-vs-sky
 
 
-def _sky_candidates(pose, i_front: int, i_back: int, env: Environment, sun_vec: NDArray) -> dict:
-    """The camera position south of the pair with the largest predicted DoLP difference across the overlap.
-
-    The front's top edge is sampled at ``EDGE_SAMPLES`` points; at each, the
-    front point is 0.3 m below the edge and the back point is where the
-    sightline over the edge meets the back mirror. Points count where that
-    sightline lands on the back mirror, both points are in view, both
-    reflections reach the sky past every heliostat and lie at least
-    ``SUN_CLEARANCE_DEG`` from the sun; a candidate's prediction is the mean
-    over its counted points (at least a quarter of them).
-    """
-    scene = field_scene(pose)
-    out = pose.mirror_outline()
-    fo, bo = out[i_front], out[i_back]
-    up_f = _unit(fo[0] - fo[3])
-    top = 0.5 * (fo[0] + fo[1])
-    cams = _camera_grid(top, (-60.0, 60.0), (-60.0, 0.0), (15.0, 30.0))
-    cams = cams[np.linalg.norm(cams[:, :2] - top[:2], axis=1) <= 60.0]
-    k = EDGE_SAMPLES
-    edge = fo[0] + ((np.arange(k) + 0.5) / k)[:, None] * (fo[1] - fo[0])  # (K, 3)
-    c = np.broadcast_to(cams[:, None, :], (len(cams), k, 3))
-    d = _unit(edge[None] - c)
-    n_b, c_b = pose.normals[i_back], pose.mirror_centres[i_back]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_b = ((c_b - c) @ n_b) / (d @ n_b)
-    q = c + t_b[..., None] * d
-    bx, by = _unit(bo[1] - bo[0]), _unit(bo[0] - bo[3])
-    hw, hh = 0.5 * np.linalg.norm(bo[1] - bo[0]), 0.5 * np.linalg.norm(bo[0] - bo[3])
-    lx, ly = (q - c_b) @ bx, (q - c_b) @ by
-    on_back = (t_b > np.linalg.norm(edge[None] - c, axis=-1)) & (np.abs(lx) < hw - 0.1) & (np.abs(ly) < hh - 0.1)
-    p_front = np.broadcast_to(edge - 0.3 * up_f, c.shape)
-    q = np.where(on_back[..., None], q, c_b)  # keep the arithmetic finite where the sightline misses
-    r = sky_vs_sky(c, p_front, pose.normals[i_front], q, n_b, sun_vec, env.sky, env.mirror)
-    ang_f = np.degrees(np.arccos(np.clip(r.front.source_dir @ sun_vec, -1, 1)))
-    ang_b = np.degrees(np.arccos(np.clip(r.back.source_dir @ sun_vec, -1, 1)))
-    ok = on_back & np.isfinite(r.dolp_difference) & (ang_f >= SUN_CLEARANCE_DEG) & (ang_b >= SUN_CLEARANCE_DEG)
-    pf = (p_front + 0.01 * pose.normals[i_front]).reshape(-1, 3)
-    pb = (q + 0.01 * n_b).reshape(-1, 3)
-    cf = c.reshape(-1, 3)
-    clear = (_clear(scene, cf, pf, stop=0.98) & _clear(scene, cf, pb, stop=0.98)
-             & _clear(scene, pf, pf + 1e4 * r.front.source_dir.reshape(-1, 3))
-             & _clear(scene, pb, pb + 1e4 * r.back.source_dir.reshape(-1, 3)))
-    ok &= clear.reshape(ok.shape)
-    counted = ok.sum(axis=1)
-    good = counted >= max(2, k // 4)
-
-    def mean(x: NDArray) -> NDArray:
-        return np.where(ok, x, 0.0).sum(axis=1) / np.maximum(counted, 1)
-
-    diff = np.where(good, mean(r.dolp_difference), -np.inf)
-    order = np.flatnonzero(good)[np.argsort(-diff[good])]
-    for j in order:  # best first: the first whose front's top edge covers the back in the image wins
-        ov = sky_overlap(pose, i_front, i_back, cams[j])
-        if ov["length_px"] >= MIN_OVERLAP_PX:
-            return {"camera": cams[j], "overlap": ov, "difference": float(diff[j]),
-                    "front_dolp": float(mean(r.front.dolp)[j]), "back_dolp": float(mean(r.back.dolp)[j]),
-                    "front_s0": float(mean(r.front.stokes[..., 0])[j]),
-                    "back_s0": float(mean(r.back.stokes[..., 0])[j]),
-                    "sun_angles_deg": (float(mean(ang_f)[j]), float(mean(ang_b)[j])),
-                    "candidates": int(good.sum())}
-    return {"camera": None, "difference": float("nan"), "candidates": int(good.sum())}
-
-
-def sky_overlap(pose, i_front: int, i_back: int, camera_m: NDArray, look_at: NDArray | None = None) -> dict:
-    """Where the front's top edge lies over the back heliostat in the image (``project_points``)."""
-    out = pose.mirror_outline()
-    fo, bo = out[i_front], out[i_back]
-    top = 0.5 * (fo[0] + fo[1])
-    cp = CameraPose.look_at(camera_m, top if look_at is None else look_at)
-    s = np.linspace(0.0, 1.0, 41)[:, None]
-    edge3 = fo[0] + s * (fo[1] - fo[0])
-    edge = project_points(CAMERA, cp, edge3)
-    back = project_points(CAMERA, cp, bo)
-    from matplotlib.path import Path as MplPath
-
-    # a pixel just above the front's top edge (away from the front's centre) inside the back's outline
-    centre_f = project_points(CAMERA, cp, pose.mirror_centres[i_front][None])[0]
-    t = _unit(edge[-1] - edge[0])
-    nrm = np.array([-t[1], t[0]])
-    if (centre_f - edge[20]) @ nrm > 0:
-        nrm = -nrm
-    inside = MplPath(back).contains_points(edge + 4.0 * nrm)
-    step_px = float(np.linalg.norm(edge[-1] - edge[0])) / 40
-    mid3 = edge3[inside].mean(axis=0) if inside.any() else top
-    return {"length_px": float(inside.sum() * step_px), "centre_m": mid3, "edge_px": edge, "inside": inside}
+def _sky_view(pose, i_front: int, i_back: int, env: Environment, min_dolp_difference: float = 0.2):
+    """:func:`pihim.render.views.sky_vs_sky_view` with this figure's camera and settings."""
+    return sky_vs_sky_view(pose, i_front, i_back, env, CAMERA, sun_clearance_deg=SUN_CLEARANCE_DEG,
+                           min_overlap_px=MIN_OVERLAP_PX, edge_samples=EDGE_SAMPLES,
+                           min_dolp_difference=min_dolp_difference)
 
 
 def sky_scene(field: object) -> dict:
@@ -464,29 +354,28 @@ def sky_scene(field: object) -> dict:
     el = np.full(n, 90.0)
     az[[i_f, i_b]] = drive.azimuth_deg[[i_f, i_b]]
     el[[i_f, i_b]] = drive.elevation_deg[[i_f, i_b]]
-    paper = _sky_candidates(track.with_drive(az, el), i_f, i_b, env, sun.vector)
+    paper = _sky_view(track.with_drive(az, el), i_f, i_b, env, min_dolp_difference=0.0)
     normals_deg = math.degrees(math.acos(min(1.0, float(track.normals[i_f] @ track.normals[i_b]))))
-    back_face_up = not paper["difference"] >= SKY_DOLP_DIFFERENCE_MIN
+    back_face_up = paper is None or not paper.dolp_difference > SKY_DOLP_DIFFERENCE_MIN
     if back_face_up:
         az[i_b], el[i_b] = 180.0, 90.0
     pose = track.with_drive(az, el)
-    best = _sky_candidates(pose, i_f, i_b, env, sun.vector) if back_face_up else paper
-    if best["camera"] is None:
+    best = _sky_view(pose, i_f, i_b, env) if back_face_up else paper
+    if best is None:
         raise SystemExit("sky-vs-sky: no camera position satisfies the criteria")
-    ov = sky_overlap(pose, i_f, i_b, best["camera"])
-    cam_pose = CameraPose.look_at(best["camera"], ov["centre_m"])
+    cam_pose = best.camera_pose()
     fr = render_frame(field_scene(pose), CAMERA, cam_pose, env)
     # measure across the front's top edge at the middle of the overlap: a = front, b = back
-    ov = sky_overlap(pose, i_f, i_b, best["camera"], look_at=ov["centre_m"])
-    edge = ov["edge_px"]
+    ov = sky_overlap(pose, i_f, i_b, CAMERA, best.camera_m, look_at_m=best.look_at_m)
+    edge = ov.edge_px
     centre_f = project_points(CAMERA, cam_pose, pose.mirror_centres[i_f][None])[0]
     lab = fr.labels
     sky_mirror = (lab[..., 0] == MIRROR) & (lab[..., 3] == SKY)
-    m = measure_edge(fr, edge[ov["inside"]].mean(axis=0), _edge_normal(edge[0], edge[-1], centre_f),
+    m = measure_edge(fr, edge[ov.inside].mean(axis=0), _edge_normal(edge[0], edge[-1], centre_f),
                      sky_mirror & (lab[..., 1] == i_f), sky_mirror & (lab[..., 1] == i_b), ("F", "B"))
     ddolp = abs(m.dolp.difference)
     res = {"camera": cam_pose, "sun": sun, "frame": fr, "measured": m, "s0_contrast": m.s0.contrast,
-           "range_m": float(np.linalg.norm(ov["centre_m"] - cam_pose.position_m)),
+           "range_m": float(np.linalg.norm(best.look_at_m - cam_pose.position_m)),
            "dolp_difference": ddolp, "predicted": best, "paper_arrangement": paper, "back_face_up": back_face_up}
     arrangement = ("8E3 tracking, 9E3 and every other heliostat face-up" if back_face_up
                    else "8E3 and 9E3 tracking, every other heliostat face-up")
@@ -497,11 +386,11 @@ def sky_scene(field: object) -> dict:
     why = ""
     if back_face_up:
         why = (f"With the pair tracking (the paper's set-up) no camera position reaches the paper's 0.2: the best "
-               f"predicted DoLP difference is {paper['difference']:.3f} (the two normals differ by "
+               f"predicted DoLP difference is {(paper.dolp_difference if paper else float('nan')):.3f} (the two normals differ by "
                f"{normals_deg:.1f} deg), "
                "so 9E3 is set face-up here. ")
     caption = (f"{arrangement}. {why}The camera maximises the predicted DoLP difference "
-               f"({best['difference']:.3f}: {best['front_dolp']:.3f} vs {best['back_dolp']:.3f}) over a 1 m grid "
+               f"({best.dolp_difference:.3f}: {best.front_dolp:.3f} vs {best.back_dolp:.3f}) over a 1 m grid "
                f"south of the pair, 15-30 m up, within 60 m, with both reflections at least {SUN_CLEARANCE_DEG:.0f} "
                f"deg from the sun and the front's top edge over the back for >= {MIN_OVERLAP_PX:.0f} px. "
                f"ROIs ({ROI_SIZE[0]} x {ROI_SIZE[1]} px, the paper's 200 x 100 px at half resolution): F = front "
@@ -525,50 +414,15 @@ def ground_scene(field: object, hua: str = "8E3") -> dict:
     scene = field_scene(pose)
     ih = field.index(hua)
     o = pose.mirror_outline()[ih]
-    up = _unit(o[0] - o[3])
-    n = pose.normals[ih]
-    f0, f1 = GROUND_EDGE_STRETCH
-    fractions = np.linspace(f0, f1, 3)
-    edge = o[3] + fractions[:, None] * (o[2] - o[3])
-    aim = o[3] + 0.5 * (f0 + f1) * (o[2] - o[3])
-    cams = _camera_grid(aim, (-40.0, 40.0), (-40.0, 40.0), (15.0, 30.0))
-    v = aim - cams
-    pitch = np.degrees(np.arctan2(v[:, 2], np.linalg.norm(v[:, :2], axis=1)))
-    cams = cams[((cams - aim) @ n > 0.5) & (pitch <= GROUND_PITCH_MAX_DEG)]
-    ok = np.ones(len(cams), bool)
-    results = []
-    for e in edge:
-        # the real ground seen just past the edge: in view (nothing between) and sunlit
-        g = _ground_hit(cams, _unit(e - 0.05 * up - cams), scene.ground)
-        ok &= _clear(scene, cams, g) & _sunlit(scene, g, s)
-        r = ground_vs_ground(cams, e + 0.3 * up, n, s, env.sky, env.mirror, env.ground, ground_point=g)
-        ok &= r.usable
-        # the mirror 0.3 and 0.7 m inside the edge: in view, and showing sunlit ground that nothing hides
-        for h in (0.3, 0.7):
-            p = e + h * up + 0.01 * n
-            src = r.mirror.source_dir if h == 0.3 else ground_vs_ground(
-                cams, e + h * up, n, s, env.sky, env.mirror, env.ground, ground_point=g).mirror.source_dir
-            ok &= (src[:, 2] < 0) & _clear(scene, cams, np.broadcast_to(p, cams.shape), stop=0.98)
-            g_refl = _ground_hit(np.broadcast_to(p, cams.shape), src, scene.ground)
-            ok &= _clear(scene, np.broadcast_to(p, cams.shape), g_refl) & _sunlit(scene, g_refl, s)
-        results.append(r)
-    axial = np.mean([r.aop_difference_deg for r in results], axis=0)
-    s0_m = np.mean([r.mirror.stokes[:, 0] for r in results], axis=0)
-    s0_g = np.mean([r.ground_stokes[:, 0] for r in results], axis=0)
-    dolp_m = np.mean([r.mirror.dolp for r in results], axis=0)
-    dolp_g = np.mean([r.ground_dolp for r in results], axis=0)
-    contrast = np.abs(s0_m - s0_g) / (s0_m + s0_g)
-    ok &= (contrast <= GROUND_S0_CONTRAST_MAX) & (axial > GROUND_AOP_DIFFERENCE_MIN_DEG)
-    if not ok.any():
+    view = ground_vs_ground_view(pose, ih, env, edge_stretch=GROUND_EDGE_STRETCH, max_pitch_deg=GROUND_PITCH_MAX_DEG,
+                                 max_s0_contrast=GROUND_S0_CONTRAST_MAX, scene=scene)
+    if view is None:
         raise SystemExit("ground-vs-ground: no camera position satisfies the criteria")
-    cand = np.flatnonzero(ok)
-    j = cand[np.argmax(np.minimum(dolp_m, dolp_g)[cand])]
-    predicted = {"axial_deg": float(axial[j]), "mirror_dolp": float(dolp_m[j]), "ground_dolp": float(dolp_g[j]),
-                 "s0_contrast": float(contrast[j]), "mirror_s0": float(s0_m[j]), "ground_s0": float(s0_g[j]),
-                 "mirror_aop_deg": float(results[1].mirror.aop_deg[j]),  # the middle point of the edge
-                 "ground_aop_deg": float(results[1].ground_aop_deg[j]),
-                 "candidates": int(ok.sum()), "max_axial_deg": float(axial[cand].max()),
-                 "max_ground_dolp": float(dolp_g[cand].max())}
+    predicted = {"axial_deg": view.aop_difference_deg, "mirror_dolp": view.mirror_dolp,
+                 "ground_dolp": view.ground_dolp, "s0_contrast": view.s0_contrast, "candidates": view.candidates}
+    aim = view.look_at_m
+    cams = view.camera_m[None]
+    j = 0
     cam_pose = CameraPose.look_at(cams[j], aim)
     fr = render_frame(scene, CAMERA, cam_pose, env)
     lab = fr.labels
@@ -619,12 +473,12 @@ def main() -> int:
           f"{u['facets_in_view']}; facets showing 7E3 {u['facets_showing_target']}")
     s = sky_scene(field)
     p, q = s["paper_arrangement"], s["predicted"]
-    print(f"sky-vs-sky: paper arrangement best predicted DoLP difference {p['difference']:.3f} at {p['camera']}; "
-          f"back face-up: {s['back_face_up']}")
-    print(f"  {_where(s['camera'])}, {s['range_m']:.1f} m from the overlap; predicted {q['difference']:.3f} "
-          f"({q['front_dolp']:.3f} vs {q['back_dolp']:.3f},"
-          f" S0 {q['front_s0']:.1f} vs {q['back_s0']:.1f}, {q['candidates']} candidates, sun angles "
-          f"{q['sun_angles_deg'][0]:.1f}/{q['sun_angles_deg'][1]:.1f} deg, overlap {q['overlap']['length_px']:.0f} px)")
+    pd = f"{p.dolp_difference:.3f} at {p.camera_m.round(1)}" if p else "none above 0"
+    print(f"sky-vs-sky: paper arrangement best predicted DoLP difference {pd}; back face-up: {s['back_face_up']}")
+    print(f"  {_where(s['camera'])}, {s['range_m']:.1f} m from the overlap; predicted {q.dolp_difference:.3f} "
+          f"({q.front_dolp:.3f} vs {q.back_dolp:.3f}, S0 {q.front_s0:.1f} vs {q.back_s0:.1f}, {q.candidates} "
+          f"candidates, sun angles {q.sun_angles_deg[0]:.1f}/{q.sun_angles_deg[1]:.1f} deg, overlap "
+          f"{q.overlap_px:.0f} px)")
     m = s["measured"]
     print(f"  measured: S0 {m.s0.mean_a:.2f} vs {m.s0.mean_b:.2f} -> Michelson {m.s0.contrast:.3f}; "
           f"DoLP {m.dolp.mean_a:.3f} vs {m.dolp.mean_b:.3f} -> difference {s['dolp_difference']:.3f}, Michelson "
@@ -633,11 +487,8 @@ def main() -> int:
     g = ground_scene(field)
     pr = g["predicted"]
     print(f"ground-vs-ground: {_where(g['camera'])}, {g['range_m']:.1f} m from the edge; {pr['candidates']} "
-          f"candidates (largest predicted axial difference {pr['max_axial_deg']:.1f} deg, largest ground DoLP "
-          f"{pr['max_ground_dolp']:.3f})")
-    print(f"  predicted: AoP {pr['mirror_aop_deg']:.1f} vs {pr['ground_aop_deg']:.1f} deg, axial {pr['axial_deg']:.1f};"
-          f" DoLP {pr['mirror_dolp']:.3f} vs {pr['ground_dolp']:.3f}; S0 {pr['mirror_s0']:.1f} vs "
-          f"{pr['ground_s0']:.1f}, contrast {pr['s0_contrast']:.3f}")
+          f"candidates; predicted: axial AoP difference {pr['axial_deg']:.1f} deg; DoLP {pr['mirror_dolp']:.3f} vs "
+          f"{pr['ground_dolp']:.3f}; S0 contrast {pr['s0_contrast']:.3f}")
     m = g["measured"]
     print(f"  measured: S0 {m.s0.mean_a:.2f} vs {m.s0.mean_b:.2f} -> Michelson {m.s0.contrast:.3f}; "
           f"AoP {m.aop.mean_a:.1f} vs {m.aop.mean_b:.1f} deg -> axial {m.aop.difference:.1f} deg "

@@ -18,7 +18,7 @@ import re
 import socket
 import tempfile
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -165,6 +165,19 @@ def atomic_group(paths: Sequence[str | os.PathLike[str]]) -> Iterator[list[Path]
             with contextlib.suppress(OSError):
                 p.unlink()
         raise
+
+
+def write_group(writers: Mapping[str | os.PathLike[str], Callable[[Path], Any]]) -> list[Path]:
+    """Write a group of files with :func:`atomic_group`: ``writers`` maps each final path to ``f(temp_path)``.
+
+    Every writer runs on its temporary path first; the renames follow only
+    when all succeeded, and on any failure nothing of the group is left.
+    """
+    finals = [Path(p) for p in writers]
+    with atomic_group(finals) as tmps:
+        for tmp, writer in zip(tmps, writers.values(), strict=True):
+            writer(tmp)
+    return finals
 
 
 def write_atomic(path: str | os.PathLike[str], writer: Callable[[Path], Any]) -> Path:

@@ -264,14 +264,12 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), *,
     dict
         The ``demo.json`` document (``schema`` ``pihim.demo/2``).
     """
-    from pihim._atomic import write_json_atomic
+    from pihim._atomic import write_group, write_json_atomic
     from pihim.camera import CameraModel, polar_image
-    from pihim.cli.canting import _png_writer, canting_record
-    from pihim.cli.edges import _write_all
     from pihim.field import nsttf_like_field
+    from pihim.inspection.canting_output import canting_png_writer, canting_record
     from pihim.inspection.edges import edge_maps
-    from pihim.inspection.pipeline import _sensor as sensor_settings
-    from pihim.inspection.pipeline import inspect_frame
+    from pihim.inspection.pipeline import inspect_frame, sensor_settings
     from pihim.inspection.report import write_report
     from pihim.planning.export import export_all
     from pihim.planning.pipeline import build_plan
@@ -327,8 +325,8 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), *,
         crec = canting_record(result.canting, [(frame_paths["raw"], frame_paths["json"], result)],
                               rows=spec.rows, cols=spec.cols, outputs=canting_paths, seconds=result.seconds["total"])
         text = json.dumps(crec, indent=2, allow_nan=False) + "\n"
-        _write_all(pair_dir, {canting_paths["canting.json"]: lambda p, t=text: p.write_text(t, encoding="utf-8"),
-                              canting_paths["canting.png"]: _png_writer(crec)})
+        write_group({canting_paths["canting.json"]: lambda p, t=text: p.write_text(t, encoding="utf-8"),
+                     canting_paths["canting.png"]: canting_png_writer(crec)})
         t2 = _time.perf_counter()
         sensor = sensor_settings(sim.log)
         pim = polar_image(sim.raw, layout=sensor["layout"], analyser=sensor["analyser"], demosaic="full",

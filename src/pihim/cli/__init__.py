@@ -61,6 +61,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
               "summary)."),
     "canting": ("canting", "canting",
                 "Facet canting deviations of a heliostat from the target's reflection (canting.json + canting.png)."),
+    "live": ("live", "live", "Live view in the browser: S0 / DoLP / AoP at 15 fps, adaptive exposure, raw capture."),
+    "simulate-flight": ("campaign", "simulate_flight",
+                        "Render the frames a flight of a plan would record, with its log and the truth beside it."),
+    # a group of subcommands (a typer.Typer, not a function): its help is the group's
+    "campaign": ("campaign", "app", "Campaigns at field scale: run, report, export."),
 }
 
 #: Commands registered eagerly with ``app.command(...)`` (plugins, tests) run as registered; the built-in
@@ -75,7 +80,10 @@ app = typer.Typer(
 
 
 def load_command(name: str) -> Any:
-    """The function behind the built-in command ``name`` (imports its module)."""
+    """The function (or, for a group of subcommands, the ``typer.Typer``) behind the built-in command ``name``.
+
+    Imports the command's module.
+    """
     import importlib
 
     module, func, _ = COMMANDS[name]
@@ -96,12 +104,16 @@ class LazyCommand(typer.core.TyperCommand):
         self._real: _click.Command | None = None
 
     def real(self) -> _click.Command:
-        """The typer command of the function (built once)."""
+        """The typer command of the function, or the group of a ``typer.Typer`` (built once)."""
         if self._real is None:
-            single = typer.Typer(add_completion=False, pretty_exceptions_enable=False,
-                                 rich_markup_mode=app.rich_markup_mode)
-            single.command(self.name)(load_command(str(self.name)))
-            self._real = typer.main.get_command(single)
+            target = load_command(str(self.name))
+            if isinstance(target, typer.Typer):
+                self._real = typer.main.get_command(target)
+            else:
+                single = typer.Typer(add_completion=False, pretty_exceptions_enable=False,
+                                     rich_markup_mode=app.rich_markup_mode)
+                single.command(self.name)(target)
+                self._real = typer.main.get_command(single)
         return self._real
 
     def make_context(self, info_name: str | None, args: list[str], parent: Any = None, **extra: Any) -> Any:
@@ -130,6 +142,9 @@ def command_group() -> typer.core.TyperGroup:
         cmd = typer.main.get_command_from_info(info, pretty_exceptions_short=app.pretty_exceptions_short,
                                                rich_markup_mode=app.rich_markup_mode)
         commands[str(info.name or cmd.name)] = cmd
+    for group in app.registered_groups:
+        sub = typer.main.get_command(group.typer_instance)
+        commands[str(group.name or sub.name)] = sub
     return typer.core.TyperGroup(name="pihim", commands=commands, help=HELP, no_args_is_help=True,
                                  rich_markup_mode=app.rich_markup_mode)
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import os
 import time as _time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -22,7 +21,7 @@ import numpy as np
 import tifffile
 import typer
 
-from pihim._atomic import temp_sibling
+from pihim._atomic import write_group
 from pihim.camera.frames import RAW_SUFFIXES, read_frame
 from pihim.camera.layout import IMX250MZR, MosaicLayout
 from pihim.camera.model import CameraModel
@@ -90,23 +89,12 @@ def sensor_settings(log: Mapping[str, Any], meta: Path) -> dict[str, Any]:
 
 
 def _write_all(out_dir: Path, writers: dict[Path, Callable[[Path], None]]) -> None:
-    """Write every file under a temporary name, then rename them all; on failure remove everything written."""
+    """Create ``out_dir`` and write every file as one atomic group; on failure remove a directory just made."""
     created = not out_dir.exists()
-    made: list[Path] = []
-    tmps: dict[Path, Path] = {}
-    done: list[Path] = []
     try:
         make_out_dir(out_dir)
-        for final, writer in writers.items():
-            tmps[final] = temp_sibling(final, made)
-            writer(tmps[final])
-        for final, tmp in tmps.items():
-            os.replace(tmp, final)
-            done.append(final)
+        write_group(writers)
     except BaseException:
-        for path in [*made, *done]:
-            with contextlib.suppress(OSError):
-                path.unlink()
         if created:
             with contextlib.suppress(OSError):
                 out_dir.rmdir()

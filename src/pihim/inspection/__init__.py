@@ -7,8 +7,9 @@
   regions either side of an edge and the DoLP / S0 contrast ratio.
 * :mod:`pihim.inspection.success` -- scoring against the ground truth: the
   paper's edge-detection success (all facet edges of the heliostat found)
-  and success rates over sets (Table 2). Reads truth; the estimator never
-  does.
+  and success rates over sets (Table 2), optionally only along the stretches
+  of the outline where the paper's sky-vs-sky scenario holds. Reads truth;
+  the estimator never does.
 * :mod:`pihim.inspection.features` -- sub-pixel edge points (combined S0,
   DoLP and axial AoP gradient) for model fitting.
 * :mod:`pihim.inspection.pose` -- camera pose refinement on the HUA's facet
@@ -37,7 +38,8 @@ _EXPORTS: dict[str, list[str]] = {
     ],
     "success": [
         "EDGE_NAMES", "EdgeSuccess", "FacetOutlines", "FrameScore", "SuccessRate", "edge_success",
-        "facet_outlines_px", "outlines_from_simulation", "outlines_from_truth", "score_frame", "success_rate",
+        "facet_outlines_px", "outlines_from_simulation", "outlines_from_truth", "scenario_mask", "score_frame",
+        "sky_vs_sky_mask", "success_rate",
     ],
 }
 
@@ -53,5 +55,5 @@ if TYPE_CHECKING:  # static checkers see the names where they are defined
     )
     from pihim.inspection.success import (  # noqa: F401
         EDGE_NAMES, EdgeSuccess, FacetOutlines, FrameScore, SuccessRate, edge_success, facet_outlines_px,
-        outlines_from_simulation, outlines_from_truth, score_frame, success_rate,
+        outlines_from_simulation, outlines_from_truth, scenario_mask, score_frame, sky_vs_sky_mask, success_rate,
     )

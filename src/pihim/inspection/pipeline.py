@@ -133,7 +133,13 @@ def field_pose_from_log(field: Any, log: Mapping[str, Any]) -> FieldPose:
     return pose.with_drive(az, el)
 
 
-def _sensor(log: Mapping[str, Any]) -> dict[str, Any]:
+def sensor_settings(log: Mapping[str, Any]) -> dict[str, Any]:
+    """The :func:`pihim.camera.polar_image` settings a frame's ``log["sensor"]`` records.
+
+    Returns ``{"layout", "analyser", "dark_level", "bit_depth"}`` (IMX250MZR,
+    ideal analyser, 0 DN and the frame's own range where the log is silent);
+    a malformed entry is a :class:`PihimInputError`.
+    """
     sensor = log.get("sensor") or {}
     if not isinstance(sensor, Mapping):
         raise PihimInputError("log 'sensor' must be an object")
@@ -235,7 +241,7 @@ def inspect_frame(
     share = _in_view(camera, prior, corners)
     if share <= 0.0:
         raise PihimInputError(f"{hua} is not in view: its facets project outside the frame from the logged pose")
-    settings = _sensor(log)
+    settings = sensor_settings(log)
     t1 = _time.perf_counter()
     pol = polar_image(arr, layout=settings["layout"], analyser=settings["analyser"], demosaic="full",
                       dark_level=settings["dark_level"], bit_depth=settings["bit_depth"])

@@ -58,7 +58,9 @@ __all__ = [
     "facet_outlines_px",
     "outlines_from_simulation",
     "outlines_from_truth",
+    "scenario_mask",
     "score_frame",
+    "sky_vs_sky_mask",
     "success_rate",
 ]
 
@@ -294,25 +296,88 @@ def _scale_factor(edge_shape: tuple[int, int], image_size: tuple[int, int]) -> i
 
 
 def _visible(points: NDArray[np.float64], outlines: FacetOutlines, labels: NDArray | None,
-             heliostat: int | None) -> NDArray[np.bool_]:
-    """Visibility of every sample point (F, 4, S): inside the image and the facet seen directly."""
+             heliostat: int | None, mask: NDArray[np.bool_] | None = None) -> NDArray[np.bool_]:
+    """Visibility of every sample point (F, 4, S): inside the image, the facet seen directly, in the mask."""
     w, h = outlines.image_size
     u, v = points[..., 0], points[..., 1]
     with np.errstate(invalid="ignore"):
         inside = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-    if labels is None:
+    if labels is None and mask is None:
         return inside
     u0 = np.clip(np.floor(np.nan_to_num(u)), 0, w - 1).astype(np.intp)
     v0 = np.clip(np.floor(np.nan_to_num(v)), 0, h - 1).astype(np.intp)
     u1 = np.minimum(u0 + 1, w - 1)
     v1 = np.minimum(v0 + 1, h - 1)
-    helio = labels[..., 1]
-    facet = labels[..., 2]
-    fid = outlines.facet_ids[:, None, None]
-    seen = np.zeros(u.shape, dtype=bool)
-    for vv, uu in ((v0, u0), (v0, u1), (v1, u0), (v1, u1)):
-        seen |= (helio[vv, uu] == heliostat) & (facet[vv, uu] == fid)
-    return inside & seen
+    block = ((v0, u0), (v0, u1), (v1, u0), (v1, u1))
+    if labels is not None:
+        helio = labels[..., 1]
+        facet = labels[..., 2]
+        fid = outlines.facet_ids[:, None, None]
+        seen = np.zeros(u.shape, dtype=bool)
+        for vv, uu in block:
+            seen |= (helio[vv, uu] == heliostat) & (facet[vv, uu] == fid)
+        inside &= seen
+    if mask is not None:
+        in_mask = np.zeros(u.shape, dtype=bool)
+        for vv, uu in block:
+            in_mask |= mask[vv, uu]
+        inside &= in_mask
+    return inside
+
+
+def scenario_mask(labels: ArrayLike, heliostat: int, background: str = "sky", *,
+                  width_px: int = 6) -> NDArray[np.bool_]:
+    """Sensor pixels along a heliostat's sky-vs-sky or ground-vs-ground edges (reads the label image: truth).
+
+    The paper's two scenarios (sections 4.1 and 4.2): the heliostat's mirror
+    reflects ``background`` (the sky, or the ground), and across its edge
+    lies another surface showing the same kind of thing: another heliostat's
+    mirror reflecting it (its own facet gaps included, where they show what
+    is behind) or the sky or ground itself. The mask holds the pixels within
+    ``width_px`` (Chebyshev distance) of both kinds of pixel, a band around
+    exactly those stretches of the outline; pass it to :func:`edge_success`
+    (``mask=``) to judge only them.
+
+    Parameters
+    ----------
+    labels : array_like of int, shape (H, W, >= 4)
+        Label image of the frame (channels ``kind``, ``direct_heliostat``,
+        ``direct_facet``, ``end_kind``; :data:`pihim.render.frame.LABEL_CHANNELS`).
+    heliostat : int
+        Label index of the heliostat.
+    background : {"sky", "ground"}
+        The scenario: sky-vs-sky or ground-vs-ground.
+    width_px : int
+        Half-width of the band, pixels (>= 1).
+
+    Returns
+    -------
+    ndarray of bool, shape (H, W)
+    """
+    from scipy.ndimage import maximum_filter
+
+    from pihim.render.paths import GROUND, MIRROR, SKY
+
+    kinds = {"sky": SKY, "ground": GROUND}
+    if background not in kinds:
+        raise PihimInputError(f"background must be 'sky' or 'ground', got {background!r}")
+    lab = np.asarray(labels)
+    if lab.ndim != 3 or lab.shape[2] < 4:
+        raise PihimInputError(f"labels must have shape (H, W, >= 4), got {lab.shape}")
+    if isinstance(width_px, bool) or not isinstance(width_px, (int, np.integer)) or width_px < 1:
+        raise PihimInputError(f"width_px must be an integer >= 1, got {width_px!r}")
+    code = kinds[background]
+    kind, helio, end = lab[..., 0], lab[..., 1], lab[..., 3]
+    mirror_bg = (kind == MIRROR) & (end == code)
+    own = mirror_bg & (helio == int(heliostat))
+    other = (mirror_bg & (helio != int(heliostat))) | (kind == code)
+    size = 2 * int(width_px) + 1
+    return (maximum_filter(own.view(np.uint8), size=size) > 0) & (maximum_filter(other.view(np.uint8), size=size) > 0)
+
+
+def sky_vs_sky_mask(labels: ArrayLike, heliostat: int, *, width_px: int = 6) -> NDArray[np.bool_]:
+    """:func:`scenario_mask` for the sky-vs-sky scenario."""
+    return scenario_mask(labels, heliostat, "sky", width_px=width_px)
 
 
 def edge_success(
@@ -324,6 +389,7 @@ def edge_success(
     labels: ArrayLike | None = None,
     heliostat: int | None = None,
     min_visible_px: float = 5.0,
+    mask: ArrayLike | None = None,
 ) -> EdgeSuccess:
     """The paper's edge-detection success: are all visible facet edges of the heliostat found?
 
@@ -346,6 +412,10 @@ def edge_success(
         Label index of the heliostat; default ``outlines_px.heliostat``.
     min_visible_px : float
         Edges with a shorter visible part (sensor pixels) are not judged.
+    mask : array_like of bool, shape (H, W), optional
+        Sensor pixels where edges are asked for (e.g. :func:`sky_vs_sky_mask`):
+        a sample point counts as visible only if one of its four surrounding
+        pixels is in the mask.
 
     Returns
     -------
@@ -372,9 +442,15 @@ def edge_success(
             heliostat = outlines_px.heliostat
         if heliostat is None:
             raise PihimInputError("with labels, the heliostat's label index is needed (heliostat=...)")
+    msk = None
+    if mask is not None:
+        msk = np.asarray(mask, dtype=bool)
+        w, h = outlines_px.image_size
+        if msk.shape != (h, w):
+            raise PihimInputError(f"mask must have shape ({h}, {w}), got {msk.shape}")
     factor = _scale_factor(edges.shape, outlines_px.image_size)
     pts = outlines_px.points_px
-    visible = _visible(pts, outlines_px, lab, heliostat)
+    visible = _visible(pts, outlines_px, lab, heliostat, msk)
     found = np.zeros(visible.shape, dtype=bool)
     ys, xs = np.nonzero(edges)
     if xs.size and visible.any():
@@ -423,12 +499,13 @@ def score_frame(
     k_px: float = 2.0,
     min_coverage: float = 0.9,
     min_visible_px: float = 5.0,
+    mask: ArrayLike | None = None,
     name: str = "",
 ) -> FrameScore:
     """:func:`edge_success` for every image type of an :class:`pihim.inspection.edges.EdgeMaps`."""
     results = {
         image_type: edge_success(m.edges, outlines_px, k_px, min_coverage, labels=labels, heliostat=heliostat,
-                                 min_visible_px=min_visible_px)
+                                 min_visible_px=min_visible_px, mask=mask)
         for image_type, m in maps.items()
     }
     return FrameScore(str(name), results)

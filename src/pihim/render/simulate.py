@@ -49,7 +49,7 @@ import json
 import math
 import os
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -210,6 +210,25 @@ def _seed(value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
         raise PihimInputError(f"seed must be an integer >= 0, got {value!r}")
     return int(value)
+
+
+def _fixed_drives(field: Any, drive_deg: Any) -> dict[int, tuple[float, float]]:
+    """``{heliostat index: (az, el)}`` of the heliostats commanded away from tracking (validated)."""
+    if drive_deg is None:
+        return {}
+    if not isinstance(drive_deg, Mapping):
+        raise PihimInputError(f"drive_deg must map heliostat names to (azimuth, elevation) deg, got {drive_deg!r}")
+    out: dict[int, tuple[float, float]] = {}
+    for name, angles in drive_deg.items():
+        i = field.index(name)
+        try:
+            az, el = (float(a) for a in angles)
+        except (TypeError, ValueError):
+            raise PihimInputError(f"drive angles of {name} must be (azimuth_deg, elevation_deg), got {angles!r}") from None
+        if not (math.isfinite(az) and math.isfinite(el) and 0.0 <= el <= 90.0):
+            raise PihimInputError(f"drive angles of {name} must be finite with elevation in [0, 90] deg, got {angles!r}")
+        out[i] = (az, el)
+    return out
 
 
 def _point(name: str, value: Any) -> NDArray[np.float64]:
@@ -414,6 +433,7 @@ def simulate_frame(
     progress: Callable[[int, int], Any] | None = None,
     field_source: str | None = None,
     facets_source: str | None = None,
+    drive_deg: Mapping[str, tuple[float, float]] | None = None,
 ) -> SimulatedFrame:
     """Simulate the raw frame of a drone camera over a tracking field, with its log and ground truth.
 
@@ -460,6 +480,12 @@ def simulate_frame(
     field_source, facets_source : str, optional
         What the field was loaded from, for the log (default ``"nsttf-like"``
         when ``field`` is the embedded field, else ``"in-memory field"``).
+    drive_deg : mapping of str to (float, float), optional
+        Heliostats commanded to fixed drive angles instead of tracking:
+        ``{name: (azimuth_deg, elevation_deg)}`` of the mirror normal (e.g.
+        ``(180.0, 90.0)``, face-up stow, as in the paper's sky-vs-sky test
+        where only the pair under test tracks). The commanded angles are what
+        the log records; the tracking error applies on top as for the others.
 
     Returns
     -------
@@ -512,6 +538,7 @@ def simulate_frame(
     if isinstance(pose_request, PairPose):
         field.index(pose_request.hua)  # unknown names -> one-line error, before anything else
         field.index(pose_request.target)
+    fixed = _fixed_drives(field, drive_deg)
     ts = parse_time(time)
     sun = sun_position(site, ts)
     if not float(sun.elevation_deg) > 0.0:
@@ -534,6 +561,10 @@ def simulate_frame(
     cmd = drive_angles(commanded.normals)
     cmd_az = _fold360(np.asarray(cmd.azimuth_deg, float))
     cmd_el = np.asarray(cmd.elevation_deg, float)
+    if fixed:
+        for i, (az_i, el_i) in fixed.items():
+            cmd_az[i], cmd_el[i] = _fold360(az_i), el_i
+        commanded = commanded.with_drive(cmd_az, cmd_el)
     err_az = rng_track.standard_normal(n_h) * tracking_sigma + 0.0
     err_el = rng_track.standard_normal(n_h) * tracking_sigma + 0.0
     true_az = _fold360(cmd_az + np.degrees(err_az * 1e-3))
@@ -624,6 +655,7 @@ def simulate_frame(
             "supersample": int(settings.supersample),
             "max_bounces": int(settings.max_bounces),
             "exposure_pixels": exposure_pixels if mask.any() else "all",
+            "fixed_drive_deg": {names[i]: [float(a), float(e)] for i, (a, e) in fixed.items()},
         },
     }
     return SimulatedFrame(

@@ -1,0 +1,55 @@
+"""Synthetic flights: frames along the passes at a frame rate, logged poses matched back to the truth."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from pihim.campaign.flight import load_flight, simulate_flight
+from pihim.campaign.logs import read_frames_csv
+from pihim.errors import PihimInputError
+
+
+def _angle_deg(a, b) -> float:
+    r = np.asarray(a) @ np.asarray(b).T
+    return math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(r) - 1) / 2))))
+
+
+@pytest.mark.parametrize("log", ["dataflash", "ulog"])
+def test_fps_flight_poses_match_truth(plan_json, tmp_path, log) -> None:
+    pytest.importorskip("pyulog" if log == "ulog" else "pymavlink")
+    out = tmp_path / "f"
+    s = simulate_flight(plan_json, out, fps=2.0, max_frames=2, size=(64, 54), log=log, seed=2)
+    assert s["frames"] == 2
+    frames = read_frames_csv(out / "frames.csv")
+    assert frames[1].time_utc_s - frames[0].time_utc_s == pytest.approx(0.5, abs=1e-6)
+    truth = json.loads((out / "truth" / "flight.json").read_text())["frames"]
+    fl = load_flight(out)
+    assert fl.log_kind == log and not fl.uncovered
+    tol_m, tol_deg = (0.01, 0.01) if log == "dataflash" else (2e-4, 1e-3)
+    for m, t in zip(fl.matches, truth, strict=True):
+        assert np.linalg.norm(np.subtract(m.pose.position_m, t["pose"]["position_m"])) < tol_m
+        assert _angle_deg(m.pose.rotation, t["pose"]["rotation"]) < tol_deg
+
+
+def test_logged_errors_are_in_the_log_not_in_the_truth(plan_json, tmp_path) -> None:
+    out = tmp_path / "f"
+    simulate_flight(plan_json, out, max_frames=1, size=(64, 54), log="csv", gps_sigma_m=1.5, seed=4)
+    doc = json.loads((out / "truth" / "flight.json").read_text())
+    offset = np.array(doc["gps_offset_m"])
+    m = load_flight(out).matches[0]
+    d = np.subtract(m.pose.position_m, doc["frames"][0]["pose"]["position_m"])
+    np.testing.assert_allclose(d, offset, atol=1e-6)  # the constant GPS offset drawn for the flight
+    assert np.linalg.norm(offset) > 0
+
+
+def test_bad_flight_requests(plan_json, tmp_path) -> None:
+    with pytest.raises(PihimInputError, match="flights"):
+        simulate_flight(plan_json, tmp_path / "x", flight=9, size=(64, 54))
+    with pytest.raises(PihimInputError, match="fps"):
+        simulate_flight(plan_json, tmp_path / "x", fps=-1.0, size=(64, 54))
+    with pytest.raises(PihimInputError, match="no flight.json"):
+        load_flight(tmp_path)

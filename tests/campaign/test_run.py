@@ -1,0 +1,283 @@
+"""Campaign runs: selection on real frames, canting plumbing with a truth inspector, resume after SIGKILL, bad input."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import math
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("distributed")
+
+from pihim.campaign.logs import FrameRecord, format_utc, read_frames_csv, write_frames_csv  # noqa: E402
+from pihim.campaign.run import RunParameters, run_campaign  # noqa: E402
+from pihim.cli import main  # noqa: E402
+
+SRC = str(Path(__file__).resolve().parents[2] / "src")
+
+
+class TruthInspector:
+    """Returns the rendered truth as the canting of each facet (relative to the mean), so the plumbing is scored."""
+
+    def __init__(self, truth: dict) -> None:
+        self.facets = {h["name"]: h["facets"] for h in truth["heliostats"]}
+        self.calls: list[tuple[str, str]] = []
+
+    def __call__(self, raw, log, field, hua, target):
+        from pihim.inspection.canting import CantingResult, FacetCanting
+        from pihim.inspection.pipeline import InspectionResult
+
+        self.calls.append((hua, target))
+        f = self.facets[hua]
+        az = np.array([x["az_mrad"] for x in f])
+        el = np.array([x["el_mrad"] for x in f])
+        facets = tuple(FacetCanting(x["id"], True, None, float(a - az.mean()), float(e - el.mean()), 0.1, 0.1,
+                                    points=50) for x, a, e in zip(f, az, el, strict=True))
+        return InspectionResult(hua, target, {}, {}, CantingResult(hua, target, facets, 0.0, 0.0), {})
+
+
+def _truth(flight: Path) -> dict:
+    return json.loads((flight / "truth" / "flight.json").read_text())
+
+
+def test_selection_finds_the_planned_pairs(flight_copy, tmp_path) -> None:
+    s = run_campaign([flight_copy], tmp_path / "c.sqlite", workers=1, processes=False,
+                     parameters=RunParameters(stages="select"))
+    assert s["counts"]["frames"]["selected"] == 2
+    db = sqlite3.connect(tmp_path / "c.sqlite")
+    got = sorted(db.execute("SELECT hua, target FROM candidate WHERE selected = 1").fetchall())
+    want = sorted((f["hua"], f["target"]) for f in _truth(flight_copy)["frames"])
+    assert got == want  # the pair the plan imaged at each capture, found from the raw frame and its log only
+
+
+def test_canting_stage_combines_per_heliostat_and_reruns_add_nothing(flight_copy, tmp_path) -> None:
+    truth = _truth(flight_copy)
+    insp = TruthInspector(truth)
+    store = tmp_path / "c.sqlite"
+    s1 = run_campaign([flight_copy], store, workers=1, processes=False, inspector=insp)
+    assert s1["counts"]["observations"] == {"done": 2, "failed": 0}
+    assert s1["counts"]["heliostats_measured"] == 2
+    db = sqlite3.connect(store)
+    for hua in {f["hua"] for f in truth["frames"]}:
+        rows = db.execute("SELECT facet, az_mrad, el_mrad, frame_ids, pihim_version, parameters FROM facet_result "
+                          "JOIN heliostat ON heliostat.id = facet_result.heliostat_id WHERE heliostat.name = ? "
+                          "ORDER BY facet", (hua,)).fetchall()
+        f = {h["name"]: h["facets"] for h in truth["heliostats"]}[hua]
+        az = np.array([x["az_mrad"] for x in f])
+        np.testing.assert_allclose([r[1] for r in rows], az - az.mean(), atol=1e-9)
+        assert json.loads(rows[0][3])[0].startswith("f1/") and rows[0][4] and json.loads(rows[0][5])["stages"] == "all"
+    n_facets = db.execute("SELECT count(*) FROM facet_result").fetchone()[0]
+    calls = len(insp.calls)
+    s2 = run_campaign([flight_copy], store, workers=1, processes=False, inspector=insp)
+    assert s2["processed_this_run"]["frames_selected"] == 0 and s2["processed_this_run"]["observations"] == 0
+    assert len(insp.calls) == calls  # nothing inspected twice
+    assert db.execute("SELECT count(*) FROM facet_result").fetchone()[0] == n_facets
+    assert db.execute("SELECT count(*) FROM observation").fetchone()[0] == 2
+
+
+def _many_frames(flight: Path, n: int) -> None:
+    """Rewrite frames.csv with ``n`` frames 0.1 s apart, cycling through the rendered files and their poses."""
+    base = read_frames_csv(flight / "frames.csv")
+    t0 = base[0].time_utc_s
+    frames = [FrameRecord(f"{k:06d}", base[k % len(base)].file, t0 + 0.1 * k, base[k % len(base)].pose)
+              for k in range(n)]
+    write_frames_csv(flight / "frames.csv", frames)
+
+
+def _cli(*args: str, **kw) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": SRC}
+    return subprocess.Popen([sys.executable, "-m", "pihim", *args], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, start_new_session=True, **kw)
+
+
+def test_sigkill_mid_run_then_rerun_loses_and_duplicates_nothing(flight_copy, tmp_path) -> None:
+    n = 160
+    _many_frames(flight_copy, n)
+    store = tmp_path / "c.sqlite"
+    proc = _cli("campaign", "run", str(flight_copy), "--store", str(store), "--stages", "select", "--workers", "1")
+    done_before = 0
+    deadline = time.monotonic() + 120
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            if store.exists():
+                try:
+                    with sqlite3.connect(store, timeout=1) as db:
+                        done_before = db.execute("SELECT count(*) FROM frame WHERE stage != 'pending'").fetchone()[0]
+                except sqlite3.OperationalError:
+                    done_before = 0
+                if done_before >= 20:
+                    os.kill(proc.pid, signal.SIGKILL)
+                    break
+            time.sleep(0.02)
+    finally:
+        proc.wait(timeout=30)
+        if _group_alive(proc.pid):  # the local cluster's worker processes
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
+    db = sqlite3.connect(store)
+    finished_first = dict(db.execute("SELECT frame_key, run_id FROM frame WHERE stage != 'pending'").fetchall())
+    assert 20 <= len(finished_first) < n
+    cand_first = db.execute("SELECT count(*) FROM candidate").fetchone()[0]
+    assert cand_first == len(finished_first)  # each frame's selection was written whole, with its frame
+    db.close()
+
+    again = _cli("campaign", "run", str(flight_copy), "--store", str(store), "--stages", "select", "--workers", "1",
+                 "--json")
+    out, err = again.communicate(timeout=180)
+    assert again.returncode == 0, err.decode()
+    summary = json.loads(out)
+    db = sqlite3.connect(store)
+    assert db.execute("SELECT count(*) FROM frame WHERE stage = 'pending'").fetchone()[0] == 0
+    assert summary["processed_this_run"]["frames_selected"] == n - len(finished_first)  # finished frames not redone
+    runs = dict(db.execute("SELECT frame_key, run_id FROM frame").fetchall())
+    assert all(runs[k] == r for k, r in finished_first.items())
+    # no lost, no duplicated result: one candidate per frame, the pair its file shows
+    truth = {f"frames/{f['frame_id']}.tiff": (f["hua"], f["target"]) for f in _truth(flight_copy)["frames"]}
+    rows = db.execute("SELECT frame.frame_key, frame.file, candidate.hua, candidate.target FROM candidate JOIN frame "
+                      "ON frame.id = candidate.frame_id").fetchall()
+    assert len(rows) == n and len({r[0] for r in rows}) == n
+    assert all((h, t) == truth[f] for _, f, h, t in rows)
+    assert db.execute("SELECT count(*) FROM run").fetchone()[0] == 2
+
+
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+# --------------------------------------------------------------------------- bad input, through the CLI
+
+
+def _sha(p: Path) -> str:
+    return hashlib.sha256(p.read_bytes()).hexdigest()
+
+
+def _prime_store(flight: Path, store: Path) -> str:
+    """A store with the flight's selection (in-process cluster: no worker start-up); its digest."""
+    run_campaign([flight], store, workers=1, processes=False, parameters=RunParameters(stages="select"))
+    return _sha(store)
+
+
+def test_log_not_covering_the_frames_exit_2(flight_copy, tmp_path, capsys) -> None:
+    store = tmp_path / "c.sqlite"
+    before = _prime_store(flight_copy, store)
+    settings = json.loads((flight_copy / "flight.json").read_text())
+    # a ULog that ends before the second frame
+    from pihim.campaign.logs import write_ulog
+    from pihim.field.geodesy import enu_to_geodetic
+
+    frames = read_frames_csv(flight_copy / "frames.csv")
+    t = np.linspace(frames[0].time_utc_s - 1, frames[0].time_utc_s + 1, 21)
+    site = settings["site"]
+    lat, lon, h = enu_to_geodetic(np.zeros((21, 3)) + [0, 0, 25.0],
+                                  (site["latitude_deg"], site["longitude_deg"], site["height_m"]))
+    write_ulog(flight_copy / "flight.ulg", boot_utc_s=t[0] - 5, attitude={"t": t, "quat": np.tile([0, 0, 0, 1.0], (21, 1))},
+               position={"t": t, "latitude_deg": lat, "longitude_deg": lon, "height_m": h})
+    write_frames_csv(flight_copy / "frames.csv", [FrameRecord(f.frame_id, f.file, f.time_utc_s) for f in frames])
+    settings["log"] = "flight.ulg"
+    (flight_copy / "flight.json").write_text(json.dumps(settings))
+    capsys.readouterr()
+    assert main(["campaign", "run", str(flight_copy), "--store", str(store), "--workers", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not covered by the log" in err[0] and "after the last position sample" in err[0]
+    assert _sha(store) == before
+
+
+def test_corrupt_log_exit_2(flight_copy, tmp_path, capsys) -> None:
+    settings = json.loads((flight_copy / "flight.json").read_text())
+    (flight_copy / "flight.bin").write_bytes(b"\xa3\x95\x80" + b"\x01" * 40)
+    settings["log"] = "flight.bin"
+    settings["geoid_undulation_m"] = -22.0
+    (flight_copy / "flight.json").write_text(json.dumps(settings))
+    assert main(["campaign", "run", str(flight_copy), "--store", str(tmp_path / "c.sqlite")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "DataFlash" in err[0]
+    assert not (tmp_path / "c.sqlite").exists()
+
+
+def test_frame_of_another_camera_exit_2(flight_copy, tmp_path, capsys) -> None:
+    import tifffile
+
+    store = tmp_path / "c.sqlite"
+    before = _prime_store(flight_copy, store)
+    first = read_frames_csv(flight_copy / "frames.csv")[0]
+    tifffile.imwrite(flight_copy / first.file, np.zeros((200, 240), np.uint16))
+    capsys.readouterr()
+    assert main(["campaign", "run", str(flight_copy), "--store", str(store)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "another camera" in err[0]
+    assert _sha(store) == before
+
+
+def test_newer_store_exit_2_unchanged(flight_copy, tmp_path, capsys) -> None:
+    store = tmp_path / "c.sqlite"
+    _prime_store(flight_copy, store)
+    with sqlite3.connect(store) as db:
+        db.execute("PRAGMA user_version = 99")
+    before = _sha(store)
+    capsys.readouterr()
+    for argv in (["campaign", "run", str(flight_copy), "--store", str(store)],
+                 ["campaign", "report", str(store), "--out", str(tmp_path / "r")],
+                 ["campaign", "export", str(store), "--out", str(tmp_path / "e")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "newer than this pihim" in err[0]
+    assert _sha(store) == before
+
+
+def test_unreachable_scheduler_exit_2(flight_copy, tmp_path, capsys) -> None:
+    import socket
+
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()  # nothing listens there now
+    assert main(["campaign", "run", str(flight_copy), "--store", str(tmp_path / "c.sqlite"),
+                 "--scheduler", f"tcp://127.0.0.1:{port}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no dask scheduler answers" in err[0]
+    assert not (tmp_path / "c.sqlite").exists()
+
+
+def test_existing_scheduler_is_used(flight_copy, tmp_path) -> None:
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
+        s = run_campaign([flight_copy], tmp_path / "c.sqlite", scheduler=cluster.scheduler_address,
+                         parameters=RunParameters(stages="select"))
+    assert s["scheduler"] == cluster.scheduler_address and s["counts"]["frames"]["selected"] == 2
+
+
+def test_export_cli(flight_copy, tmp_path) -> None:
+    store = tmp_path / "c.sqlite"
+    _prime_store(flight_copy, store)
+    assert main(["campaign", "export", str(store), "--out", str(tmp_path / "e")]) == 0
+    with open(tmp_path / "e" / "candidates.csv", newline="") as fh:
+        assert len(list(csv.DictReader(fh))) == 2
+
+
+def test_frames_csv_times_are_utc(flight_copy) -> None:
+    frames = read_frames_csv(flight_copy / "frames.csv")
+    assert format_utc(frames[0].time_utc_s).startswith("2021-05-13T19:00")  # 13:00 MDT = 19:00 UTC
+
+
+def test_canting_rms_needs_two_facets() -> None:
+    from pihim.campaign.run import canting_rms_mrad
+
+    f = [{"used": True, "az_mrad": 1.0, "el_mrad": 0.0}, {"used": True, "az_mrad": -1.0, "el_mrad": 0.0},
+         {"used": False, "az_mrad": None, "el_mrad": None}]
+    assert canting_rms_mrad(f) == pytest.approx(math.sqrt(0.5))  # sqrt(mean(az^2 + el^2) / 2)
+    assert canting_rms_mrad(f[:1]) is None  # one facet is its own reference
