@@ -10,7 +10,7 @@
   heliostats that changed most, with the per-facet RMS change);
 * ``heliostats/NAME.html`` + ``NAME.png`` -- per heliostat with a used facet, the
   paper's Fig. 8-style facet maps of the azimuth and elevation deviations
-  (:func:`pihim.cli.canting.canting_figure`) and the facet table with its
+  (:func:`pihim.inspection.canting_output.canting_figure`) and the facet table with its
   provenance (frames, pihim version);
 * ``field.png``, ``change.png``, ``report.json`` (``pihim.campaign-report/1``).
 
@@ -140,7 +140,7 @@ def write_report(store: Any, out_dir: str | Path, *, campaign: str | None = None
 
     from pihim._atomic import atomic_group
     from pihim.cli._common import make_out_dir
-    from pihim.cli.canting import canting_figure, reason_code
+    from pihim.inspection.canting_output import canting_figure, reason_code
 
     cur, prev = _pick(store, campaign, compare)
     cid = int(cur["id"])
