@@ -214,15 +214,20 @@ def measure(
     Returns
     -------
     dict
-        ``median_ms``, ``p10_ms``, ``p90_ms``, ``peak_mb``, [``output_mb``],
-        ``other_cpu`` (see :func:`other_cpu_load`) and ``repeat``.
+        ``median_ms``, ``p10_ms``, ``p90_ms``, ``cpu_ms`` (process CPU time,
+        all threads, per timed call), ``load_avg`` (one-minute load average
+        after the timed calls), ``peak_mb``, [``output_mb``], ``other_cpu``
+        (see :func:`other_cpu_load`) and ``repeat``.
     """
     for _ in range(warmup):
         fn()
     gc.collect()
+    cpu0 = time.process_time()
     samples, load = time_calls(fn, repeat, pause_gc=pause_gc)
+    cpu_ms = 1e3 * (time.process_time() - cpu0) / repeat
     median, p10, p90 = (float(v) for v in np.percentile(samples, [50, 10, 90]))
-    row: dict[str, Any] = {"median_ms": median, "p10_ms": p10, "p90_ms": p90, "peak_mb": None}
+    row: dict[str, Any] = {"median_ms": median, "p10_ms": p10, "p90_ms": p90, "cpu_ms": cpu_ms,
+                           "load_avg": load_average(), "peak_mb": None}
     if trace:
         peak, out = traced_peak(fn)
         row["peak_mb"] = peak / 1e6
@@ -466,3 +471,105 @@ def write_json(report: dict[str, Any], path: Path | None, *, announce: bool = Fa
     report["json_path"] = str(path)
     if announce:
         print(f"\nJSON written to {path}")
+
+
+# ---------------------------------------------------------------------------
+# CPU time, load average and memory bandwidth (issue 12: figures as users see them)
+# ---------------------------------------------------------------------------
+def load_average() -> float | None:
+    """One-minute load average of the machine (``os.getloadavg``), ``None`` where unknown."""
+    try:
+        return float(os.getloadavg()[0])
+    except (OSError, AttributeError):  # pragma: no cover - not Unix
+        return None
+
+
+def time_calls_cpu(fn: Callable[[int], Any], repeat: int) -> dict[str, Any]:
+    """Wall and CPU time of ``repeat`` calls ``fn(k)``, ``k = 0 .. repeat - 1`` (e.g. rotating inputs).
+
+    CPU time is this process's (all threads, :func:`time.process_time`),
+    over all the calls, divided by ``repeat``. The garbage collector is
+    paused; each result is released after its clock stops.
+
+    Returns
+    -------
+    dict
+        ``samples_ms`` (array), ``median_ms``, ``p10_ms``, ``p90_ms``,
+        ``cpu_ms`` (per call), ``other_cpu`` (:func:`other_cpu_load`),
+        ``load_avg`` (one-minute load average at the end), ``repeat``.
+    """
+    samples = np.empty(repeat)
+    gc_was_enabled = gc.isenabled()
+    gc.disable()
+    start = cpu_times()
+    cpu0 = time.process_time()
+    try:
+        for k in range(repeat):
+            t0 = time.perf_counter_ns()
+            out = fn(k)
+            samples[k] = (time.perf_counter_ns() - t0) / 1e6
+            del out
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+    cpu = (time.process_time() - cpu0) / repeat
+    median, p10, p90 = (float(v) for v in np.percentile(samples, [50, 10, 90]))
+    return {"samples_ms": samples, "median_ms": median, "p10_ms": p10, "p90_ms": p90, "cpu_ms": 1e3 * cpu,
+            "other_cpu": other_cpu_load(start, cpu_times()), "load_avg": load_average(), "repeat": repeat}
+
+
+def memory_bandwidth(nbytes: int = 256 * 2**20, repeat: int = 7) -> dict[str, float]:
+    """The machine's memory bandwidth for a large copy (``numpy.copyto``), best of ``repeat``.
+
+    Both arrays are far larger than any cache and already touched, so this
+    is the sustained DRAM rate one thread gets for a streaming read plus
+    write: the floor of any pass that reads and writes images. Counted as
+    bytes read plus bytes written per second.
+
+    Returns
+    -------
+    dict
+        ``copy_gb_s`` (best), ``copy_gb_s_median`` and ``bytes``.
+    """
+    n = nbytes // 8
+    src = np.ones(n)
+    dst = np.empty(n)
+    np.copyto(dst, src)
+    rates = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        np.copyto(dst, src)
+        rates.append(2 * nbytes / (time.perf_counter() - t0) / 1e9)
+    return {"copy_gb_s": float(max(rates)), "copy_gb_s_median": float(np.median(rates)), "bytes": float(nbytes)}
+
+
+def process_run(argv: Sequence[str], *, env: Mapping[str, str] | None = None, cwd: str | None = None,
+                timeout: float = 3600.0) -> dict[str, Any]:
+    """Run a command as a separate process; its wall time, CPU time (user + system) and the load around it.
+
+    Returns
+    -------
+    dict
+        ``returncode``, ``wall_s``, ``cpu_s``, ``load_before``, ``load_after``,
+        ``other_cpu`` (share of the CPUs other processes used meanwhile),
+        ``stdout``, ``stderr``.
+    """
+    import resource
+    import subprocess
+
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    load0 = load_average()
+    start = cpu_times()
+    t0 = time.perf_counter()
+    proc = subprocess.run(list(argv), capture_output=True, text=True, env=None if env is None else dict(env),
+                          cwd=cwd, timeout=timeout)
+    wall = time.perf_counter() - t0
+    end = cpu_times()
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    others = None
+    if start is not None and end is not None:
+        busy = end[1] - start[1]
+        others = max(busy - cpu, 0.0) / (wall * (os.cpu_count() or 1))
+    return {"returncode": proc.returncode, "wall_s": wall, "cpu_s": cpu, "load_before": load0,
+            "load_after": load_average(), "other_cpu": others, "stdout": proc.stdout, "stderr": proc.stderr}

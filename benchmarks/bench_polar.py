@@ -1,40 +1,32 @@
-"""Speed benchmark: one raw 2448x2048 DoFP frame -> S0, DoLP and AoP images.
+"""Speed benchmark: raw 2448x2048 DoFP frames -> S0, DoLP and AoP, measured as users run it.
 
-Every implementation is timed on the same seeded, 12-bit synthetic frame of
-a heliostat field (:func:`synthetic_frame`), one after the other in one run:
+Every row goes through the public entry point with its validation
+(:func:`pihim.camera.pipeline.polar_image`), on a rotating set of
+:data:`N_FRAMES` distinct 12-bit frames (160 MB, five times the 32 MB L3
+cache, so no call finds its input in cache), with freshly allocated outputs
+(the operating system zeroes new pages) and, where the API offers it, with
+preallocated ones (``out=``). Beside each row's wall time: its CPU time
+(all threads of the process), the load on the machine, the bytes it must
+move (input read plus outputs written), and the floor those bytes set at
+the copy bandwidth measured in the same run (:func:`_harness.memory_bandwidth`),
+as a ratio. Anchors, like for like: the plain numpy super-pixel route
+(float32, same resolution as pihim's super-pixel route) and polanalyser's
+bilinear route in float32 (same resolution and dtype as pihim's full
+route); polanalyser's float64 default is shown too.
 
-``numpy``
-    Plain numpy super-pixel route (:func:`numpy_superpixel`), the anchor
-    every speed-up is quoted against.
-``polanalyser``
-    polanalyser's default route: bilinear demosaicing (OpenCV Bayer
-    conversion), ``calcStokes``, ``cvtStokesToDoLP`` and ``cvtStokesToAoLP``
-    (optional; skipped when polanalyser is not installed).
-``pihim_superpixel`` / ``pihim_full``
-    :func:`pihim.camera.pipeline.polar_image` with ``demosaic="superpixel"``
-    and ``"full"``; the full-resolution route reports "n/a" while its numba
-    kernel is not available.
-``numba_poly`` / ``numba_libm``
-    The same super-pixel numba kernel (:func:`make_superpixel_kernel`) built
-    with the polynomial :func:`pihim._fastmath.atan2_f32` and with libm's
-    ``math.atan2``: the pair isolates what the polynomial buys.
+First calls are measured in fresh processes: with the numba disk cache as
+a user has it after one run (warm) and with an empty cache
+(``NUMBA_CACHE_DIR`` set to an empty folder: the compile a first install
+pays once).
 
-For each one the report gives the median, p10 and p90 wall time over
-``repeat`` calls made after ``warmup`` untimed ones, the first call in the
-process (numba JIT compile or on-disk cache load) and, for numba kernels, a
-cold compile on a fresh, uncached dispatcher, the speed-up relative to the
-numpy anchor and to polanalyser, the tracemalloc peak of one call and the
-bytes held by its outputs. Each call takes the raw frame and returns freshly
-allocated outputs, so output allocation and first-touch page faults are part
-of every figure.
-
-Run ``python benchmarks/run.py`` (all benchmarks) or this file directly.
+Run ``python benchmarks/run.py --only bench_polar`` or this file directly;
+``--quick`` takes fewer calls and skips the cold compiles.
 """
+
 
 from __future__ import annotations
 
 import argparse
-import gc
 import importlib.metadata
 import math
 import os
@@ -42,7 +34,7 @@ import platform
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -71,7 +63,7 @@ except ImportError:  # pragma: no cover - depends on the environment
 FRAME_SHAPE: tuple[int, int] = (2048, 2448)
 BIT_DEPTH = 12
 DEFAULT_SEED = 20261122
-COUNTS = harness.Counts(repeat=30, warmup=3, quick_repeat=5, quick_warmup=1)
+COUNTS = harness.Counts(repeat=32, warmup=4, quick_repeat=8, quick_warmup=2)
 RESULTS_PATH = Path(__file__).resolve().parent / "results" / "polar.json"
 
 ANCHOR = "numpy"
@@ -211,24 +203,32 @@ def numpy_superpixel(mosaic: NDArray[np.integer]) -> Outputs:
     return s0, dolp, aop_deg
 
 
-def polanalyser_bilinear(mosaic: NDArray[np.integer]) -> tuple[NDArray[np.float64], ...]:
-    """polanalyser's default route: bilinear demosaic, Stokes, DoLP and AoLP.
+def polanalyser_bilinear(mosaic: NDArray[np.integer], dtype: type = np.float64) -> tuple[NDArray[Any], ...]:
+    """polanalyser's route: bilinear demosaic, Stokes, DoLP and AoLP.
 
     ``pa.demosaicing`` (``COLOR_PolarMono``, i.e. OpenCV's bilinear Bayer
     conversion) returns the 0, 45, 90, 135 deg images at full resolution for
     the IMX250MZR layout; ``pa.calcStokes`` fits the Stokes vector by the
-    pseudo-inverse of the polarizer Mueller rows (a ``tensordot``).
+    pseudo-inverse of the polarizer Mueller rows (a ``tensordot``). With
+    ``dtype=np.float32`` the channels and the polarizer Mueller matrices are
+    float32, so the whole route runs in float32 like pihim's (polanalyser's
+    default, the angles only, gives float64).
 
     Returns
     -------
-    stokes, dolp, aolp : numpy.ndarray, float64
+    stokes, dolp, aolp : numpy.ndarray
         Stokes channels-last, shape (H, W, 3); DoLP, shape (H, W); AoLP in
         radians in [0, pi), shape (H, W).
     """
     if pa is None:  # pragma: no cover - guarded by the candidate list
         raise RuntimeError("polanalyser is not installed")
     channels = pa.demosaicing(mosaic, pa.COLOR_PolarMono)
-    stokes = pa.calcStokes(channels, np.deg2rad([0.0, 45.0, 90.0, 135.0]))
+    angles = np.deg2rad([0.0, 45.0, 90.0, 135.0])
+    if dtype == np.float64:
+        stokes = pa.calcStokes(channels, angles)
+    else:
+        muellers = np.array([pa.polarizer(a)[:3, :3] for a in angles], dtype=dtype)
+        stokes = pa.calcStokes(np.array(channels, dtype=dtype), muellers)
     return stokes, pa.cvtStokesToDoLP(stokes), pa.cvtStokesToAoLP(stokes)
 
 
@@ -314,147 +314,105 @@ def _kernel_runner(kernel: Any) -> Callable[[NDArray[np.integer]], PolarImage]:
 
 
 # ---------------------------------------------------------------------------
-# Candidates
+# Rows
 # ---------------------------------------------------------------------------
+#: Distinct frames the timed calls rotate through (10 MB each).
+N_FRAMES = 16
+
+
 @dataclass(frozen=True)
-class Candidate:
+class Row:
     """One implementation under test.
 
     Attributes
     ----------
-    key : str
-        Identifier used in the JSON output.
-    label : str
-        Row label of the table.
+    key, label : str
+        JSON identifier and table label.
     resolution : {"super-pixel", "full"}
-        Output grid: (H/2, W/2) or (H, W).
-    run : callable
-        ``run(mosaic)``; returns the implementation's own outputs.
+    make : callable
+        ``make(frames) -> run(k)``: prepares (e.g. preallocates) and returns
+        the call on frame ``k % len(frames)``.
+    anchor : str or None
+        Key of the row this one is compared with (same resolution).
     to_common : callable
-        Maps those outputs to ``(s0, dolp, aop_deg)`` for the checks.
-    dispatchers : callable
-        Returns the numba dispatchers the call compiles (resolved lazily,
-        so that a kernel still missing only disables its own row).
+        Maps the outputs to ``(s0, dolp, aop_deg)`` for the checks.
     note : str
-        Caveat printed under the table.
     """
 
     key: str
     label: str
     resolution: str
-    run: Callable[[NDArray[np.integer]], Any]
-    to_common: Callable[[Any], Outputs]
-    dispatchers: Callable[[], Sequence[Any]] = lambda: ()
+    make: Callable[[Sequence[NDArray[np.uint16]]], Callable[[int], Any]]
+    anchor: str | None = None
+    to_common: Callable[[Any], Outputs] = lambda r: (r.s0, r.dolp, r.aop_deg)
     note: str = ""
 
 
-def _polar_common(result: PolarImage) -> Outputs:
-    return result.s0, result.dolp, result.aop_deg
+def _rotating(fn: Callable[[NDArray[np.uint16]], Any]) -> Callable[[Sequence[NDArray[np.uint16]]], Callable[[int], Any]]:
+    return lambda frames: (lambda k: fn(frames[k % len(frames)]))
 
 
-def _polanalyser_common(result: tuple[NDArray[np.float64], ...]) -> Outputs:
+def _preallocated(demosaic: str, with_summary: bool = False) -> Callable[[Sequence[NDArray[np.uint16]]], Callable[[int], Any]]:
+    def make(frames: Sequence[NDArray[np.uint16]]) -> Callable[[int], Any]:
+        buf = polar_image(frames[0], demosaic=demosaic, bit_depth=BIT_DEPTH)
+
+        def run(k: int) -> Any:
+            out = polar_image(frames[k % len(frames)], demosaic=demosaic, bit_depth=BIT_DEPTH, out=buf)
+            return out.summary() if with_summary else out
+
+        return run
+
+    return make
+
+
+def _polanalyser_common(result: tuple[NDArray[Any], ...]) -> Outputs:
     stokes, dolp, aolp = result
     return stokes[..., 0], dolp, np.degrees(aolp)
 
 
-def candidates() -> list[Candidate]:
+def rows() -> list[Row]:
     """The implementations, in the order they are measured."""
-    numba_poly = make_superpixel_kernel(atan2_f32)
-    numba_libm = make_superpixel_kernel(math.atan2)
-    rows = [
-        Candidate(
-            ANCHOR,
-            "numpy super-pixel, float32 (anchor)",
-            "super-pixel",
-            numpy_superpixel,
-            lambda out: out,
-            note="anchor: slicing + eq. (1), float32; returns S0, DoLP, AoP only and flags no saturation",
-        ),
+    out = [
+        Row("numpy", "numpy super-pixel, float32 (anchor)", "super-pixel", _rotating(numpy_superpixel),
+            to_common=lambda r: r, note="numpy anchor: strided views, eq. (1), sqrt, arctan2; S0, DoLP, AoP only"),
+        Row("pihim_superpixel", 'pihim `polar_image(demosaic="superpixel")`, fresh outputs', "super-pixel",
+            _rotating(lambda m: polar_image(m, demosaic="superpixel", bit_depth=BIT_DEPTH)), anchor="numpy"),
+        Row("pihim_superpixel_out", 'pihim `polar_image(demosaic="superpixel", out=...)`', "super-pixel",
+            _preallocated("superpixel"), anchor="numpy"),
+        Row("pihim_superpixel_summary", "pihim super-pixel `out=...` + `PolarImage.summary()`", "super-pixel",
+            _preallocated("superpixel", with_summary=True), anchor="numpy",
+            note="summary: what `pihim polar --json` adds per frame (exact percentiles, means, circular mean)"),
     ]
     if pa is not None:
-        rows.append(
-            Candidate(
-                POLANALYSER,
-                f"polanalyser {importlib.metadata.version('polanalyser')} bilinear",
-                "full",
-                polanalyser_bilinear,
-                _polanalyser_common,
-                note=(
-                    "polanalyser: full-resolution bilinear (OpenCV Bayer) demosaic, float64; returns "
-                    "channels-last Stokes (H, W, 3), DoLP and AoLP in radians"
-                ),
-            )
-        )
-    rows += [
-        Candidate(
-            "pihim_superpixel",
-            'pihim polar_image(demosaic="superpixel")',
-            "super-pixel",
-            lambda m: polar_image(m, demosaic="superpixel", bit_depth=BIT_DEPTH),
-            _polar_common,
-            lambda: (_kernels.superpixel_polar,),
-        ),
-        Candidate(
-            "pihim_full",
-            'pihim polar_image(demosaic="full")',
-            "full",
-            lambda m: polar_image(m, demosaic="full", bit_depth=BIT_DEPTH),
-            _polar_common,
-            lambda: (_kernels.fullres_polar,),
-        ),
-        Candidate(
-            "numba_poly",
-            "numba super-pixel kernel, polynomial atan2_f32",
-            "super-pixel",
-            _kernel_runner(numba_poly),
-            _polar_common,
-            lambda: (numba_poly,),
-            note="numba pair: same benchmark kernel, only atan2 differs; outputs allocated per call",
-        ),
-        Candidate(
-            "numba_libm",
-            "numba super-pixel kernel, libm math.atan2",
-            "super-pixel",
-            _kernel_runner(numba_libm),
-            _polar_common,
-            lambda: (numba_libm,),
-        ),
+        version = importlib.metadata.version("polanalyser")
+        out += [
+            Row("polanalyser_f32", f"polanalyser {version} bilinear, float32 (anchor)", "full",
+                _rotating(lambda m: polanalyser_bilinear(m, np.float32)), to_common=_polanalyser_common),
+            Row("polanalyser_f64", f"polanalyser {version} bilinear, float64 (its default)", "full",
+                _rotating(polanalyser_bilinear), anchor="polanalyser_f32", to_common=_polanalyser_common),
+        ]
+    full_anchor = "polanalyser_f32" if pa is not None else None
+    out += [
+        Row("pihim_full", 'pihim `polar_image(demosaic="full")`, fresh outputs', "full",
+            _rotating(lambda m: polar_image(m, demosaic="full", bit_depth=BIT_DEPTH)), anchor=full_anchor),
+        Row("pihim_full_out", 'pihim `polar_image(demosaic="full", out=...)`', "full", _preallocated("full"),
+            anchor=full_anchor),
+        Row("pihim_full_summary", "pihim full `out=...` + `PolarImage.summary()`", "full",
+            _preallocated("full", with_summary=True), anchor=full_anchor),
+        Row("numba_poly", "numba kernel alone, polynomial `atan2_f32` (no validation)", "super-pixel",
+            lambda frames: (lambda k, run=_kernel_runner(make_superpixel_kernel(atan2_f32)):
+                            run(frames[k % len(frames)])), anchor="numpy",
+            note="numba pair: the same kernel built twice, only atan2 differs; no input validation or "
+                 "bit-depth check, fresh outputs"),
+        Row("numba_libm", "numba kernel alone, libm `math.atan2` (no validation)", "super-pixel",
+            lambda frames: (lambda k, run=_kernel_runner(make_superpixel_kernel(math.atan2)):
+                            run(frames[k % len(frames)])), anchor="numpy"),
     ]
-    return rows
-
-
-# ---------------------------------------------------------------------------
-# Measurement
-# ---------------------------------------------------------------------------
-@dataclass
-class Measurement:
-    """Figures of one candidate (times in ms, memory in bytes)."""
-
-    key: str
-    label: str
-    resolution: str
-    available: bool = True
-    reason: str = ""
-    first_call_ms: float | None = None
-    numba_cache: str | None = None
-    jit_compile_ms: float | None = None
-    median_ms: float | None = None
-    p10_ms: float | None = None
-    p90_ms: float | None = None
-    mean_ms: float | None = None
-    min_ms: float | None = None
-    samples_ms: list[float] = field(default_factory=list)
-    peak_traced_bytes: int | None = None
-    output_bytes: int | None = None
-    speedup_vs_numpy: float | None = None
-    speedup_vs_polanalyser: float | None = None
-    other_cpu_load: float | None = None
-    attempts: int = 1
-    checks: dict[str, Any] = field(default_factory=dict)
+    return out
 
 
 def output_nbytes(result: Any) -> int:
-    """Bytes of memory held by the arrays of ``result`` (views count their base once)."""
+    """Bytes held by the arrays of ``result`` (views count their base once)."""
     found: dict[int, int] = {}
 
     def visit(obj: Any) -> None:
@@ -473,119 +431,85 @@ def output_nbytes(result: Any) -> int:
     return sum(found.values())
 
 
-def _cache_counts(dispatchers: Sequence[Any]) -> tuple[int, int]:
-    """Total on-disk cache hits and misses of ``dispatchers`` so far."""
-    hits = sum(sum(d.stats.cache_hits.values()) for d in dispatchers)
-    misses = sum(sum(d.stats.cache_misses.values()) for d in dispatchers)
-    return hits, misses
-
-
-def _cache_status(dispatchers: Sequence[Any], before: tuple[int, int]) -> str:
-    """``off`` (no disk cache), ``hit`` (machine code loaded) or ``miss`` (compiled)."""
-    if all(d.stats.cache_path is None for d in dispatchers):
-        return "off"
-    hits, misses = (now - then for now, then in zip(_cache_counts(dispatchers), before, strict=True))
-    return "hit" if hits and not misses else "miss"
-
-
-def cold_compile_ms(dispatchers: Sequence[Any]) -> float:
-    """Compile time of the signatures seen so far, on fresh uncached dispatchers.
-
-    The production kernels are cached on disk, so their first call in a
-    process usually only loads machine code; this recompiles the same Python
-    function with the same options (minus ``cache``) to report what a cold
-    JIT costs.
-    """
-    total = 0.0
-    for dispatcher in dispatchers:
-        options = {k: v for k, v in dispatcher.targetoptions.items() if k not in ("cache", "nopython")}
-        for signature in dispatcher.signatures:
-            fresh = njit(**options)(dispatcher.py_func)
-            start = time.perf_counter()
-            fresh.compile(signature)
-            total += time.perf_counter() - start
-    return 1e3 * total
-
-
-def _is_missing_kernel(exc: BaseException) -> bool:
-    """True for the AttributeError of a numba kernel that has not landed yet."""
-    return isinstance(exc, AttributeError) and "pihim.camera._kernels" in str(exc)
-
-
-def measure(
-    candidate: Candidate, mosaic: NDArray[np.integer], repeat: int, warmup: int, compile_time: bool
-) -> Measurement:
-    """Time one candidate: first call, warm-ups, ``repeat`` timed calls, one traced call."""
-    result = Measurement(candidate.key, candidate.label, candidate.resolution)
-    gc.collect()
-    try:
-        dispatchers = tuple(candidate.dispatchers())
-        before = _cache_counts(dispatchers)
-        start = time.perf_counter()
-        out = candidate.run(mosaic)
-        result.first_call_ms = 1e3 * (time.perf_counter() - start)
-    except Exception as exc:  # noqa: BLE001 - a broken or missing route must not stop the suite
-        result.available = False
-        result.reason = NOT_AVAILABLE if _is_missing_kernel(exc) else f"n/a ({type(exc).__name__}: {exc})"
-        return result
-    if dispatchers:
-        result.numba_cache = _cache_status(dispatchers, before)
-        if compile_time:
-            result.jit_compile_ms = cold_compile_ms(dispatchers)
-    result.output_bytes = output_nbytes(out)
-    del out
-
-    for _ in range(warmup):
-        candidate.run(mosaic)
-    samples, result.other_cpu_load = harness.time_calls(lambda: candidate.run(mosaic), repeat)
-    result.samples_ms = [round(float(s), 4) for s in samples]
-    result.median_ms, result.p10_ms, result.p90_ms = (float(v) for v in np.percentile(samples, [50, 10, 90]))
-    result.mean_ms, result.min_ms = float(samples.mean()), float(samples.min())
-
-    result.peak_traced_bytes, _ = harness.traced_peak(lambda: candidate.run(mosaic))
-    return result
-
-
-def measure_when_quiet(
-    candidate: Candidate,
-    mosaic: NDArray[np.integer],
-    repeat: int,
-    warmup: int,
-    compile_time: bool,
-    wait_quiet_s: float,
-) -> Measurement:
-    """:func:`measure`, repeated while other processes disturb it, for up to ``wait_quiet_s`` seconds.
-
-    Before each attempt, wait for the other processes to leave the CPUs
-    (nearly) idle; an attempt during which they used more than
-    :data:`BUSY_WARNING` of the CPUs is retried until the time is up, and the
-    least disturbed attempt is kept. First-call and compile figures always
-    come from the first attempt (later ones are warm). ``wait_quiet_s = 0``
-    measures once.
-    """
+def measure_row(row: Row, frames: Sequence[NDArray[np.uint16]], repeat: int, warmup: int,
+                bandwidth_gb_s: float, wait_quiet_s: float) -> dict[str, Any]:
+    """Time one row on the rotating frames (after ``warmup`` calls); bytes moved and the bandwidth floor."""
+    run = row.make(frames)
+    first = run(0)
+    moved = frames[0].nbytes + (output_nbytes(first) if not isinstance(first, dict) else
+                               output_nbytes(polar_image(frames[0], demosaic="full" if row.resolution == "full"
+                                                         else "superpixel", bit_depth=BIT_DEPTH)))
+    del first
+    for k in range(warmup):
+        run(k)
+    best: dict[str, Any] | None = None
     deadline = time.monotonic() + wait_quiet_s
-
-    def attempt(with_compile: bool) -> Measurement:
+    while True:
         if wait_quiet_s > 0:
-            harness.wait_for_quiet(max(deadline - time.monotonic(), 0.0), threshold=BUSY_WARNING)
-        return measure(candidate, mosaic, repeat, warmup, with_compile)
+            harness.wait_for_quiet(max(deadline - time.monotonic(), 0.0))
+        timing = harness.time_calls_cpu(lambda k: run(k + warmup), repeat)
+        if best is None or (timing["other_cpu"] or 0) < (best["other_cpu"] or 0):
+            best = timing
+        if (best["other_cpu"] or 0) <= harness.BUSY_WARNING or time.monotonic() >= deadline:
+            break
+    floor_ms = 1e3 * moved / (bandwidth_gb_s * 1e9)
+    samples = best.pop("samples_ms")
+    return {"key": row.key, "label": row.label, "resolution": row.resolution, "anchor": row.anchor,
+            **best, "samples_ms": [round(float(v), 3) for v in samples], "bytes_moved": moved,
+            "floor_ms": floor_ms, "ratio_to_floor": best["median_ms"] / floor_ms}
 
-    first = best = attempt(compile_time)
-    while (
-        best.available
-        and (best.other_cpu_load or 0.0) > BUSY_WARNING
-        and wait_quiet_s > 0
-        and time.monotonic() < deadline
-    ):
-        retry = attempt(False)
-        retry.attempts = best.attempts + 1
-        if (retry.other_cpu_load or 0.0) < (best.other_cpu_load or 0.0):
-            retry.first_call_ms, retry.numba_cache = first.first_call_ms, first.numba_cache
-            retry.jit_compile_ms = first.jit_compile_ms
-            best = retry
-        else:
-            best.attempts = retry.attempts
-    return best
+
+# ---------------------------------------------------------------------------
+# First calls, in fresh processes
+# ---------------------------------------------------------------------------
+_FIRST_CALL = r"""
+import json, os, sys, time
+t0 = time.perf_counter(); c0 = time.process_time()
+import numpy as np
+from pihim.camera.pipeline import polar_image
+t1 = time.perf_counter(); c1 = time.process_time()
+raw = np.load(sys.argv[1])
+t2 = time.perf_counter(); c2 = time.process_time()
+polar_image(raw, demosaic=sys.argv[2], bit_depth=12)
+t3 = time.perf_counter(); c3 = time.process_time()
+polar_image(raw, demosaic=sys.argv[2], bit_depth=12)
+t4 = time.perf_counter(); c4 = time.process_time()
+print(json.dumps({"import_s": t1 - t0, "import_cpu_s": c1 - c0, "first_call_s": t3 - t2,
+                  "first_call_cpu_s": c3 - c2, "second_call_s": t4 - t3}))
+"""
+
+
+def first_calls(frame: NDArray[np.uint16], cold: bool) -> list[dict[str, Any]]:
+    """Import and first ``polar_image`` call in a fresh process per route: numba cache warm, and empty if ``cold``."""
+    import json
+    import shutil
+    import tempfile
+
+    out = []
+    with tempfile.TemporaryDirectory(prefix="pihim-bench-") as tmp:
+        path = Path(tmp) / "frame.npy"
+        np.save(path, frame)
+        env = dict(os.environ)
+        src = Path(__file__).resolve().parents[1] / "src"
+        env["PYTHONPATH"] = os.pathsep.join([str(src), env.get("PYTHONPATH", "")])
+        cases = [("warm", None)] + ([("cold", Path(tmp) / "numba-cache")] if cold else [])
+        for demosaic in ("superpixel", "full"):
+            for label, cache in cases:
+                run_env = dict(env)
+                if cache is not None:
+                    shutil.rmtree(cache, ignore_errors=True)
+                    run_env["NUMBA_CACHE_DIR"] = str(cache)
+                else:  # the cache a user has after one run: make sure it is there
+                    harness.process_run([sys.executable, "-c", _FIRST_CALL, str(path), demosaic], env=env)
+                res = harness.process_run([sys.executable, "-c", _FIRST_CALL, str(path), demosaic], env=run_env)
+                row = {"demosaic": demosaic, "cache": label, "process_wall_s": res["wall_s"],
+                       "process_cpu_s": res["cpu_s"], "load_avg": res["load_after"], "other_cpu": res["other_cpu"]}
+                if res["returncode"] == 0:
+                    row.update(json.loads(res["stdout"].strip().splitlines()[-1]))
+                else:
+                    row["error"] = res["stderr"].strip().splitlines()[-1:]
+                out.append(row)
+    return out
 
 
 # ---------------------------------------------------------------------------
@@ -644,25 +568,12 @@ def agreement_check(candidate: Candidate, mosaic: NDArray[np.integer], anchor: O
 # ---------------------------------------------------------------------------
 # Targets, machine and report
 # ---------------------------------------------------------------------------
-#: The project's speed targets: (name, candidate key, figure, limit, unit, limit is a maximum).
+#: (name, row key, figure, limit, unit, limit is a maximum).
 TARGETS: tuple[tuple[str, str, str, float, str, bool], ...] = (
-    ("super-pixel median time", "pihim_superpixel", "median_ms", 10.0, "ms", True),
-    ("super-pixel speed-up vs numpy", "pihim_superpixel", "speedup_vs_numpy", 5.0, "x", False),
-    ("super-pixel speed-up vs polanalyser", "pihim_superpixel", "speedup_vs_polanalyser", 50.0, "x", False),
-    ("full-resolution median time", "pihim_full", "median_ms", 60.0, "ms", True),
+    ("super-pixel polar_image, fresh outputs, median", "pihim_superpixel", "median_ms", 10.0, "ms", True),
+    ("super-pixel speed-up vs numpy (same resolution, float32)", "pihim_superpixel", "vs_anchor", 5.0, "x", False),
+    ("full-resolution polar_image, fresh outputs, median", "pihim_full", "median_ms", 60.0, "ms", True),
 )
-
-
-def evaluate_targets(by_key: dict[str, Measurement]) -> list[dict[str, Any]]:
-    """Compare the figures with :data:`TARGETS`.
-
-    ``passed`` is ``None`` when a figure needed for the target is missing.
-    """
-    verdicts = []
-    for name, key, figure, limit, unit, at_most in TARGETS:
-        m = by_key.get(key)
-        verdicts.append(harness.target(name, None if m is None else getattr(m, figure), limit, unit, at_most=at_most))
-    return verdicts
 
 
 def machine_info() -> dict[str, Any]:
@@ -671,21 +582,21 @@ def machine_info() -> dict[str, Any]:
         layer = numba.threading_layer()
     except ValueError:  # no parallel kernel has run yet
         layer = None
+    from pihim import _png
+
     return {
         "cpu_model": harness.cpu_model(),
         "cpu_count": os.cpu_count(),
-        "cpus_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         "platform": platform.platform(),
         "python": platform.python_version(),
         "numpy": np.__version__,
         "numba": numba.__version__,
         "numba_threads": numba.get_num_threads(),
         "numba_threading_layer": layer,
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
         "opencv": cv2.__version__,
-        "opencv_threads": cv2.getNumThreads(),
         "polanalyser": importlib.metadata.version("polanalyser") if pa is not None else None,
-        "pihim": importlib.metadata.version("pihim"),
-        "openblas_env": {k: v for k, v in os.environ.items() if k.startswith("OPENBLAS_")},
+        "png_deflate": _png.DEFLATE,
     }
 
 
@@ -693,159 +604,130 @@ def _fmt(value: float | None, spec: str = ".1f", suffix: str = "") -> str:
     return "-" if value is None else f"{value:{spec}}{suffix}"
 
 
-def _mb(nbytes: int | None) -> str:
-    return "-" if nbytes is None else f"{nbytes / 1e6:.1f}"
-
-
 def markdown_report(report: dict[str, Any]) -> str:
-    """The results as markdown: figures, targets, checks, machine and notes."""
-    frame, settings = report["frame"], report["settings"]
+    """The results as markdown: rows, first calls, targets, checks and machine."""
+    s, bw = report["settings"], report["bandwidth"]
     lines = [
-        f"Frame: {frame['width']}x{frame['height']} uint16, {frame['bit_depth']}-bit synthetic heliostat scene "
-        f"(seed {frame['seed']}, {100 * frame['fraction_saturated']:.2f} % saturated pixels); "
-        f"{settings['repeat']} timed calls after {settings['warmup']} warm-ups.",
+        f"{report['frames']['count']} distinct {report['frames']['width']}x{report['frames']['height']} uint16 "
+        f"12-bit frames ({report['frames']['count'] * report['frames']['bytes'] / 1e6:.0f} MB) in rotation; "
+        f"{s['repeat']} timed calls after {s['warmup']} warm-ups. Copy bandwidth measured in this run: "
+        f"{bw['copy_gb_s']:.1f} GB/s (best of 7; median {bw['copy_gb_s_median']:.1f}).",
         "",
-        "| Implementation | Output | Median ms | p10 ms | p90 ms | vs numpy | vs polanalyser "
-        "| Peak traced MB | Output MB | First call ms | JIT compile ms | Other CPU % |",
+        "| Implementation | Output | Median ms | p10 ms | p90 ms | CPU ms | vs anchor | MB moved | floor ms "
+        "| x floor | Other CPU % | Load |",
         "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|",
     ]
     for m in report["results"]:
-        if not m["available"]:
-            lines.append(f"| {m['label']} | {m['resolution']} | {m['reason']} |" + " |" * 9)
-            continue
-        first = _fmt(m["first_call_ms"])
-        if m["numba_cache"] is not None:
-            first += f" (cache {m['numba_cache']})"
-        load = None if m["other_cpu_load"] is None else 100 * m["other_cpu_load"]
         lines.append(
-            f"| {m['label']} | {m['resolution']} | {_fmt(m['median_ms'])} | {_fmt(m['p10_ms'])} "
-            f"| {_fmt(m['p90_ms'])} | {_fmt(m['speedup_vs_numpy'], '.2f', 'x')} "
-            f"| {_fmt(m['speedup_vs_polanalyser'], '.1f', 'x')} | {_mb(m['peak_traced_bytes'])} "
-            f"| {_mb(m['output_bytes'])} | {first} | {_fmt(m['jit_compile_ms'], '.0f')} | {_fmt(load, '.0f')} |"
-        )
-    busiest = max((m["other_cpu_load"] or 0.0 for m in report["results"]), default=0.0)
-    if busiest > BUSY_WARNING:
-        lines += [
-            "",
-            f"**Warning:** other processes used up to {100 * busiest:.0f} % of the CPUs while timing; "
-            "the figures are inflated (rerun on an idle machine, e.g. with --wait-quiet 300).",
-        ]
-
-    lines += harness.target_table(report["targets"], spec=".2f", unit_spec={"ms": ".1f"}, column="Result", align="--:")
-
-    lines += [
-        "",
-        "| Check (not timed) | Uniform field: max DoLP / AoP error | vs numpy anchor: max S0 / DoLP / AoP difference |",
-        "|---|---|---|",
-    ]
-    for m in report["results"]:
-        c = m["checks"]
-        if not c:
-            continue
-        uniform = (
-            f"{'ok' if c['uniform_ok'] else 'FAIL'}: {c['uniform_max_abs_dolp_error']:.1e} / "
-            f"{c['uniform_max_aop_error_deg']:.1e} deg"
-        )
+            f"| {m['label']} | {m['resolution']} | {m['median_ms']:.1f} | {m['p10_ms']:.1f} | {m['p90_ms']:.1f} "
+            f"| {m['cpu_ms']:.1f} | {_fmt(m.get('vs_anchor'), '.2f', 'x')} | {m['bytes_moved'] / 1e6:.1f} "
+            f"| {m['floor_ms']:.2f} | {m['ratio_to_floor']:.1f} | {harness.other_pct(m['other_cpu'])} "
+            f"| {_fmt(m['load_avg'], '.1f')} |")
+    lines += harness.busy_warning(m["other_cpu"] for m in report["results"])
+    if report["first_calls"]:
+        lines += ["", "| First call in a fresh process | numba cache | import s (CPU) | first call s (CPU) "
+                  "| second call s | process wall s | process CPU s | Load |", "|---|---|--:|--:|--:|--:|--:|--:|"]
+        for f in report["first_calls"]:
+            if "error" in f:
+                lines.append(f"| {f['demosaic']} | {f['cache']} | error: {f['error']} |" + " |" * 5)
+                continue
+            lines.append(
+                f"| {f['demosaic']} | {f['cache']} | {f['import_s']:.2f} ({f['import_cpu_s']:.2f}) "
+                f"| {f['first_call_s']:.2f} ({f['first_call_cpu_s']:.2f}) | {f['second_call_s']:.3f} "
+                f"| {f['process_wall_s']:.2f} | {f['process_cpu_s']:.2f} | {_fmt(f['load_avg'], '.1f')} |")
+    lines += harness.target_table(report["targets"], spec=".2f", unit_spec={"ms": ".1f"}, column="Result",
+                                  align="--:")
+    lines += ["", "| Check (not timed) | Uniform field: max DoLP / AoP error | vs numpy anchor: max S0 / DoLP / AoP |",
+              "|---|---|---|"]
+    for key, c in report["checks"].items():
+        uniform = (f"{'ok' if c['uniform_ok'] else 'FAIL'}: {c['uniform_max_abs_dolp_error']:.1e} / "
+                   f"{c['uniform_max_aop_error_deg']:.1e} deg")
         anchor = "-"
         if "agrees_with_anchor" in c:
-            anchor = (
-                f"{'ok' if c['agrees_with_anchor'] else 'DIFFERS'}: {c['max_abs_diff_s0']:.1e} / "
-                f"{c['max_abs_diff_dolp']:.1e} / {c['max_abs_diff_aop_deg']:.1e} deg"
-            )
-        lines.append(f"| {m['label']} | {uniform} | {anchor} |")
-
+            anchor = (f"{'ok' if c['agrees_with_anchor'] else 'DIFFERS'}: {c['max_abs_diff_s0']:.1e} / "
+                      f"{c['max_abs_diff_dolp']:.1e} / {c['max_abs_diff_aop_deg']:.1e} deg")
+        lines.append(f"| {key} | {uniform} | {anchor} |")
     mach = report["machine"]
-    polanalyser_version = mach["polanalyser"] or "not installed"
-    lines += [
-        "",
-        f"Machine: {mach['cpu_model']}, {mach['cpu_count']} cores (os.cpu_count), numba {mach['numba']} "
-        f"with {mach['numba_threads']} threads ({mach['numba_threading_layer']}), numpy {mach['numpy']}, "
-        f"OpenCV {mach['opencv']} ({mach['opencv_threads']} threads), polanalyser {polanalyser_version}, "
-        f"Python {mach['python']}.",
-        "",
-        *[f"- {note}" for note in report["notes"]],
-    ]
+    lines += ["", f"Machine: {mach['cpu_model']}, {mach['cpu_count']} cores, numba {mach['numba']} "
+              f"({mach['numba_threads']} threads, {mach['numba_threading_layer']}, OMP_WAIT_POLICY="
+              f"{mach['omp_wait_policy']}), numpy {mach['numpy']}, OpenCV {mach['opencv']}, polanalyser "
+              f"{mach['polanalyser'] or 'not installed'}, Python {mach['python']}."]
+    lines += ["", *[f"- {n}" for n in report["notes"]]]
     return "\n".join(lines)
 
 
 NOTES = (
-    "Each call takes the raw frame and returns newly allocated outputs; times are wall-clock "
-    "(time.perf_counter_ns) with the garbage collector paused.",
-    "vs numpy / vs polanalyser: median time of the reference divided by the row's median (higher is faster).",
-    "polanalyser works at full resolution (4x the pixels of the super-pixel routes) in float64, so "
-    "'super-pixel vs polanalyser' compares different products; pihim full vs polanalyser is like for like. "
-    "Its channel list is 0/45/90/135 deg for the IMX250MZR layout, like pihim's, but it stores Stokes "
-    "channels-last and AoLP in radians; for timing this does not matter, and the uniform-field check "
-    "confirms it recovers the same DoLP and AoP.",
-    "Peak traced MB: tracemalloc peak during one call (numpy and OpenCV-returned arrays are traced; "
-    "scratch allocated inside numba kernels, OpenCV or OpenBLAS is not). Output MB: bytes held by the "
-    "returned arrays.",
-    "First call: numba JIT compile or on-disk cache load (cache hit/miss shown) plus one run; "
-    "JIT compile: cold compile of the same kernel on a fresh, uncached dispatcher.",
-    "Other CPU %: share of the machine's CPU time used by other processes during the timed calls "
-    "(from /proc/stat); on 2 cores a parallel kernel whose second thread loses its core waits for a "
-    "whole scheduler slice, so only rows near 0 % are trustworthy.",
-    "The pixel kernels use no BLAS, so OPENBLAS_CORETYPE/OPENBLAS_L2_SIZE (set on this machine, "
-    "left unchanged) do not affect them; only polanalyser's calcStokes (a tensordot, i.e. a 3x4 by "
-    "4xN dgemm) and polar_image's 4x3 pinv call OpenBLAS.",
+    "Wall: median/p10/p90 of the timed calls (time.perf_counter_ns, garbage collector paused). CPU: process CPU "
+    "time (all threads) over the timed calls, per call; on 2 cores a parallel kernel can show CPU up to twice its "
+    "wall time.",
+    "MB moved: the input frame read plus the outputs written (the least any implementation must move); floor: those "
+    "bytes at the copy bandwidth measured in this run (read + write bytes per second); x floor: median / floor.",
+    "vs anchor: the anchor's median divided by the row's (same output resolution): numpy super-pixel for the "
+    "super-pixel rows, polanalyser bilinear float32 for the full-resolution rows (float32 channels and Mueller "
+    "matrices, so the same dtype as pihim's outputs).",
+    "Fresh outputs: every call allocates its outputs (new pages the operating system zeroes on first touch); out=: "
+    "the same arrays are written every call.",
+    "Other CPU %: share of the machine's CPUs used by other processes during the timed calls (/proc/stat); Load: "
+    "one-minute load average after them.",
 )
 
 
-def run_benchmark(
-    repeat: int = COUNTS.repeat,
-    warmup: int = COUNTS.warmup,
-    seed: int = DEFAULT_SEED,
-    compile_time: bool = True,
-    wait_quiet_s: float = 0.0,
-) -> dict[str, Any]:
-    """Measure every candidate on one frame and return the JSON-ready report.
-
-    With ``wait_quiet_s > 0``, see :func:`measure_when_quiet`.
-    """
-    mosaic = synthetic_frame(FRAME_SHAPE, seed)
-    rows = candidates()
-    measurements = [measure_when_quiet(c, mosaic, repeat, warmup, compile_time, wait_quiet_s) for c in rows]
-    by_key = {m.key: m for m in measurements}
-
-    anchor = by_key[ANCHOR]
-    reference = by_key.get(POLANALYSER)
-    for m in measurements:
-        if not m.available or m.median_ms is None:
+def run_benchmark(repeat: int, warmup: int, seed: int = DEFAULT_SEED, cold: bool = True,
+                  wait_quiet_s: float = 0.0) -> dict[str, Any]:
+    """Measure every row on the rotating frames, the first calls and the bandwidth; the JSON-ready report."""
+    scenes = [synthetic_scene(FRAME_SHAPE, seed + k) for k in range(4)]
+    frames = [mosaic_from_stokes(*scenes[k % 4], bit_depth=BIT_DEPTH, read_noise_dn=1.2, electrons_per_dn=2.5,
+                                 rng=seed + 100 + k) for k in range(N_FRAMES)]
+    del scenes
+    bandwidth = harness.memory_bandwidth()
+    results = [measure_row(r, frames, repeat, warmup, bandwidth["copy_gb_s"], wait_quiet_s) for r in rows()]
+    by_key = {m["key"]: m for m in results}
+    for m in results:
+        ref = by_key.get(m["anchor"]) if m["anchor"] else None
+        m["vs_anchor"] = ref["median_ms"] / m["median_ms"] if ref else None
+    checks: dict[str, Any] = {}
+    anchor_out = numpy_superpixel(frames[0])
+    for r in rows():
+        if r.key.endswith(("_out", "_summary")):
             continue
-        m.speedup_vs_numpy = anchor.median_ms / m.median_ms if anchor.median_ms else None
-        if reference is not None and reference.median_ms:
-            m.speedup_vs_polanalyser = reference.median_ms / m.median_ms
+        holder = [frames[0]]  # the route is built once (a numba row compiles its kernel then)
+        call = r.make(holder)
 
-    anchor_out = numpy_superpixel(mosaic)
-    for c, m in zip(rows, measurements, strict=True):
-        if not m.available:
-            continue
-        m.checks = uniform_field_check(c)
-        if c.resolution == "super-pixel" and c.key != ANCHOR:
-            m.checks.update(agreement_check(c, mosaic, anchor_out))
+        def run(m: NDArray[np.integer], holder: list = holder, call: Callable[[int], Any] = call) -> Any:
+            holder[0] = m
+            return call(0)
 
-    notes = [c.note for c in rows if c.note] + list(NOTES)
-    if pa is None:
-        notes.insert(0, "polanalyser is not installed (pip install polanalyser): its row and target are skipped.")
+        cand = Candidate(r.key, r.label, r.resolution, run, r.to_common)
+        checks[r.key] = uniform_field_check(cand)
+        if r.resolution == "super-pixel" and r.key != "numpy":
+            checks[r.key].update(agreement_check(cand, frames[0], anchor_out))
+    targets = [harness.target(name, (by_key.get(key) or {}).get(fig), limit, unit, at_most=at_most)
+               for name, key, fig, limit, unit, at_most in TARGETS]
     return {
         "benchmark": "polar",
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "frame": {
-            "height": int(mosaic.shape[0]),
-            "width": int(mosaic.shape[1]),
-            "dtype": str(mosaic.dtype),
-            "bit_depth": BIT_DEPTH,
-            "seed": seed,
-            "min": int(mosaic.min()),
-            "max": int(mosaic.max()),
-            "fraction_saturated": float(np.mean(mosaic >= 2**BIT_DEPTH - 1)),
-        },
-        "settings": {"repeat": repeat, "warmup": warmup, "compile_time": compile_time, "wait_quiet_s": wait_quiet_s},
+        "frames": {"count": N_FRAMES, "height": FRAME_SHAPE[0], "width": FRAME_SHAPE[1], "bytes": frames[0].nbytes,
+                   "seed": seed, "fraction_saturated": float(np.mean(frames[0] >= 2**BIT_DEPTH - 1))},
+        "settings": {"repeat": repeat, "warmup": warmup, "cold": cold, "wait_quiet_s": wait_quiet_s},
+        "bandwidth": bandwidth,
         "machine": machine_info(),
-        "results": [vars(m) for m in measurements],
-        "targets": evaluate_targets(by_key),
-        "notes": notes,
+        "results": results,
+        "first_calls": first_calls(frames[0], cold),
+        "targets": targets,
+        "checks": checks,
+        "notes": [r.note for r in rows() if r.note] + list(NOTES),
     }
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A route as the checks see it: ``run(mosaic)`` and the map to ``(s0, dolp, aop_deg)``."""
+
+    key: str
+    label: str
+    resolution: str
+    run: Callable[[NDArray[np.integer]], Any]
+    to_common: Callable[[Any], Outputs]
 
 
 def main(
@@ -859,49 +741,36 @@ def main(
     wait_quiet: float = 0.0,
     echo: bool = True,
 ) -> dict[str, Any]:
-    """Run the benchmark, print the markdown report and write the JSON.
+    """Run the benchmark, print the markdown report and write the JSON (see the module docstring).
 
     Parameters
     ----------
     argv : sequence of str, optional
-        Command-line arguments (``--repeat N``, ``--warmup N``, ``--quick``,
-        ``--json PATH``, ``--seed N``, ``--wait-quiet S``); ``None`` or empty
-        reads nothing.
+        ``--repeat N``, ``--warmup N``, ``--quick``, ``--json PATH``, ``--seed N``, ``--wait-quiet S``.
     repeat, warmup : int, optional
-        Timed and untimed calls per implementation; default 30 and 3, or 5
-        and 1 with ``quick``.
+        Timed and untimed calls per row; default 32 and 4 (8 and 2 with ``quick``).
     quick : bool
-        Fewer calls and no cold-compile measurement, for a fast look.
+        Fewer calls and no cold compiles.
     seed : int
-        Seed of the synthetic frame.
+        Seed of the synthetic frames.
     json_path : pathlib.Path or None
-        Where to write the JSON report (directories are created); ``None``
-        writes nothing.
+        Where to write the JSON report.
     wait_quiet : float
-        Seconds each implementation may wait for other processes to leave
-        the CPUs idle before it is timed (0: do not wait).
+        Seconds each row may wait and retry for other processes to leave the CPUs idle.
     echo : bool
         Print the markdown report.
-
-    Returns
-    -------
-    dict
-        The report (also written to ``json_path``); its ``targets`` entries
-        carry ``passed`` flags.
     """
 
     def configure(parser: argparse.ArgumentParser) -> None:
-        parser.add_argument("--seed", type=int, help=f"seed of the synthetic frame (default {DEFAULT_SEED})")
-        parser.add_argument("--wait-quiet", type=float, metavar="S",
-                            help="wait and retry up to S s per implementation for idle CPUs")
+        parser.add_argument("--seed", type=int, help=f"seed of the synthetic frames (default {DEFAULT_SEED})")
+        parser.add_argument("--wait-quiet", type=float, metavar="S", help="wait and retry up to S s per row")
 
     o = harness.options(argv, description=__doc__.split("\n\n")[0], counts=COUNTS, repeat=repeat, warmup=warmup,
                         quick=quick, json_path=json_path, configure=configure)
     if o.args is not None:
         seed = o.args.seed if o.args.seed is not None else seed
         wait_quiet = o.args.wait_quiet if o.args.wait_quiet is not None else wait_quiet
-    report = run_benchmark(repeat=o.repeat, warmup=o.warmup, seed=seed, compile_time=not o.quick,
-                           wait_quiet_s=wait_quiet)
+    report = run_benchmark(o.repeat, o.warmup, seed=seed, cold=not o.quick, wait_quiet_s=wait_quiet)
     report["settings"]["quick"] = o.quick
     if echo:
         print(markdown_report(report))

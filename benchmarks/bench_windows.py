@@ -101,7 +101,9 @@ def run_benchmark(repeat: int, warmup: int, sweep_repeat: int) -> dict[str, Any]
                      "aim_point_m": aim.tolist(), "heliostats": len(fld), "passes": len(passes),
                      "images": n_images, "sweep_instants": n_times},
         "results": results,
-        "targets": [harness.target(name, results[key]["median_ms"], lim, unit) for name, key, lim, unit in TARGETS],
+        "targets": [harness.target(name, results[key]["median_ms"], lim, unit) for name, key, lim, unit in TARGETS]
+        + [harness.target(f"{name}, CPU time (all threads)", results[key]["cpu_ms"], lim, unit)
+           for name, key, lim, unit in TARGETS],
         "machine": harness.machine_info(),
     }
 
@@ -114,12 +116,13 @@ def markdown_report(report: dict[str, Any]) -> str:
          f"images at {s['time']}); day sweep {s['date']} ({s['sweep_instants']} instants); {s['repeat']} timed calls "
          f"after {s['warmup']} warm-ups ({s['sweep_repeat']} for the sweep); {report['machine']['cpu_count']} CPUs."),
         "",
-        "| Row | Median ms | p10 ms | p90 ms | Peak MB (tracemalloc) | Other CPU % |",
-        "|---|---:|---:|---:|---:|---:|",
+        "| Row | Median ms | p10 ms | p90 ms | CPU ms | Peak MB (tracemalloc) | Other CPU % | Load |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in report["results"].values():
         peak = "-" if r["peak_mb"] is None else f"{r['peak_mb']:.1f}"
-        lines.append(f"| {r['label']} | {harness.ms_cells(r, '.1f')} | {peak} | {harness.other_pct(r['other_cpu'])} |")
+        lines.append(f"| {r['label']} | {harness.ms_cells(r, '.1f')} | {r['cpu_ms']:.1f} | {peak} "
+                     f"| {harness.other_pct(r['other_cpu'])} | {r['load_avg']:.1f} |")
     lines += harness.target_table(report["targets"], spec=".1f")
     lines += harness.busy_warning(r["other_cpu"] for r in report["results"].values())
     return "\n".join(lines)

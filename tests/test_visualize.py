@@ -64,3 +64,62 @@ def test_polar_figure_png_refuses_mismatched_shapes(tmp_path):
     with pytest.raises(PihimInputError, match="one shape"):
         polar_figure_png(np.zeros((4, 4)), np.zeros((4, 5)), np.zeros((4, 4)), tmp_path / "x.png")
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("backend", ["default", "zlib"])
+def test_png_encoder_roundtrip_through_opencv(backend, monkeypatch):
+    """The small encoder's files decode (by OpenCV's libpng) to the same pixels, with ISA-L or with zlib."""
+    import zlib
+
+    from pihim import _png
+
+    if backend == "zlib":
+        monkeypatch.setattr(_png, "_deflate", zlib)
+    rng = np.random.default_rng(3)
+    for shape in [(1, 1), (5, 7), (5, 7, 3), (3, 4, 4), (257, 300, 3)]:
+        img = rng.integers(0, 256, shape, dtype=np.uint8)
+        back = cv2.imdecode(np.frombuffer(_png.encode_png(img), np.uint8), cv2.IMREAD_UNCHANGED)
+        if img.ndim == 3:
+            back = back[..., [2, 1, 0, 3][: img.shape[2]]]  # OpenCV returns BGR(A)
+        assert np.array_equal(back, img), shape
+    with pytest.raises(ValueError):
+        _png.encode_png(np.zeros((2, 2), np.float32))
+
+
+def test_polar_figure_is_reused_and_follows_each_frame(tmp_path):
+    """Frames of one size share the laid-out figure; each PNG still shows its own images and S0 range."""
+    import pihim.visualize as vis
+
+    rng = np.random.default_rng(1)
+    s0 = rng.uniform(1000, 2000, (60, 80)).astype(np.float32)
+    dolp = rng.uniform(0, 0.6, (60, 80)).astype(np.float32)
+    aop = rng.uniform(0, 180, (60, 80)).astype(np.float32)
+    a = vis.polar_figure_png(s0, dolp, aop, tmp_path / "a.png", title="a")
+    figure = next(iter(vis._FIGURES.values()))
+    b = vis.polar_figure_png(s0 * 10, dolp[::-1], aop, tmp_path / "b.png", title="b")
+    assert next(iter(vis._FIGURES.values())) is figure  # not laid out again
+    ia, ib = (cv2.imread(str(p))[..., ::-1] for p in (a, b))
+    assert ia.shape == ib.shape and not np.array_equal(ia, ib)
+    # the DoLP panel shows the flipped DoLP: its pixels come from dolp_to_rgb of the data (inside the axes frame)
+    r0, r1, c0, c1, rows, cols = figure._boxes[1]
+    shown = dolp_to_rgb(dolp[::-1]).take(rows, 0).take(cols, 1)
+    assert np.array_equal(ib[r0 + 2:r1 - 2, c0 + 2:c1 - 2], shown[2:-2, 2:-2])
+    with pytest.raises(PihimInputError, match="laid out for"):
+        figure.render(s0[:10], dolp[:10], aop[:10])
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_compiled_colourings_equal_the_numpy_formulation(dtype):
+    """2-D images take the compiled kernels, other shapes the numpy formulation: same pixels, edge values too."""
+    rng = np.random.default_rng(7)
+    a = rng.uniform(-400, 400, (60, 50)).astype(dtype)
+    a.flat[:8] = [np.nan, np.inf, -0.0, 180.0, -1e-17, 1e300 if dtype == np.float64 else 3e38, 359.99999, -180.0]
+    d = rng.uniform(-0.2, 1.5, a.shape).astype(dtype)
+    d.flat[10:13] = [np.nan, np.inf, 0.5]
+    s = rng.normal(1000, 300, a.shape).astype(dtype)
+    s.flat[20:23] = [np.nan, np.inf, -np.inf]
+    assert np.array_equal(aop_to_rgb(a, d), aop_to_rgb(a[None], d[None])[0])
+    assert np.array_equal(aop_to_rgb(a, d, dolp_max=0.3), aop_to_rgb(a[None], d[None], dolp_max=0.3)[0])
+    assert np.array_equal(aop_to_rgb(a), aop_to_rgb(a[None])[0])
+    assert np.array_equal(dolp_to_rgb(d, vmax=0.5), dolp_to_rgb(d[None], vmax=0.5)[0])
+    assert np.array_equal(s0_to_gray(s), s0_to_gray(s.ravel()).reshape(s.shape))

@@ -13,7 +13,15 @@ Sub-packages follow the physical and pipeline concepts of the method:
 Public functions take and return degrees; see ``docs/conventions.md``.
 """
 
+import os
+
 from pihim.errors import PihimInputError
+
+# numba's OpenMP threading layer otherwise keeps its worker threads spinning after every parallel
+# kernel: on a shared or busy machine (and beside pihim's own reader and writer threads) they burn
+# CPU that other work needs, e.g. 7.8 ms of CPU for a 2 ms selection pass. A value set by the user wins;
+# it must be set before the first parallel kernel runs, hence here.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 __version__ = "0.1.0"
 

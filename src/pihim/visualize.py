@@ -17,10 +17,10 @@ References
 from __future__ import annotations
 
 import contextlib
-import io
+import functools
+import threading
 from pathlib import Path
 
-import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -62,14 +62,31 @@ def aop_to_rgb(
         If given, the brightness is ``clip(dolp / dolp_max, 0, 1)``.
     dolp_max : float
         DoLP that maps to full brightness.
+
+    Notes
+    -----
+    In float64: hue ``h = mod(aop / 180, 1)``, value ``v`` as above,
+    saturation 1, converted by the standard HSV sextant formulas and rounded
+    (``rint(255 x)``); black where AoP (or DoLP) is not finite. 2-D images
+    are computed by one compiled pass (:mod:`pihim._colour_kernels`), other
+    shapes with numpy; both give the same pixels.
     """
-    a = np.asarray(aop_deg, dtype=np.float64)
+    a = np.asarray(aop_deg)
+    d = None if dolp is None else np.asarray(dolp)
+    if d is not None and d.shape != a.shape:
+        raise PihimInputError(f"AoP and DoLP shapes differ: {a.shape} vs {d.shape}")
+    if a.ndim == 2 and a.dtype in (np.float32, np.float64) and (d is None or d.dtype in (np.float32, np.float64)):
+        from pihim._colour_kernels import hue_colour
+
+        out = np.empty((*a.shape, 3), dtype=np.uint8)
+        hue_colour(np.ascontiguousarray(a), np.ascontiguousarray(a if d is None else d), d is not None,
+                   float(dolp_max), out)
+        return out
+    a = a.astype(np.float64)
     valid = np.isfinite(a)
     v = np.ones_like(a)
-    if dolp is not None:
-        d = np.asarray(dolp, dtype=np.float64)
-        if d.shape != a.shape:
-            raise PihimInputError(f"AoP and DoLP shapes differ: {a.shape} vs {d.shape}")
+    if d is not None:
+        d = d.astype(np.float64)
         valid &= np.isfinite(d)
         v = np.clip(np.nan_to_num(d) / dolp_max, 0.0, 1.0)
     rgb = _hsv_to_rgb(np.nan_to_num(a) / 180.0, np.ones_like(a), v)
@@ -77,25 +94,79 @@ def aop_to_rgb(
     return _to_u8(rgb)
 
 
-def dolp_to_rgb(dolp: ArrayLike, *, vmax: float = 1.0, cmap: str = "viridis") -> NDArray[np.uint8]:
-    """DoLP through a perceptual matplotlib colour map over ``[0, vmax]``."""
+@functools.lru_cache(maxsize=8)
+def colour_lut(cmap: str = "viridis") -> NDArray[np.uint8]:
+    """The 256-entry uint8 RGB table of a matplotlib colour map (``rint(255 x)`` of its float colours)."""
     from matplotlib import colormaps
 
-    d = np.asarray(dolp, dtype=np.float64)
-    lut = colormaps[cmap].resampled(256)(np.linspace(0.0, 1.0, 256))[:, :3]
+    lut = _to_u8(colormaps[cmap].resampled(256)(np.linspace(0.0, 1.0, 256))[:, :3])
+    lut.flags.writeable = False
+    return lut
+
+
+def dolp_to_rgb(dolp: ArrayLike, *, vmax: float = 1.0, cmap: str = "viridis") -> NDArray[np.uint8]:
+    """DoLP through a perceptual matplotlib colour map over ``[0, vmax]``.
+
+    Entry ``clip(rint(255 dolp / vmax), 0, 255)`` of :func:`colour_lut`;
+    black where DoLP is not finite.
+    """
+    d = np.asarray(dolp)
+    lut = colour_lut(cmap)
+    if d.ndim == 2 and d.dtype in (np.float32, np.float64):
+        from pihim._colour_kernels import lut_colour
+
+        out = np.empty((*d.shape, 3), dtype=np.uint8)
+        lut_colour(np.ascontiguousarray(d), float(vmax), lut, out)
+        return out
+    d = d.astype(np.float64)
     idx = np.clip(np.rint(np.nan_to_num(d) / vmax * 255.0), 0, 255).astype(np.intp)
-    rgb = lut[idx]
-    rgb[~np.isfinite(d)] = 0.0
-    return _to_u8(rgb)
+    rgb = lut[idx].copy()
+    rgb[~np.isfinite(d)] = 0
+    return rgb
 
 
-def s0_to_gray(s0: ArrayLike, *, percentiles: tuple[float, float] = (0.5, 99.5)) -> NDArray[np.uint8]:
-    """S0 as 8-bit grey with a percentile stretch (NaN -> 0)."""
-    x = np.asarray(s0, dtype=np.float64)
+def s0_range(s0: ArrayLike, percentiles: tuple[float, float] = (0.5, 99.5)) -> tuple[float, float] | None:
+    """The ``numpy.percentile`` values of the finite S0 pixels that :func:`s0_to_gray` stretches between.
+
+    For 2-D float32 images they are computed exactly by histogram selection
+    (:func:`pihim._quantiles.percentiles`, no float64 copy). ``None`` when no
+    pixel is finite.
+    """
+    x = np.asarray(s0)
+    if x.ndim == 2 and x.dtype == np.float32:
+        from pihim._quantiles import percentiles as exact_percentiles
+
+        bounds = exact_percentiles(np.ascontiguousarray(x), percentiles)
+        return None if bounds is None else (float(bounds[0]), float(bounds[1]))
+    x = x.astype(np.float64)
     finite = x[np.isfinite(x)]
     if finite.size == 0:
-        return np.zeros(x.shape, dtype=np.uint8)
+        return None
     lo, hi = np.percentile(finite, percentiles)
+    return float(lo), float(hi)
+
+
+def s0_to_gray(
+    s0: ArrayLike, *, percentiles: tuple[float, float] = (0.5, 99.5), value_range: tuple[float, float] | None = None
+) -> NDArray[np.uint8]:
+    """S0 as 8-bit grey with a percentile stretch (NaN -> 0).
+
+    ``lo, hi =`` :func:`s0_range` ``(s0, percentiles)`` (or ``value_range``
+    when given), then ``rint(255 clip((s0 - lo) / (hi - lo), 0, 1))``; all 0
+    unless ``hi > lo``. 2-D float images take one compiled pass.
+    """
+    x = np.asarray(s0)
+    bounds = value_range if value_range is not None else s0_range(x, percentiles)
+    if bounds is None:
+        return np.zeros(x.shape, dtype=np.uint8)
+    lo, hi = float(bounds[0]), float(bounds[1])
+    if x.ndim == 2 and x.dtype in (np.float32, np.float64):
+        from pihim._colour_kernels import gray_stretch
+
+        out = np.empty(x.shape, dtype=np.uint8)
+        gray_stretch(np.ascontiguousarray(x), lo, hi, out)
+        return out
+    x = x.astype(np.float64)
     scale = (x - lo) / (hi - lo) if hi > lo else np.zeros_like(x)
     return _to_u8(np.clip(np.nan_to_num(scale), 0.0, 1.0))
 
@@ -103,17 +174,19 @@ def s0_to_gray(s0: ArrayLike, *, percentiles: tuple[float, float] = (0.5, 99.5))
 def write_png(path: str | Path, image: NDArray[np.uint8], *, atomic: bool = True) -> Path:
     """Write an RGB ``(H, W, 3)`` or grey ``(H, W)`` uint8 image as PNG, atomically.
 
-    ``atomic=False`` writes ``path`` directly (for a caller that already
-    writes under a temporary name).
+    Encoded by :func:`pihim._png.encode_png` (unfiltered rows, fast deflate;
+    ISA-L when the ``fast`` extra is installed). ``atomic=False`` writes
+    ``path`` directly (for a caller that already writes under a temporary
+    name).
     """
+    from pihim._png import encode_png
+
     img = np.asarray(image)
-    if img.dtype != np.uint8 or img.ndim not in (2, 3):
-        raise PihimInputError("PNG previews must be uint8 grey or RGB images")
-    if img.ndim == 3:
-        img = img[..., ::-1]  # OpenCV writes BGR
+    if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3) or img.size == 0:
+        raise PihimInputError("PNG previews must be non-empty uint8 grey or RGB images")
+    data = encode_png(img)
     with atomic_path(path) if atomic else contextlib.nullcontext(Path(path)) as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(img)):
-            raise OSError(f"{path}: could not write PNG")
+        Path(tmp).write_bytes(data)
     return Path(path)
 
 
@@ -208,6 +281,164 @@ def _aop_wheel(ax: object, dolp_weighted: bool) -> None:
                  fontsize=8)  # type: ignore[attr-defined]
 
 
+class PolarFigure:
+    """The captioned S0 / DoLP / AoP figure of :func:`polar_figure_png`, drawn once and reused.
+
+    matplotlib draws the figure once per image size (axes, colour bars,
+    labels, the AoP wheel; about 0.2-0.6 s); each frame then only pastes
+    its three decimated images into the axes (nearest-neighbour, as the
+    figure's ``interpolation="nearest"``) and redraws the parts that change,
+    the S0 colour bar's axis (its raw-unit range follows the frame) and the
+    title, with matplotlib's blitting. That takes a few milliseconds
+    instead of a full draw. Not thread-safe (matplotlib is not): use one
+    instance per thread.
+
+    Parameters
+    ----------
+    shape : (int, int)
+        Shape of the S0, DoLP and AoP images the figure will show.
+    titled : bool
+        Leave room for a title (:meth:`render`'s ``title``).
+    max_side, dpi : see :func:`polar_figure_png`
+    """
+
+    def __init__(self, shape: tuple[int, int], *, titled: bool = True, max_side: int = 900, dpi: float = 110.0) -> None:
+        from matplotlib import colormaps
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        h, w = (int(v) for v in shape)
+        if h < 1 or w < 1:
+            raise PihimInputError(f"the figure needs non-empty images, got shape {shape}")
+        self.shape = (h, w)
+        self.step = max(1, int(np.ceil(max(h, w) / max_side)))
+        small = (len(range(0, h, self.step)), len(range(0, w, self.step)))
+        placeholder = np.zeros(small)
+        fig = Figure(figsize=(16.0, 4.4), dpi=dpi, layout="constrained")
+        self._canvas = FigureCanvasAgg(fig)
+        grid = fig.add_gridspec(1, 4, width_ratios=(1.0, 1.0, 1.0, 0.4))
+        self._axes = [fig.add_subplot(grid[0, j]) for j in range(3)]
+        ax0, ax1, ax2 = self._axes
+        # laid out for five-digit raw units (16-bit data), so that any frame's S0 colour bar labels fit
+        self._im0 = ax0.imshow(placeholder, cmap=colormaps["gray"].with_extremes(bad="black"), vmin=0.0,
+                               vmax=60000.0, interpolation="nearest")
+        self._cb0 = fig.colorbar(self._im0, ax=ax0, fraction=0.046, pad=0.02)
+        self._cb0.set_label("S0 (raw units)", fontsize=8)
+        self._cb0.ax.tick_params(labelsize=7)
+        ax0.set_title("S0: total intensity", fontsize=10)
+        im1 = ax1.imshow(placeholder, cmap=colormaps["viridis"].with_extremes(bad="black"), vmin=0.0, vmax=1.0,
+                         interpolation="nearest")
+        cb1 = fig.colorbar(im1, ax=ax1, fraction=0.046, pad=0.02)
+        cb1.set_label("DoLP", fontsize=8)
+        cb1.ax.tick_params(labelsize=7)
+        ax1.set_title("DoLP: degree of linear polarization", fontsize=10)
+        ax2.imshow(np.zeros((*small, 3)), interpolation="nearest")
+        ax2.set_title("AoP: angle of polarization", fontsize=10)
+        # the hue wheel beside it is the key: a linear colour bar would hide that 0 and 180 deg meet
+        for ax in self._axes:
+            ax.set_xlabel("x (px)" + (f", every {self.step}th" if self.step > 1 else ""), fontsize=8)
+            ax.tick_params(labelsize=7)
+        _aop_wheel(fig.add_subplot(grid[0, 3]), dolp_weighted=True)
+        self._title = fig.suptitle("placeholder" if titled else "", fontsize=11)
+        self._canvas.draw()  # lay out once, then freeze the layout
+        fig.set_layout_engine("none")
+        # what changes from frame to frame is drawn over a background that lacks it
+        self._dynamic = [self._cb0.ax.yaxis, self._title, *(sp for ax in self._axes for sp in ax.spines.values())]
+        for artist in self._dynamic:
+            artist.set_animated(True)
+        for im in (self._im0, im1, *ax2.get_images()):
+            im.set_visible(False)
+        self._canvas.draw()
+        self._background = self._canvas.copy_from_bbox(fig.bbox)
+        self._fig = fig
+        # pixel boxes of the three images in the canvas buffer, and the data pixel of every box pixel
+        height = int(self._canvas.get_width_height()[1])
+        self._boxes = []
+        for ax in self._axes:
+            box = ax.get_window_extent()
+            c0, c1 = int(round(box.x0)), int(round(box.x1))
+            r0, r1 = height - int(round(box.y1)), height - int(round(box.y0))
+            rows = np.clip(((np.arange(r0, r1) + 0.5 - r0) * small[0] / max(r1 - r0, 1)).astype(np.intp), 0,
+                           small[0] - 1)
+            cols = np.clip(((np.arange(c0, c1) + 0.5 - c0) * small[1] / max(c1 - c0, 1)).astype(np.intp), 0,
+                           small[1] - 1)
+            self._boxes.append((r0, r1, c0, c1, rows, cols))
+
+    def render(
+        self,
+        s0: ArrayLike,
+        dolp: ArrayLike,
+        aop_deg: ArrayLike,
+        *,
+        title: str = "",
+        previews: tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8], tuple[float, float]] | None = None,
+    ) -> bytes:
+        """PNG bytes of the figure for one frame's images (of the shape given at construction).
+
+        Parameters
+        ----------
+        s0, dolp, aop_deg : array_like, shape (H, W)
+        title : str
+        previews : tuple, optional
+            ``(grey, dolp_rgb, aop_rgb, (lo, hi))``: the full-size previews
+            of these images (:func:`s0_to_gray` with the S0 range ``(lo,
+            hi)``, :func:`dolp_to_rgb`, :func:`aop_to_rgb` with DoLP) when
+            already made; the figure then shows them decimated (its S0 colour
+            bar spans ``(lo, hi)``) instead of colouring the images again.
+        """
+        from pihim._png import encode_png
+
+        a_s0, a_d, a_a = (np.asarray(v) for v in (s0, dolp, aop_deg))
+        if not (a_s0.ndim == 2 and a_s0.shape == a_d.shape == a_a.shape):
+            raise PihimInputError(f"S0, DoLP and AoP must be 2-D images of one shape, got {a_s0.shape}, "
+                                  f"{a_d.shape}, {a_a.shape}")
+        if a_s0.shape != self.shape:
+            raise PihimInputError(f"this figure was laid out for {self.shape} images, got {a_s0.shape}")
+        k = self.step
+        if previews is not None:
+            gray, dolp_rgb, aop_rgb, (lo, hi) = previews
+            panels = (gray[::k, ::k, None], dolp_rgb[::k, ::k], aop_rgb[::k, ::k])
+        else:
+            a_s0, a_d, a_a = (np.ascontiguousarray(v[::k, ::k]) for v in (a_s0, a_d, a_a))
+            s0f = a_s0.astype(np.float32, copy=False)
+            bounds = s0_range(s0f)
+            lo, hi = bounds if bounds is not None else (0.0, 1.0)
+            panels = (_gray_levels(s0f, lo, hi if hi > lo else lo + 1.0)[..., None], dolp_to_rgb(a_d),
+                      aop_to_rgb(a_a, a_d))
+        hi = hi if hi > lo else lo + 1.0
+        self._canvas.restore_region(self._background)
+        buf = np.asarray(self._canvas.buffer_rgba())
+        for (r0, r1, c0, c1, rows, cols), rgb in zip(self._boxes, panels, strict=True):
+            buf[r0:r1, c0:c1, :3] = rgb.take(rows, axis=0).take(cols, axis=1)
+        self._im0.set_clim(lo, hi)  # the colour bar's axis follows
+        self._title.set_text(title)
+        for artist in self._dynamic:
+            self._fig.draw_artist(artist)
+        return encode_png(np.asarray(self._canvas.buffer_rgba())[..., :3])
+
+
+def _gray_levels(x: NDArray[np.float32], lo: float, hi: float) -> NDArray[np.uint8]:
+    """matplotlib's ``gray`` colour map on ``[lo, hi]`` as uint8 levels (NaN black, as the figure's ``bad``)."""
+    t = (x.astype(np.float64) - lo) / (hi - lo)
+    levels = np.clip(np.floor(np.nan_to_num(t, nan=-1.0) * 256.0), 0, 255)
+    colours = _gray_lut()
+    out = colours[levels.astype(np.intp)]
+    out[~np.isfinite(x)] = 0
+    return out
+
+
+@functools.lru_cache(maxsize=1)
+def _gray_lut() -> NDArray[np.uint8]:
+    """The 256 grey levels of matplotlib's ``gray`` colour map, as it renders them (uint8)."""
+    from matplotlib import colormaps
+
+    return colormaps["gray"](np.arange(256), bytes=True)[:, 0].copy()
+
+
+_FIGURES: dict[tuple[int, int, bool, int, float], PolarFigure] = {}
+_FIGURES_LOCK = threading.Lock()
+
+
 def polar_figure_png(
     s0: ArrayLike,
     dolp: ArrayLike,
@@ -218,6 +449,7 @@ def polar_figure_png(
     max_side: int = 900,
     dpi: float = 110.0,
     atomic: bool = True,
+    previews: tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8], tuple[float, float]] | None = None,
 ) -> Path:
     """S0, DoLP and AoP side by side with titles, colour bars and an AoP hue wheel, as one PNG.
 
@@ -228,6 +460,10 @@ def polar_figure_png(
     (degrees counter-clockwise from image right, 0 and 180 the same colour;
     ``docs/conventions.md``). NaN (saturated) pixels are black. Images larger
     than ``max_side`` are shown decimated (every k-th pixel).
+
+    Figures of images of the same shape reuse one :class:`PolarFigure`
+    (laid out once; a frame then costs a few milliseconds), kept per
+    thread-safe cache entry.
 
     Parameters
     ----------
@@ -243,52 +479,24 @@ def polar_figure_png(
     atomic : bool
         ``False`` writes ``path`` directly, for a caller that already writes
         under a temporary name (``pihim polar``'s per-frame group).
+    previews : tuple, optional
+        The frame's full-size previews and S0 range, see :meth:`PolarFigure.render`.
 
     Returns
     -------
     Path
     """
-    from matplotlib import colormaps
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     a_s0, a_d, a_a = (np.asarray(v) for v in (s0, dolp, aop_deg))
     if not (a_s0.ndim == 2 and a_s0.shape == a_d.shape == a_a.shape):
         raise PihimInputError(f"S0, DoLP and AoP must be 2-D images of one shape, got {a_s0.shape}, "
                               f"{a_d.shape}, {a_a.shape}")
-    k = max(1, int(np.ceil(max(a_s0.shape) / max_side)))
-    # decimate before converting: a full-size float64 copy of a large frame is not needed for the figure
-    a_s0, a_d, a_a = (v[::k, ::k].astype(np.float64) for v in (a_s0, a_d, a_a))
-    finite = a_s0[np.isfinite(a_s0)]
-    lo, hi = (np.percentile(finite, (0.5, 99.5)) if finite.size else (0.0, 1.0))
-    hi = hi if hi > lo else lo + 1.0
-    fig = Figure(figsize=(16.0, 4.4), dpi=dpi, layout="constrained")
-    FigureCanvasAgg(fig)
-    grid = fig.add_gridspec(1, 4, width_ratios=(1.0, 1.0, 1.0, 0.4))
-    ax0, ax1, ax2 = (fig.add_subplot(grid[0, j]) for j in range(3))
-    im0 = ax0.imshow(np.where(np.isfinite(a_s0), a_s0, np.nan), cmap=colormaps["gray"].with_extremes(bad="black"),
-                     vmin=lo, vmax=hi, interpolation="nearest")
-    cb0 = fig.colorbar(im0, ax=ax0, fraction=0.046, pad=0.02)
-    cb0.set_label("S0 (raw units)", fontsize=8)
-    cb0.ax.tick_params(labelsize=7)
-    ax0.set_title("S0: total intensity", fontsize=10)
-    im1 = ax1.imshow(a_d, cmap=colormaps["viridis"].with_extremes(bad="black"), vmin=0.0, vmax=1.0,
-                     interpolation="nearest")
-    cb1 = fig.colorbar(im1, ax=ax1, fraction=0.046, pad=0.02)
-    cb1.set_label("DoLP", fontsize=8)
-    cb1.ax.tick_params(labelsize=7)
-    ax1.set_title("DoLP: degree of linear polarization", fontsize=10)
-    ax2.imshow(aop_to_rgb(a_a, a_d), interpolation="nearest")
-    ax2.set_title("AoP: angle of polarization", fontsize=10)
-    # the hue wheel beside it is the key: a linear colour bar would hide that 0 and 180 deg meet
-    for ax in (ax0, ax1, ax2):
-        ax.set_xlabel("x (px)" + (f", every {k}th" if k > 1 else ""), fontsize=8)
-        ax.tick_params(labelsize=7)
-    _aop_wheel(fig.add_subplot(grid[0, 3]), dolp_weighted=True)
-    if title:
-        fig.suptitle(title, fontsize=11)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
+    key = (int(a_s0.shape[0]), int(a_s0.shape[1]), bool(title), int(max_side), float(dpi))
+    with _FIGURES_LOCK:  # one figure at a time: matplotlib is not thread-safe
+        figure = _FIGURES.get(key)
+        if figure is None:
+            _FIGURES.clear()  # keep only the latest size
+            figure = _FIGURES[key] = PolarFigure(a_s0.shape, titled=bool(title), max_side=max_side, dpi=dpi)
+        data = figure.render(a_s0, a_d, a_a, title=title, previews=previews)
     with atomic_path(path) if atomic else contextlib.nullcontext(Path(path)) as tmp:
-        Path(tmp).write_bytes(buf.getvalue())
+        Path(tmp).write_bytes(data)
     return Path(path)

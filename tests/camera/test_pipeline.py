@@ -122,3 +122,54 @@ def test_accepts_the_frame_read_frame_returns(tmp_path):
 def test_negative_dark_level_refused():
     with pytest.raises(PihimInputError, match="dark level must be a finite number of raw units >= 0, got -10"):
         polar_image(np.zeros((4, 4), np.uint16), dark_level=-10.0)
+
+
+@pytest.mark.parametrize("demosaic", ["superpixel", "full"])
+def test_summary_matches_its_numpy_definition(demosaic):
+    """The fast summary against the definitions computed with numpy on float64 copies."""
+    import math
+
+    (s0, s1, s2), _ = _varying_scene((96, 128), seed=3)
+    m = mosaic_from_stokes(s0, s1, s2, bit_depth=12, rng=5, read_noise_dn=2.0, electrons_per_dn=2.5)
+    m[10:20, 30:44] = 4095  # saturated block
+    out = polar_image(m, demosaic=demosaic, bit_depth=12)
+    got = out.summary()
+    valid = np.isfinite(out.dolp)
+    assert got["fraction_valid"] == valid.mean() and got["fraction_saturated"] == out.saturated.mean() > 0
+    for key, image in (("s0", out.s0), ("dolp", out.dolp)):
+        x = image[valid].astype(np.float64)
+        p05, med, p95 = np.percentile(x, [5, 50, 95])
+        assert (got[key]["p05"], got[key]["median"], got[key]["p95"]) == (p05, med, p95)  # exactly
+        assert got[key]["mean"] == pytest.approx(x.mean(), rel=1e-12)
+    u = np.hypot(out.s1[valid].astype(np.float64), out.s2[valid])
+    c = np.mean(np.where(u > 0, out.s1[valid] / np.where(u > 0, u, 1), 1.0))
+    s = np.mean(np.where(u > 0, out.s2[valid] / np.where(u > 0, u, 1), 0.0))
+    assert got["aop"]["circular_mean_deg"] == pytest.approx(np.mod(0.5 * math.degrees(math.atan2(s, c)), 180), abs=1e-9)
+    assert got["aop"]["resultant_length"] == pytest.approx(math.hypot(c, s), rel=1e-12)
+    # and within the polynomial atan2's error (1e-4 deg per pixel, divided by the resultant length: the mean
+    # vector moves by at most that error) of the circular mean of the AoP image itself
+    a = np.radians(2.0 * out.aop_deg[valid].astype(np.float64))
+    image_mean = np.mod(0.5 * np.degrees(np.arctan2(np.sin(a).mean(), np.cos(a).mean())), 180)
+    assert aop_difference_deg(got["aop"]["circular_mean_deg"], image_mean) < 1.1e-4 / got["aop"]["resultant_length"]
+
+
+def test_summary_of_a_frame_without_valid_pixels():
+    out = polar_image(np.full((8, 8), 4095, np.uint16), bit_depth=12)
+    got = out.summary()
+    assert got["fraction_valid"] == 0.0 and got["fraction_saturated"] == 1.0
+    assert got["s0"]["median"] is None and got["aop"]["circular_mean_deg"] is None
+
+
+@pytest.mark.parametrize("demosaic", ["superpixel", "full"])
+def test_out_writes_into_preallocated_arrays(demosaic):
+    (s0, s1, s2), _ = _varying_scene(seed=4)
+    m1 = mosaic_from_stokes(s0, s1, s2, bit_depth=12)
+    m2 = mosaic_from_stokes(s0[::-1], s1[::-1], s2[::-1], bit_depth=12)
+    buf = polar_image(m1, demosaic=demosaic)
+    again = polar_image(m2, demosaic=demosaic, out=buf)
+    fresh = polar_image(m2, demosaic=demosaic)
+    for name in ("s0", "s1", "s2", "dolp", "aop_deg", "saturated"):
+        assert getattr(again, name) is getattr(buf, name)
+        assert np.array_equal(getattr(again, name), getattr(fresh, name), equal_nan=True)
+    with pytest.raises(PihimInputError, match=r"out.s0 must be a writeable C-contiguous float32 array of shape"):
+        polar_image(m1[:, :-2], demosaic=demosaic, out=buf)

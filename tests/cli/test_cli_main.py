@@ -44,3 +44,41 @@ def test_sigterm_handler_is_restored(tmp_path, capsys):
     before = signal.getsignal(signal.SIGTERM)
     assert main([*ARGS, "--out", str(tmp_path / "s")]) == 0
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_command_table_help_is_the_docstring_summary():
+    """``pihim --help`` lists each command from the table; the line must be its docstring's first paragraph."""
+    import inspect
+
+    from pihim.cli import COMMANDS, load_command
+
+    import typer
+
+    for name, (_, _, short) in COMMANDS.items():
+        target = load_command(name)
+        text = target.info.help if isinstance(target, typer.Typer) else inspect.getdoc(target)
+        summary = text.split("\n\n")[0]
+        assert " ".join(summary.split()) == short, name
+
+
+def test_help_imports_no_command_and_no_heavy_library():
+    """``pihim --help`` imports no command module, nor numpy, numba, scipy, pandas or matplotlib."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import sys; from pihim.cli import main; rc = main(['--help']); "
+            "print(sorted(m for m in sys.modules if m.startswith('pihim.cli.') or m.split('.')[0] in "
+            "('numpy', 'numba', 'scipy', 'pandas', 'matplotlib', 'pvlib', 'cv2')), rc, file=sys.stderr)")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
+    assert "polar" in proc.stdout and "canting" in proc.stdout
+    assert proc.stderr.strip().splitlines()[-1] == "[] 0"
+
+
+def test_each_command_loads_only_its_own_module(capsys):
+    """A command's own help page is built from its function (options appear), through the lazy table."""
+    from pihim.cli import main
+
+    assert main(["windows", "--help"]) == 0
+    assert "--step-min" in capsys.readouterr().out

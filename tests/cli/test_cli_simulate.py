@@ -164,3 +164,11 @@ def test_deeply_nested_waypoint_plan_is_one_line(tmp_path, capsys):
     assert main(["simulate", "--time", TIME, "--waypoint", f"{plan}:0", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nested too deeply" in err[0] and not out.parent.exists()
+
+
+def test_supersample_default_is_the_renderer_default():
+    """``pihim simulate`` states the renderer's default without importing the renderer (start-up)."""
+    from pihim.cli.simulate import DEFAULT_SUPERSAMPLE
+    from pihim.render.frame import RenderSettings
+
+    assert DEFAULT_SUPERSAMPLE == RenderSettings().supersample

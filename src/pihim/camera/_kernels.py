@@ -7,10 +7,13 @@ what the tests compare them against.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit, prange
 
 from pihim._fastmath import atan2_f32
+from pihim._quantiles import finite_bits, order_key
 
 #: LLVM fast-math flags that keep NaN and inf semantics (masked pixels are NaN).
 FASTMATH = {"contract", "afn", "reassoc", "arcp", "nsz"}
@@ -32,7 +35,7 @@ def _finish(s0, s1, s2, sat):  # pragma: no cover - compiled
     return p, a
 
 
-@njit(parallel=True, fastmath=FASTMATH, cache=True)
+@njit(parallel=True, fastmath=FASTMATH, cache=True, nogil=True)
 def superpixel_polar(raw, w_pos, dark, sat_level, s0, s1, s2, dolp, aop, saturated):  # pragma: no cover
     """Super-pixel Stokes of a raw mosaic, written into preallocated outputs.
 
@@ -91,7 +94,7 @@ def _reflect(k, n):  # pragma: no cover - compiled
     return period - k if k >= n else k
 
 
-@njit(parallel=True, fastmath=FASTMATH, cache=True)
+@njit(parallel=True, fastmath=FASTMATH, cache=True, nogil=True)
 def fullres_polar(raw, w_pos, dark, sat_level, s0, s1, s2, dolp, aop, saturated):  # pragma: no cover
     """Full-resolution Stokes of a raw mosaic, written into preallocated outputs.
 
@@ -259,3 +262,70 @@ def fullres_polar(raw, w_pos, dark, sat_level, s0, s1, s2, dolp, aop, saturated)
                 dolp[i, j] = p
                 aop[i, j] = a
                 saturated[i, j] = sat
+
+
+# -- frame statistics ---------------------------------------------------------------------
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def frame_moments(s0, s1, s2, dolp, saturated, hist_s0, hist_dolp, sums):  # pragma: no cover - compiled
+    """One pass over a :class:`~pihim.camera.pipeline.PolarImage` for its summary statistics.
+
+    A pixel is valid where ``dolp`` is finite. Per band of rows ``c``
+    (``hist_s0.shape[0]`` bands) it accumulates:
+
+    * ``hist_s0[c]``, ``hist_dolp[c]``: histograms of the upper 16 bits of
+      the order keys (:func:`pihim._quantiles.order_key`) of the valid S0
+      (where finite, as :func:`pihim._quantiles.gather_bins` selects them)
+      and DoLP values, for exact percentiles;
+    * ``sums[c]``: valid count, saturated count, sums of the valid S0 and
+      DoLP, and sums of ``(S1, S2) / |(S1, S2)|`` (the unit vector of twice
+      the exact AoP; ``(1, 0)`` where ``S1 = S2 = 0``, where the AoP image
+      is 0 too), all in float64.
+
+    Parameters
+    ----------
+    s0, s1, s2, dolp : (H, W) float32
+    saturated : (H, W) bool
+    hist_s0, hist_dolp : (n_chunks, 65536) int64, zeroed
+    sums : (n_chunks, 6) float64, zeroed
+    """
+    n_rows, n_cols = s0.shape
+    n_chunks = sums.shape[0]
+    s0_bits = s0.view(np.uint32)
+    dolp_bits = dolp.view(np.uint32)
+    for c in prange(n_chunks):
+        n_valid = 0
+        n_sat = 0
+        sum_s0 = 0.0
+        sum_dolp = 0.0
+        sum_c = 0.0
+        sum_s = 0.0
+        for i in range(c * n_rows // n_chunks, (c + 1) * n_rows // n_chunks):
+            for j in range(n_cols):
+                if saturated[i, j]:
+                    n_sat += 1
+                d = dolp[i, j]
+                if not math.isfinite(d):
+                    continue
+                n_valid += 1
+                b = s0_bits[i, j]
+                if finite_bits(b):  # always, unless float input overflowed
+                    hist_s0[c, order_key(b) >> 16] += 1
+                hist_dolp[c, order_key(dolp_bits[i, j]) >> 16] += 1
+                sum_s0 += np.float64(s0[i, j])
+                sum_dolp += np.float64(d)
+                x = np.float64(s1[i, j])
+                y = np.float64(s2[i, j])
+                r = math.sqrt(x * x + y * y)
+                if r > 0.0:
+                    sum_c += x / r
+                    sum_s += y / r
+                else:
+                    sum_c += 1.0
+        sums[c, 0] = n_valid
+        sums[c, 1] = n_sat
+        sums[c, 2] = sum_s0
+        sums[c, 3] = sum_dolp
+        sums[c, 4] = sum_c
+        sums[c, 5] = sum_s

@@ -18,52 +18,135 @@ import sys
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 import typer
+import typer.core
+import typer.main
 
 try:  # typer >= 0.2x vendors click; its exceptions live there
+    from typer import _click as _click
     from typer._click import exceptions as _click_exc
 except ImportError:  # pragma: no cover - older typer uses click itself
+    import click as _click
     from click import exceptions as _click_exc
 
-from pihim.cli import (
-    calibrate,
-    calibrate_camera,
-    campaign,
-    canting,
-    demo,
-    edges,
-    ground,
-    live,
-    plan,
-    polar,
-    simulate,
-    sky,
-    windows,
-)
 from pihim.errors import PihimInputError
 
+HELP = "Polarimetric drone inspection of heliostat fields."
+
+#: The subcommands: name -> (module under ``pihim.cli``, function, the one-line help ``pihim --help`` shows).
+#: A command's module (and what it imports: numpy, numba, scipy, pandas, ...) is imported only when that
+#: command runs or shows its own help, so ``pihim --help`` and every command start quickly. The one-line
+#: help is the first paragraph of the function's docstring (a test keeps the two equal).
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "polar": ("polar", "polar",
+              "Turn raw mosaic frames into S0, DoLP and AoP images (float32 TIFF, AoP in degrees)."),
+    "calibrate-polarizer": ("calibrate", "calibrate_polarizer",
+                            "Estimate the analyser matrix from frames behind a linear polarizer rotated to known "
+                            "angles."),
+    "calibrate-camera": ("calibrate_camera", "calibrate_camera",
+                         "Calibrate the camera (fx, fy, cx, cy, k1 k2 p1 p2 k3) from chessboard images with OpenCV."),
+    "sky": ("sky", "sky", "All-sky DoLP and AoP maps (PNG polar plots and float arrays in .npz)."),
+    "ground": ("ground", "ground",
+               "Ground and mirror-reflected-ground AoP/DoLP maps over camera directions (paper Fig. 5c-d)."),
+    "plan": ("plan", "plan", "Plan UFACET scan passes scored for polarimetric contrast and export missions."),
+    "windows": ("windows", "windows",
+                "Favourable times of day for polarimetric inspection (paper sec. 4.1 windows)."),
+    "demo": ("demo", "demo", "Plan, render, inspect and score a polarimetric inspection; write DIR/report.html."),
+    "simulate": ("simulate", "simulate",
+                 "Render a raw polarimetric frame of the tracking field with its log and ground truth."),
+    "edges": ("edges", "edges",
+              "Edge maps of the S0, DoLP and AoP images of a raw frame (PNG edges, float32 TIFF gradients, JSON "
+              "summary)."),
+    "canting": ("canting", "canting",
+                "Facet canting deviations of a heliostat from the target's reflection (canting.json + canting.png)."),
+    "live": ("live", "live", "Live view in the browser: S0 / DoLP / AoP at 15 fps, adaptive exposure, raw capture."),
+    "simulate-flight": ("campaign", "simulate_flight",
+                        "Render the frames a flight of a plan would record, with its log and the truth beside it."),
+    # a group of subcommands (a typer.Typer, not a function): its help is the group's
+    "campaign": ("campaign", "app", "Campaigns at field scale: run, report, export."),
+}
+
+#: Commands registered eagerly with ``app.command(...)`` (plugins, tests) run as registered; the built-in
+#: ones of :data:`COMMANDS` are registered lazily by :func:`command_group`.
 app = typer.Typer(
     name="pihim",
-    help="Polarimetric drone inspection of heliostat fields.",
+    help=HELP,
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
 )
-app.command("polar")(polar.polar)
-app.command("calibrate-polarizer")(calibrate.calibrate_polarizer)
-app.command("calibrate-camera")(calibrate_camera.calibrate_camera)
-app.command("sky")(sky.sky)
-app.command("ground")(ground.ground)
-app.command("plan")(plan.plan)
-app.command("windows")(windows.windows)
-app.command("demo")(demo.demo)
-app.command("simulate")(simulate.simulate)
-app.command("edges")(edges.edges)
-app.command("canting")(canting.canting)
-app.command("live")(live.live)
-app.command("simulate-flight")(campaign.simulate_flight)
-app.add_typer(campaign.app, name="campaign")
+
+
+def load_command(name: str) -> Any:
+    """The function (or, for a group of subcommands, the ``typer.Typer``) behind the built-in command ``name``.
+
+    Imports the command's module.
+    """
+    import importlib
+
+    module, func, _ = COMMANDS[name]
+    return getattr(importlib.import_module(f"pihim.cli.{module}"), func)
+
+
+class LazyCommand(typer.core.TyperCommand):
+    """A subcommand that imports its module only when it is run or shows its own help.
+
+    ``pihim --help`` lists it from its name and one-line help alone; parsing
+    its options, its help page and running it go through the real typer
+    command, built on first use.
+    """
+
+    def __init__(self, name: str, short_help: str) -> None:
+        super().__init__(name=name, help=short_help, short_help=short_help, add_help_option=False,
+                         rich_markup_mode=app.rich_markup_mode)
+        self._real: _click.Command | None = None
+
+    def real(self) -> _click.Command:
+        """The typer command of the function, or the group of a ``typer.Typer`` (built once)."""
+        if self._real is None:
+            target = load_command(str(self.name))
+            if isinstance(target, typer.Typer):
+                self._real = typer.main.get_command(target)
+            else:
+                single = typer.Typer(add_completion=False, pretty_exceptions_enable=False,
+                                     rich_markup_mode=app.rich_markup_mode)
+                single.command(self.name)(target)
+                self._real = typer.main.get_command(single)
+        return self._real
+
+    def make_context(self, info_name: str | None, args: list[str], parent: Any = None, **extra: Any) -> Any:
+        return self.real().make_context(info_name, args, parent=parent, **extra)
+
+    def get_params(self, ctx: Any) -> list[Any]:
+        return self.real().get_params(ctx)
+
+    def get_help(self, ctx: Any) -> str:
+        return self.real().get_help(ctx)
+
+    def get_usage(self, ctx: Any) -> str:
+        return self.real().get_usage(ctx)
+
+    def invoke(self, ctx: Any) -> Any:
+        return self.real().invoke(ctx)
+
+    def shell_complete(self, ctx: Any, incomplete: str) -> list[Any]:
+        return self.real().shell_complete(ctx, incomplete)
+
+
+def command_group() -> typer.core.TyperGroup:
+    """The ``pihim`` command group: the built-in commands (lazy) and any registered on :data:`app`."""
+    commands: dict[str, _click.Command] = {name: LazyCommand(name, spec[2]) for name, spec in COMMANDS.items()}
+    for info in app.registered_commands:
+        cmd = typer.main.get_command_from_info(info, pretty_exceptions_short=app.pretty_exceptions_short,
+                                               rich_markup_mode=app.rich_markup_mode)
+        commands[str(info.name or cmd.name)] = cmd
+    for group in app.registered_groups:
+        sub = typer.main.get_command(group.typer_instance)
+        commands[str(group.name or sub.name)] = sub
+    return typer.core.TyperGroup(name="pihim", commands=commands, help=HELP, no_args_is_help=True,
+                                 rich_markup_mode=app.rich_markup_mode)
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
@@ -115,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
 def _run(argv: list[str] | None) -> int:
     """The command, with every failure turned into one stderr line and an exit status."""
     try:
-        rv = app(args=argv, standalone_mode=False, prog_name="pihim")
+        rv = command_group().main(args=argv, standalone_mode=False, prog_name="pihim")
     except PihimInputError as exc:
         print(f"pihim: error: {exc}", file=sys.stderr)
         return 2

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 import typer
@@ -33,12 +33,14 @@ from pihim._resources import require_memory
 from pihim.cli._common import check_out_dir, emit_json, make_out_dir, stderr_console
 from pihim.cli.sky import resolve_sun
 from pihim.errors import PihimInputError
+
+if TYPE_CHECKING:
+    from pihim.surfaces.ground import GroundModel
 from pihim.polarimetry.frames import normalize
 from pihim.polarimetry.stokes import aop_difference_deg, aop_raw_difference_deg
 from pihim.scenarios import GROUND_AOP_DIFFERENCE_MIN_DEG, image_right, mirror_reflection, to_image_frame
 from pihim.sky.model import SkyModel, with_horizontal_irradiance
 from pihim.sky.sun import direction_from_angles, require_daylight
-from pihim.surfaces.ground import GroundModel, hemisphere_grid
 from pihim.surfaces.mirror import mirror_model
 from pihim.visualize import polar_map_png
 
@@ -56,6 +58,8 @@ AOP_REFERENCE = (
 def _maps(
     ground: GroundModel, sky: SkyModel, mirror: Any, sun: np.ndarray, normal: np.ndarray, resolution: float
 ) -> dict[str, np.ndarray]:
+    from pihim.surfaces.ground import hemisphere_grid  # numba kernels: loaded when a map is made
+
     grid = hemisphere_grid(resolution)
     v = grid.directions  # from the point toward the camera
     s_g, e_g = ground.stokes(v, sun, sky)
@@ -136,6 +140,8 @@ def ground(
     if monte_carlo:
         require_memory(facets * MC_BYTES_PER_FACET + n_dirs * MAP_BYTES_PER_DIRECTION,
                        f"--monte-carlo --facets {facets:g}")
+    from pihim.surfaces.ground import GroundModel
+
     ground_model = GroundModel(
         sigma_deg=sigma, refractive_index=refractive_index, diffuse_albedo=diffuse_albedo, sun_irradiance=sun_irradiance
     )

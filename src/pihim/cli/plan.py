@@ -15,13 +15,6 @@ import typer
 
 from pihim.cli._common import check_out_dir, emit_json, load_field_option, make_out_dir, parse_point, stderr_console
 from pihim.errors import PihimInputError
-from pihim.planning.endurance import DroneEndurance
-from pihim.planning.export import export_all
-from pihim.planning.pipeline import build_plan
-from pihim.planning.scoring import ScoringModel
-from pihim.sky.model import SkyModel
-from pihim.sky.sun import parse_site, parse_time
-from pihim.surfaces.mirror import mirror_model
 
 SCHEMA_ID = "pihim.plan-summary/1"
 
@@ -48,6 +41,15 @@ def plan(
 ) -> int:
     """Plan UFACET scan passes scored for polarimetric contrast and export missions."""
     t0 = _time.perf_counter()
+    # the planner and its dependencies (scipy, numba, pandas) load only when the command runs, not for --help
+    from pihim.planning.endurance import DroneEndurance
+    from pihim.planning.export import export_all
+    from pihim.planning.pipeline import build_plan
+    from pihim.planning.scoring import ScoringModel
+    from pihim.sky.model import SkyModel
+    from pihim.sky.sun import parse_site, parse_time
+    from pihim.surfaces.mirror import mirror_model
+
     when = parse_time(time)
     site_obj = parse_site(site)
     aim_point = parse_point(aim, name="--aim")

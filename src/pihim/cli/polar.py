@@ -13,6 +13,16 @@ Batch behaviour (``docs/cli.md``):
 * a rerun skips the frames whose record matches the input file (size and
   modification time), the options and the outputs on disk (``--overwrite``
   redoes them).
+
+Frames go through a three-stage pipeline: a reader thread reads the next
+frames ahead, the main thread computes (the numba kernels release the GIL
+and use every core), and a writer thread writes each frame's files and
+then its record; records are reported in input order. At most
+:data:`READ_AHEAD` frames are read ahead and :data:`WRITES_IN_FLIGHT`
+frames wait to be written, and the output arrays are recycled from frame to
+frame (``polar_image(out=...)``), so memory stays bounded. An interrupted
+run (Ctrl-C, SIGTERM) lets the writer finish or abandon the file it is on,
+removes that frame's temporaries and stops.
 """
 
 from __future__ import annotations
@@ -23,11 +33,15 @@ import hashlib
 import json
 import math
 import os
+import queue
 import re
 import shutil
 import sys
-from collections.abc import Sequence
-from dataclasses import dataclass
+import threading
+from collections import deque
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -43,7 +57,7 @@ from pihim.camera.pipeline import DEMOSAIC_METHODS, PolarImage, polar_image
 from pihim.cli._common import emit_json, make_out_dir, parse_layout, progress, report_error, stderr_console
 from pihim.errors import PihimInputError
 from pihim.polarimetry.analyser import AnalyserMatrix
-from pihim.visualize import aop_to_rgb, dolp_to_rgb, polar_figure_png, s0_to_gray, write_png
+from pihim.visualize import aop_to_rgb, dolp_to_rgb, polar_figure_png, s0_range, s0_to_gray, write_png
 
 SCHEMA_ID = "pihim.polar-frame/1"
 #: Suffix of the per-frame record, written after the frame's images: its completion mark.
@@ -57,6 +71,10 @@ BYTES_PER_OUTPUT_PIXEL_PNG = 256
 FIGURE_BYTES = 32_000_000
 
 _IMAGE_KEYS = ("S0", "DoLP", "AoP")
+#: Frames read ahead of the one being computed.
+READ_AHEAD = 2
+#: Computed frames that may wait for (or be in) the writer before the next frame is computed.
+WRITES_IN_FLIGHT = 2
 
 
 @dataclass(frozen=True)
@@ -106,25 +124,62 @@ def output_paths(out_dir: Path, name: str, *, png: bool) -> dict[str, Path]:
     return paths
 
 
-def write_polar_outputs(result: PolarImage, out_dir: Path, stem: str, *, png: bool) -> dict[str, str]:
+@dataclass(frozen=True)
+class Previews:
+    """A frame's PNG previews, made before writing (:func:`make_previews`)."""
+
+    gray: np.ndarray
+    dolp_rgb: np.ndarray
+    aop_rgb: np.ndarray
+    s0_range: tuple[float, float]
+
+
+def make_previews(result: PolarImage) -> Previews:
+    """The three bare previews of a frame and the S0 range of its grey stretch."""
+    bounds = s0_range(result.s0) or (0.0, 0.0)
+    return Previews(s0_to_gray(result.s0, value_range=bounds), dolp_to_rgb(result.dolp),
+                    aop_to_rgb(result.aop_deg, result.dolp), bounds)
+
+
+class Cancelled(Exception):
+    """The run is stopping (Ctrl-C, SIGTERM): the frame being written is abandoned and its temporaries removed."""
+
+
+def write_polar_outputs(
+    result: PolarImage, out_dir: Path, stem: str, *, png: bool, previews: Previews | None = None,
+    cancel: threading.Event | None = None,
+) -> dict[str, str]:
     """Write ``<stem>.S0/DoLP/AoP.tiff`` (and the PNG previews and figure) together; return the written paths.
 
     All files are written under temporary names first and renamed only when
-    every one is complete; on failure none is left.
+    every one is complete; on failure none is left. ``previews`` (else made
+    here) are the frame's :func:`make_previews`; when ``cancel`` is set
+    before the group is complete, :class:`Cancelled` is raised and nothing is
+    left.
     """
     paths = output_paths(out_dir, stem, png=png)
     images = {"S0": result.s0, "DoLP": result.dolp, "AoP": result.aop_deg}
     keys = list(paths)
+
+    def go_on() -> None:
+        if cancel is not None and cancel.is_set():
+            raise Cancelled(stem)
+
     with atomic_group([paths[k] for k in keys]) as tmps:
         tmp = dict(zip(keys, tmps, strict=True))
         for k in _IMAGE_KEYS:
+            go_on()
             write_float_tiff(tmp[k], images[k])
         if png:
-            write_png(tmp["S0_png"], s0_to_gray(result.s0), atomic=False)
-            write_png(tmp["DoLP_png"], dolp_to_rgb(result.dolp), atomic=False)
-            write_png(tmp["AoP_png"], aop_to_rgb(result.aop_deg, result.dolp), atomic=False)
+            pv = previews if previews is not None else make_previews(result)
+            for key, image in (("S0_png", pv.gray), ("DoLP_png", pv.dolp_rgb), ("AoP_png", pv.aop_rgb)):
+                go_on()
+                write_png(tmp[key], image, atomic=False)
+            go_on()
             polar_figure_png(result.s0, result.dolp, result.aop_deg, tmp["figure_png"],
-                             title=f"{stem}: S0, DoLP and AoP", atomic=False)
+                             title=f"{stem}: S0, DoLP and AoP", atomic=False,
+                             previews=(pv.gray, pv.dolp_rgb, pv.aop_rgb, pv.s0_range))
+        go_on()
     return {k: str(v) for k, v in paths.items()}
 
 
@@ -221,9 +276,9 @@ def completed_record(record_path: Path, path: Path, options: dict[str, Any]) -> 
 # -- one frame -------------------------------------------------------------------------------------
 
 
-def _frame_warnings(data: np.ndarray, result: PolarImage, dark_level: float) -> list[str]:
-    """Warnings for a frame whose outputs carry no usable DoLP or AoP."""
-    if np.isfinite(result.dolp).any():
+def _frame_warnings(data: np.ndarray, summary: dict[str, Any], dark_level: float) -> list[str]:
+    """Warnings for a frame whose outputs carry no usable DoLP or AoP (``summary``: its statistics)."""
+    if summary["fraction_valid"] > 0:
         return []
     vmax = float(data.max()) if data.size else 0.0
     if dark_level >= vmax:
@@ -243,14 +298,34 @@ def _write_error(path: Path, exc: OSError, out_dir: Path) -> str:
     return f"{path}: cannot write its outputs in {out_dir}: {exc.strerror or ' '.join(text.split())}"
 
 
-def process_one(path: Path, out_dir: Path, name: str, options: PolarOptions) -> dict[str, Any]:
-    """Read, process and write one frame; returns its JSON record (the record file is written last)."""
+@dataclass
+class Computed:
+    """A frame between computing and writing."""
+
+    path: Path
+    name: str
+    pixel_format: str | None  # of the frame read (the raw data itself is not kept)
+    source: dict[str, Any]
+    result: PolarImage
+    summary: dict[str, Any]
+    warnings: list[str]
+    previews: Previews | None
+
+
+def read_one(path: Path, options: PolarOptions) -> tuple[Any, dict[str, Any]]:
+    """Read one frame and check that it fits in memory; returns the frame and the input's fingerprint."""
     opts = options
     frame = read_frame(path, width=opts.width, height=opts.height, pixel_format=opts.pixel_format)
     h, w = frame.data.shape
     require_memory(estimate_frame_bytes(h, w, demosaic=opts.demosaic, png=opts.png),
                    f"{path}: a {w}x{h} frame with --demosaic {opts.demosaic}")
-    source = input_fingerprint(path)
+    return frame, input_fingerprint(path)
+
+
+def compute_one(path: Path, name: str, frame: Any, source: dict[str, Any], options: PolarOptions,
+                out: PolarImage | None = None) -> Computed:
+    """Stokes images, statistics, warnings and (with ``--png``) previews of a frame read by :func:`read_one`."""
+    opts = options
     try:
         result = polar_image(
             frame.data,
@@ -260,30 +335,48 @@ def process_one(path: Path, out_dir: Path, name: str, options: PolarOptions) -> 
             dark_level=opts.dark_level,
             bit_depth=opts.bit_depth if opts.bit_depth is not None else frame.bit_depth,
             saturation_level=opts.saturation_level,
+            **({} if out is None else {"out": out}),
         )
     except PihimInputError as exc:
         raise PihimInputError(f"{path}: {exc}") from None
-    warnings = _frame_warnings(frame.data, result, opts.dark_level)
-    record_path = out_dir / f"{name}{RECORD_SUFFIX}"
+    summary = result.summary()
+    warnings = _frame_warnings(frame.data, summary, opts.dark_level)
+    previews = make_previews(result) if opts.png else None
+    return Computed(path, name, frame.pixel_format, source, result, summary, warnings, previews)
+
+
+def write_one(done: Computed, out_dir: Path, options: PolarOptions, cancel: threading.Event | None = None
+              ) -> dict[str, Any]:
+    """Write a computed frame's outputs, then its record (the completion mark); returns the record."""
+    opts = options
+    record_path = out_dir / f"{done.name}{RECORD_SUFFIX}"
     with contextlib.suppress(FileNotFoundError):
         record_path.unlink()  # the frame is not complete again until its new record is written
-    outputs = write_polar_outputs(result, out_dir, name, png=opts.png)
+    outputs = write_polar_outputs(done.result, out_dir, done.name, png=opts.png, previews=done.previews,
+                                  cancel=cancel)
     record: dict[str, Any] = {
         "schema": SCHEMA_ID,
-        "file": str(path),
+        "file": str(done.path),
         "status": "ok",
-        "pixel_format": frame.pixel_format,
+        "pixel_format": done.pixel_format,
         "layout": str(opts.layout),
         "calibrated": opts.analyser is not None,
-        **result.summary(),
+        **done.summary,
         "outputs": outputs,
-        "warnings": warnings,
-        "input": source,
+        "warnings": done.warnings,
+        "input": done.source,
         "options": opts.fingerprint(),
         "output_bytes": {k: os.path.getsize(v) for k, v in outputs.items()},
     }
     write_json_atomic(record_path, record)
-    for text in warnings:
+    return record
+
+
+def process_one(path: Path, out_dir: Path, name: str, options: PolarOptions) -> dict[str, Any]:
+    """Read, process and write one frame without the pipeline; returns its JSON record (record file last)."""
+    frame, source = read_one(path, options)
+    record = write_one(compute_one(path, name, frame, source, options), out_dir, options)
+    for text in record["warnings"]:
         print(f"pihim: warning: {path}: {text}", file=sys.stderr)
     return record
 
@@ -421,48 +514,154 @@ def polar(
     inputs = {fid: p for p in batch if (fid := _file_id(p)) is not None}
     out_dir = make_out_dir(out)
     fingerprint = json.loads(json.dumps(options.fingerprint()))
-    status = 0
-    resumed = 0
-    processed: list[dict[str, Any]] = []
-    for path in progress(batch, "polar"):
+    run = _Batch(options, out_dir, json_out=json_out, n_frames=len(batch))
+
+    def decide(path: Path) -> dict[str, Any] | None:
+        """The record of a frame that needs no processing (resumed, or refused before reading), else None."""
         name = names[path]
         record_path = out_dir / f"{name}{RECORD_SUFFIX}"
-        try:
-            check_not_an_input(path, [*output_paths(out_dir, name, png=png).values(), record_path], inputs)
-            done = None if overwrite else completed_record(record_path, path, fingerprint)
-            if done is not None:
-                record = {**done, "file": str(path), "resumed": True}
-                resumed += 1
-            else:
-                record = process_one(path, out_dir, name, options)
-        except PihimInputError as exc:
-            report_error(str(exc))
-            status = 2
-            record = _error_record(path, str(exc))
-        except MemoryError:
-            message = memory_error_message(f"{path}: processing the frame")
-            report_error(message)
-            status = 2
-            record = _error_record(path, message)
-        except OSError as exc:
-            message = _write_error(path, exc, out_dir)
-            report_error(message)
-            status = max(status, 1)
-            record = _error_record(path, message)
-        except Exception as exc:  # noqa: BLE001 - one frame's failure never stops the batch
-            message = f"{path}: internal error ({type(exc).__name__}: {' '.join(str(exc).split())})"
-            report_error(message)
-            status = max(status, 1)
-            record = _error_record(path, message)
-        if json_out:
-            emit_json(record)
-        if record["status"] == "ok" and not record.get("resumed"):
-            processed.append(record)
+        check_not_an_input(path, [*output_paths(out_dir, name, png=png).values(), record_path], inputs)
+        done = None if overwrite else completed_record(record_path, path, fingerprint)
+        return None if done is None else {**done, "file": str(path), "resumed": True}
+
+    run.go(batch, names, decide)
     if json_out:
-        if resumed:  # the records say the rest (one per frame, "resumed": true for the skipped ones)
-            print(f"pihim: {resumed} of {len(batch)} frames were already done in {out_dir} and were skipped "
+        if run.resumed:  # the records say the rest (one per frame, "resumed": true for the skipped ones)
+            print(f"pihim: {run.resumed} of {len(batch)} frames were already done in {out_dir} and were skipped "
                   "(--overwrite redoes them)", file=sys.stderr)
-    elif processed or resumed:
-        stderr_console.print(_summary(processed, resumed, len(batch), out_dir, png=png),
+    elif run.processed or run.resumed:
+        stderr_console.print(_summary(run.processed, run.resumed, len(batch), out_dir, png=png),
                              highlight=False, soft_wrap=True)
-    return status
+    return run.status
+
+
+def _failure(path: Path, exc: BaseException, out_dir: Path) -> tuple[int, str]:
+    """Exit status and one-line message for a frame that failed with ``exc`` (any stage)."""
+    if isinstance(exc, PihimInputError):
+        return 2, str(exc)
+    if isinstance(exc, MemoryError):
+        return 2, memory_error_message(f"{path}: processing the frame")
+    if isinstance(exc, OSError):
+        return 1, _write_error(path, exc, out_dir)
+    return 1, f"{path}: internal error ({type(exc).__name__}: {' '.join(str(exc).split())})"
+
+
+@dataclass
+class _Batch:
+    """One ``pihim polar`` run: the pipeline, the exit status and the records reported so far."""
+
+    options: PolarOptions
+    out_dir: Path
+    json_out: bool
+    n_frames: int
+    status: int = 0
+    resumed: int = 0
+    processed: list[dict[str, Any]] = field(default_factory=list)
+    cancel: threading.Event = field(default_factory=threading.Event)
+    spare: queue.SimpleQueue = field(default_factory=queue.SimpleQueue)  # output arrays to reuse
+
+    def report(self, path: Path, outcome: dict[str, Any] | BaseException) -> None:
+        """Report one frame (in input order): its record, or the failure that stopped it."""
+        if isinstance(outcome, BaseException):
+            code, message = _failure(path, outcome, self.out_dir)
+            report_error(message)
+            self.status = max(self.status, code)
+            record = _error_record(path, message)
+        else:
+            record = outcome
+            if record.get("resumed"):
+                self.resumed += 1
+            else:
+                self.processed.append(record)
+                for text in record["warnings"]:
+                    print(f"pihim: warning: {path}: {text}", file=sys.stderr)
+        if self.json_out:
+            emit_json(record)
+
+    def _buffers(self, frame: Any) -> PolarImage | None:
+        """Output arrays of an earlier frame of the same size to reuse, if any."""
+        h, w = frame.data.shape
+        shape = (h // 2, w // 2) if self.options.demosaic == "superpixel" else (h, w)
+        while True:
+            try:
+                old = self.spare.get_nowait()
+            except queue.Empty:
+                return None
+            if old.shape == shape:
+                return old  # a buffer of another size is dropped
+
+    def _write(self, done: Computed) -> dict[str, Any]:
+        try:
+            return write_one(done, self.out_dir, self.options, self.cancel)
+        finally:
+            self.spare.put(done.result)
+
+    def go(self, batch: Sequence[Path], names: dict[Path, str],
+           decide: Callable[[Path], dict[str, Any] | None]) -> None:
+        """Run the batch: read ahead, compute in this thread, write behind; report every frame in order."""
+        # frames to process, in order; the others are final before any work
+        finals: dict[int, dict[str, Any] | BaseException] = {}
+        todo: list[int] = []
+        for k, path in enumerate(batch):
+            try:
+                known = decide(path)
+            except Exception as exc:  # noqa: BLE001 - reported as the frame's failure
+                finals[k] = exc
+                continue
+            if known is None:
+                todo.append(k)
+            else:
+                finals[k] = known
+        waiting: deque[tuple[int, Future | dict[str, Any] | BaseException]] = deque()
+        reads: deque[tuple[int, Future]] = deque()
+        next_read = 0
+        with ThreadPoolExecutor(1, thread_name_prefix="pihim-read") as reader, \
+                ThreadPoolExecutor(1, thread_name_prefix="pihim-write") as writer:
+            try:
+                bar = progress(range(len(batch)), "polar")
+                for k in bar:
+                    path = batch[k]
+                    if k in finals:
+                        waiting.append((k, finals[k]))
+                    else:
+                        while next_read < len(todo) and len(reads) <= READ_AHEAD:
+                            j = todo[next_read]
+                            reads.append((j, reader.submit(read_one, batch[j], self.options)))
+                            next_read += 1
+                        j, reading = reads.popleft()
+                        assert j == k
+                        try:
+                            frame, source = reading.result()
+                            done = compute_one(path, names[path], frame, source, self.options,
+                                               self._buffers(frame))
+                            del frame
+                        except Exception as exc:  # noqa: BLE001 - one frame's failure never stops the batch
+                            waiting.append((k, exc))
+                        else:
+                            waiting.append((k, writer.submit(self._write, done)))
+                            del done
+                    self._flush(batch, waiting, block_beyond=WRITES_IN_FLIGHT)
+                self._flush(batch, waiting, block_beyond=0)
+            except BaseException:
+                self.cancel.set()  # the writer abandons its frame (temporaries removed) and nothing new starts
+                for _, item in list(waiting) + list(reads):
+                    if isinstance(item, Future):
+                        item.cancel()
+                raise
+
+    def _flush(self, batch: Sequence[Path], waiting: deque, *, block_beyond: int) -> None:
+        """Report the finished frames at the head of ``waiting``; wait while more than ``block_beyond`` are writing."""
+        while waiting:
+            k, item = waiting[0]
+            if isinstance(item, Future):
+                pending = sum(isinstance(it, Future) and not it.done() for _, it in waiting)
+                if not item.done() and pending <= block_beyond:
+                    return
+                try:
+                    outcome: dict[str, Any] | BaseException = item.result()
+                except Exception as exc:  # noqa: BLE001 - the frame's failure
+                    outcome = exc
+            else:
+                outcome = item
+            waiting.popleft()
+            self.report(batch[k], outcome)

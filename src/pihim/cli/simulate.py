@@ -11,7 +11,7 @@ import sys
 import time as _time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -22,17 +22,14 @@ from pihim.camera.model import CameraModel
 from pihim.cli._common import emit_json, load_field_option, parse_point, stderr_console
 from pihim.errors import PihimInputError
 from pihim.field import UFACET_AIM_POINT
-from pihim.render.frame import RenderSettings
-from pihim.render.simulate import (
-    LookAtPose,
-    PairPose,
-    PoseRequest,
-    WaypointPose,
-    simulate_frame,
-    simulated_frame_paths,
-    write_simulated_frame,
-)
 from pihim.sky.sun import parse_site
+
+if TYPE_CHECKING:
+    from pihim.render.simulate import PoseRequest
+
+#: ``RenderSettings().supersample``, the default of ``--supersample`` (a test keeps the two equal): the renderer
+#: and its numba kernels are imported only when a frame is rendered, not for ``pihim simulate --help``.
+DEFAULT_SUPERSAMPLE = 3
 
 SUMMARY_SCHEMA_ID = "pihim.simulate-summary/1"
 _TRITON_WIDTH_PX = 2448
@@ -69,6 +66,8 @@ def camera_for_size(width: int, height: int) -> CameraModel:
 def parse_pose_request(hua: str | None, target: str | None, waypoint: str | None, camera: str | None,
                        look_at: str | None, roll: float | None) -> PoseRequest:
     """Exactly one of ``--hua/--target``, ``--waypoint`` or ``--camera/--look-at [--roll]``."""
+    from pihim.render.simulate import LookAtPose, PairPose, WaypointPose
+
     pair = hua is not None or target is not None
     way = waypoint is not None
     look = camera is not None or look_at is not None or roll is not None
@@ -145,12 +144,15 @@ def simulate(
     attitude_sigma_deg: Annotated[float, typer.Option("--attitude-sigma-deg", help="Logged attitude error sigma, deg.")] = 0.0,
     seed: Annotated[int, typer.Option("--seed", help="Seed of every random draw (>= 0).")] = 0,
     size: Annotated[str, typer.Option("--size", help="Frame size WxH (even); the field of view stays the Triton's.")] = "2448x2048",
-    supersample: Annotated[int, typer.Option("--supersample", help="Edge pixels get N x N rays (1..16).")] = RenderSettings().supersample,
+    supersample: Annotated[int, typer.Option("--supersample", help="Edge pixels get N x N rays (1..16).")] = DEFAULT_SUPERSAMPLE,
     blur_sigma_px: Annotated[float, typer.Option("--blur-sigma-px", help="Gaussian lens blur sigma, pixels.")] = 0.0,
     json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
 ) -> int:
     """Render a raw polarimetric frame of the tracking field with its log and ground truth."""
     t0 = _time.perf_counter()
+    from pihim.render.frame import RenderSettings
+    from pihim.render.simulate import simulate_frame, simulated_frame_paths, write_simulated_frame
+
     # everything is checked before the field is loaded or anything rendered
     paths = simulated_frame_paths(out)
     if out.is_dir():

@@ -22,100 +22,45 @@ Examples
 
 from __future__ import annotations
 
-from pihim.field.geodesy import (
-    NSTTF_ORIGIN_LATITUDE_DEG,
-    NSTTF_ORIGIN_LONGITUDE_DEG,
-    GeodeticOrigin,
-    enu_to_geodetic,
-    geodetic_to_enu,
-    nsttf_origin,
-)
-from pihim.field.kinematics import (
-    BackStructure,
-    DriveAngles,
-    FieldPose,
-    apply_canting_deviation,
-    back_structure,
-    canting_angles,
-    canting_deviation,
-    design_facet_normals,
-    drive_angles,
-    facet_centres,
-    facet_corners,
-    facet_rotations,
-    focal_lengths,
-    heliostat_rotation,
-    mirror_outline,
-    normals_from_drive,
-    reflect,
-    rotation_from_drive,
-    to_enu,
-    track_field,
-    tracking_normals,
-)
-from pihim.field.layout import (
-    NSTTF_BCS_STANDBY,
-    NSTTF_TOWER,
-    NSTTF_TOWER_TARGET,
-    UFACET_AIM_POINT,
-    Field,
-    Heliostat,
-    HeliostatSpec,
-    Tower,
-    canonical_name,
-    grid_facet_centroids,
-    load_facet_centroids,
-    load_field,
-    nsttf_facet_centroids,
-    nsttf_like_field,
-    nsttf_spec,
-    parse_heliostat_name,
-    radial_staggered_field,
-)
+from typing import TYPE_CHECKING
 
-__all__ = [
-    "NSTTF_BCS_STANDBY",
-    "NSTTF_ORIGIN_LATITUDE_DEG",
-    "NSTTF_ORIGIN_LONGITUDE_DEG",
-    "NSTTF_TOWER",
-    "NSTTF_TOWER_TARGET",
-    "UFACET_AIM_POINT",
-    "BackStructure",
-    "DriveAngles",
-    "Field",
-    "FieldPose",
-    "GeodeticOrigin",
-    "Heliostat",
-    "HeliostatSpec",
-    "Tower",
-    "apply_canting_deviation",
-    "back_structure",
-    "canonical_name",
-    "canting_angles",
-    "canting_deviation",
-    "design_facet_normals",
-    "drive_angles",
-    "enu_to_geodetic",
-    "facet_centres",
-    "facet_corners",
-    "facet_rotations",
-    "focal_lengths",
-    "geodetic_to_enu",
-    "grid_facet_centroids",
-    "heliostat_rotation",
-    "load_facet_centroids",
-    "load_field",
-    "mirror_outline",
-    "normals_from_drive",
-    "nsttf_facet_centroids",
-    "nsttf_like_field",
-    "nsttf_origin",
-    "nsttf_spec",
-    "parse_heliostat_name",
-    "radial_staggered_field",
-    "reflect",
-    "rotation_from_drive",
-    "to_enu",
-    "track_field",
-    "tracking_normals",
-]
+from pihim._lazy import lazy_exports
+
+#: Exported names by submodule; a submodule is imported when one of its names is first used.
+_EXPORTS: dict[str, list[str]] = {
+    "geodesy": [
+        "GeodeticOrigin", "NSTTF_ORIGIN_LATITUDE_DEG", "NSTTF_ORIGIN_LONGITUDE_DEG", "enu_to_geodetic",
+        "geodetic_to_enu", "nsttf_origin",
+    ],
+    "kinematics": [
+        "BackStructure", "DriveAngles", "FieldPose", "apply_canting_deviation", "back_structure", "canting_angles",
+        "canting_deviation", "design_facet_normals", "drive_angles", "facet_centres", "facet_corners",
+        "facet_rotations", "focal_lengths", "heliostat_rotation", "mirror_outline", "normals_from_drive",
+        "reflect", "rotation_from_drive", "to_enu", "track_field", "tracking_normals",
+    ],
+    "layout": [
+        "Field", "Heliostat", "HeliostatSpec", "NSTTF_BCS_STANDBY", "NSTTF_TOWER", "NSTTF_TOWER_TARGET", "Tower",
+        "UFACET_AIM_POINT", "canonical_name", "grid_facet_centroids", "load_facet_centroids", "load_field",
+        "nsttf_facet_centroids", "nsttf_like_field", "nsttf_spec", "parse_heliostat_name",
+        "radial_staggered_field",
+    ],
+}
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
+
+if TYPE_CHECKING:  # static checkers see the names where they are defined
+    from pihim.field.geodesy import (  # noqa: F401
+        GeodeticOrigin, NSTTF_ORIGIN_LATITUDE_DEG, NSTTF_ORIGIN_LONGITUDE_DEG, enu_to_geodetic, geodetic_to_enu,
+        nsttf_origin,
+    )
+    from pihim.field.kinematics import (  # noqa: F401
+        BackStructure, DriveAngles, FieldPose, apply_canting_deviation, back_structure, canting_angles,
+        canting_deviation, design_facet_normals, drive_angles, facet_centres, facet_corners, facet_rotations,
+        focal_lengths, heliostat_rotation, mirror_outline, normals_from_drive, reflect, rotation_from_drive,
+        to_enu, track_field, tracking_normals,
+    )
+    from pihim.field.layout import (  # noqa: F401
+        Field, Heliostat, HeliostatSpec, NSTTF_BCS_STANDBY, NSTTF_TOWER, NSTTF_TOWER_TARGET, Tower,
+        UFACET_AIM_POINT, canonical_name, grid_facet_centroids, load_facet_centroids, load_field,
+        nsttf_facet_centroids, nsttf_like_field, nsttf_spec, parse_heliostat_name, radial_staggered_field,
+    )

@@ -25,64 +25,35 @@
 
 from __future__ import annotations
 
-from pihim.inspection.contrast import (
-    PAPER_ROI_SIZE,
-    RoiPairContrast,
-    contrast_ratio,
-    michelson_contrast,
-    roi_pair_contrast,
-)
-from pihim.inspection.edges import (
-    EDGE_METHODS,
-    IMAGE_TYPES,
-    EdgeMap,
-    EdgeMaps,
-    axial_gradient_magnitude,
-    edge_maps,
-    gradient_magnitude,
-    robust_thresholds,
-)
-from pihim.inspection.success import (
-    EDGE_NAMES,
-    EdgeSuccess,
-    FacetOutlines,
-    FrameScore,
-    SuccessRate,
-    edge_success,
-    facet_outlines_px,
-    outlines_from_simulation,
-    outlines_from_truth,
-    scenario_mask,
-    score_frame,
-    sky_vs_sky_mask,
-    success_rate,
-)
+from typing import TYPE_CHECKING
 
-__all__ = [
-    "EDGE_METHODS",
-    "EDGE_NAMES",
-    "IMAGE_TYPES",
-    "PAPER_ROI_SIZE",
-    "EdgeMap",
-    "EdgeMaps",
-    "EdgeSuccess",
-    "FacetOutlines",
-    "FrameScore",
-    "RoiPairContrast",
-    "SuccessRate",
-    "axial_gradient_magnitude",
-    "contrast_ratio",
-    "edge_maps",
-    "edge_success",
-    "facet_outlines_px",
-    "gradient_magnitude",
-    "michelson_contrast",
-    "outlines_from_simulation",
-    "outlines_from_truth",
-    "robust_thresholds",
-    "roi_pair_contrast",
-    "scenario_mask",
-    "score_frame",
-    "sky_vs_sky_mask",
-    "success_rate",
-]
+from pihim._lazy import lazy_exports
+
+#: Exported names by submodule; a submodule is imported when one of its names is first used.
+_EXPORTS: dict[str, list[str]] = {
+    "contrast": ["PAPER_ROI_SIZE", "RoiPairContrast", "contrast_ratio", "michelson_contrast", "roi_pair_contrast"],
+    "edges": [
+        "EDGE_METHODS", "EdgeMap", "EdgeMaps", "IMAGE_TYPES", "axial_gradient_magnitude", "edge_maps",
+        "gradient_magnitude", "robust_thresholds",
+    ],
+    "success": [
+        "EDGE_NAMES", "EdgeSuccess", "FacetOutlines", "FrameScore", "SuccessRate", "edge_success",
+        "facet_outlines_px", "outlines_from_simulation", "outlines_from_truth", "scenario_mask", "score_frame",
+        "sky_vs_sky_mask", "success_rate",
+    ],
+}
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
+
+if TYPE_CHECKING:  # static checkers see the names where they are defined
+    from pihim.inspection.contrast import (  # noqa: F401
+        PAPER_ROI_SIZE, RoiPairContrast, contrast_ratio, michelson_contrast, roi_pair_contrast,
+    )
+    from pihim.inspection.edges import (  # noqa: F401
+        EDGE_METHODS, EdgeMap, EdgeMaps, IMAGE_TYPES, axial_gradient_magnitude, edge_maps, gradient_magnitude,
+        robust_thresholds,
+    )
+    from pihim.inspection.success import (  # noqa: F401
+        EDGE_NAMES, EdgeSuccess, FacetOutlines, FrameScore, SuccessRate, edge_success, facet_outlines_px,
+        outlines_from_simulation, outlines_from_truth, scenario_mask, score_frame, sky_vs_sky_mask, success_rate,
+    )

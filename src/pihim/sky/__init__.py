@@ -21,50 +21,32 @@ frame is given, its Stokes vectors use the local meridian "up" as reference
 axis (see ``docs/conventions.md``).
 """
 
-from pihim.sky.berry import NeutralPoints, berry_stokes, berry_w, neutral_points
-from pihim.sky.model import SkyMap, SkyModel, sky_grid, sky_map
-from pihim.sky.radiance import (
-    CIE_SKY_TYPES,
-    cie_relative_radiance,
-    gradation,
-    indicatrix,
-)
-from pihim.sky.rayleigh import meridian_frame, rayleigh_dolp, rayleigh_stokes
-from pihim.sky.sun import (
-    NSTTF,
-    Site,
-    SunPosition,
-    angles_from_direction,
-    direction_from_angles,
-    parse_site,
-    parse_time,
-    require_daylight,
-    sun_position,
-)
+from __future__ import annotations
 
-__all__ = [
-    "CIE_SKY_TYPES",
-    "NSTTF",
-    "NeutralPoints",
-    "Site",
-    "SkyMap",
-    "SkyModel",
-    "SunPosition",
-    "angles_from_direction",
-    "berry_stokes",
-    "berry_w",
-    "cie_relative_radiance",
-    "direction_from_angles",
-    "gradation",
-    "indicatrix",
-    "meridian_frame",
-    "neutral_points",
-    "parse_site",
-    "parse_time",
-    "rayleigh_dolp",
-    "rayleigh_stokes",
-    "require_daylight",
-    "sky_grid",
-    "sky_map",
-    "sun_position",
-]
+from typing import TYPE_CHECKING
+
+from pihim._lazy import lazy_exports
+
+#: Exported names by submodule; a submodule is imported when one of its names is first used.
+_EXPORTS: dict[str, list[str]] = {
+    "berry": ["NeutralPoints", "berry_stokes", "berry_w", "neutral_points"],
+    "model": ["SkyMap", "SkyModel", "sky_grid", "sky_map"],
+    "radiance": ["CIE_SKY_TYPES", "cie_relative_radiance", "gradation", "indicatrix"],
+    "rayleigh": ["meridian_frame", "rayleigh_dolp", "rayleigh_stokes"],
+    "sun": [
+        "NSTTF", "Site", "SunPosition", "angles_from_direction", "direction_from_angles", "parse_site",
+        "parse_time", "require_daylight", "sun_position",
+    ],
+}
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
+
+if TYPE_CHECKING:  # static checkers see the names where they are defined
+    from pihim.sky.berry import NeutralPoints, berry_stokes, berry_w, neutral_points  # noqa: F401
+    from pihim.sky.model import SkyMap, SkyModel, sky_grid, sky_map  # noqa: F401
+    from pihim.sky.radiance import CIE_SKY_TYPES, cie_relative_radiance, gradation, indicatrix  # noqa: F401
+    from pihim.sky.rayleigh import meridian_frame, rayleigh_dolp, rayleigh_stokes  # noqa: F401
+    from pihim.sky.sun import (  # noqa: F401
+        NSTTF, Site, SunPosition, angles_from_direction, direction_from_angles, parse_site, parse_time,
+        require_daylight, sun_position,
+    )

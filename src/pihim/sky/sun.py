@@ -37,13 +37,15 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from pihim.errors import PihimInputError
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 __all__ = [
     "NSTTF",
@@ -209,6 +211,8 @@ def parse_time(time: str | datetime | pd.Timestamp) -> pd.Timestamp:
         Malformed text, or a time without a UTC offset (naive): pihim never
         guesses a time zone.
     """
+    import pandas as pd  # local: pandas costs a few tenths of a second to import
+
     if isinstance(time, str):
         text = time.strip()
         try:
@@ -321,6 +325,8 @@ class SunPosition:
 
 def _as_index(time: Any) -> tuple[pd.DatetimeIndex, bool]:
     """Times as a UTC DatetimeIndex, and whether the input was a single time."""
+    import pandas as pd
+
     if isinstance(time, str | datetime):
         return pd.DatetimeIndex([parse_time(time)]).tz_convert("UTC"), True
     if isinstance(time, pd.DatetimeIndex):

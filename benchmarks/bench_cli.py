@@ -1,0 +1,303 @@
+"""Command-line benchmark: start-up of every command and ``pihim polar`` over 100 frames, as whole processes.
+
+Everything here runs ``python -m pihim ...`` in a separate process and
+records its wall time, its CPU time (user + system, all threads), the
+one-minute load average and the share of the CPUs other processes used
+meanwhile.
+
+Start-up
+    ``pihim --help`` (target <= 0.3 s), and for every command its import
+    overhead: the sum of the top-level entries of ``python -X importtime``
+    (every module imported during the run, lazily imported ones included)
+    for ``pihim CMD --help`` and, for the commands that can run in seconds,
+    for a real run. Target <= 0.5 s.
+``pihim polar`` over 100 frames
+    100 distinct 2448x2048 12-bit TIFFs (four synthetic heliostat scenes
+    with independent noise; 1 GB) through one process: super-pixel with
+    ``--json`` (target <= 66 ms per frame, the camera's 15 fps), full
+    resolution with ``--json`` (<= 150 ms), and super-pixel with ``--json
+    --png``; the previews' cost per frame is the difference of the last and
+    the first run (target <= 60 ms). Start-up is included (the numba cache is
+    warm, as after a first run). Anchor, in the same run: the same frames
+    through a plain script (tifffile read, the numpy super-pixel route of
+    ``bench_polar.py``, three float32 TIFFs written) in one process.
+
+Run ``python benchmarks/run.py --only bench_cli`` or this file directly
+(``--quick``: 20 frames, fewer start-up repetitions).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import sys
+import tempfile
+from collections.abc import Sequence
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as harness
+
+RESULTS_PATH = Path(__file__).resolve().parent / "results" / "cli.json"
+SRC = Path(__file__).resolve().parents[1] / "src"
+COMMANDS = ("polar", "calibrate-polarizer", "calibrate-camera", "sky", "ground", "plan", "windows", "demo",
+            "simulate", "edges", "canting", "live", "simulate-flight", "campaign")
+#: Real runs whose start-up is measured: (label, arguments after ``pihim``; OUT is replaced by a folder).
+REAL_RUNS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("polar (1 frame, --json)", ("polar", "FRAME", "--out", "OUT", "--json")),
+    ("sky (--resolution 5)", ("sky", "--sun-zenith", "30", "--sun-azimuth", "235", "--resolution", "5", "--out", "OUT")),
+    ("ground (--resolution 5)", ("ground", "--sun-zenith", "30", "--sun-azimuth", "235", "--resolution", "5",
+                                 "--out", "OUT")),
+    ("plan (NSTTF, 13:00)", ("plan", "--time", "2021-05-13T13:00-06:00", "--out", "OUT", "--json")),
+    ("windows (--step-min 60)", ("windows", "--date", "2021-05-13", "--step-min", "60", "--out", "OUT", "--json")),
+)
+TARGET_HELP_S = 0.3
+TARGET_IMPORT_S = 0.5
+TARGETS_MS = {"superpixel": 66.0, "full": 150.0, "previews": 60.0}
+
+_ANCHOR_SCRIPT = r"""
+import sys, numpy as np, tifffile
+sys.path.insert(0, sys.argv[1])
+from bench_polar import numpy_superpixel
+out = sys.argv[2]
+for k, path in enumerate(sys.argv[3:]):
+    s0, dolp, aop = numpy_superpixel(tifffile.imread(path))
+    for name, image in (("S0", s0), ("DoLP", dolp), ("AoP", aop)):
+        tifffile.imwrite(f"{out}/{k:03d}.{name}.tiff", image)
+"""
+
+
+#: Runs ``pihim ARGS`` in this process and prints, at the end, the CPU and wall time spent importing: every
+#: outermost ``import`` statement and ``importlib.import_module`` call (lazy ones and numba's own included) is
+#: timed with ``time.process_time`` (the whole process: a thread computing meanwhile is counted too).
+_IMPORT_TIMER = r"""
+import builtins, importlib, sys, threading, time
+_depth = threading.local()
+_total = [0.0, 0.0]
+def _timed(f):
+    def call(*a, **k):
+        if getattr(_depth, "n", 0):
+            return f(*a, **k)
+        _depth.n = 1
+        c, t = time.process_time(), time.perf_counter()
+        try:
+            return f(*a, **k)
+        finally:
+            _depth.n = 0
+            _total[0] += time.process_time() - c
+            _total[1] += time.perf_counter() - t
+    return call
+builtins.__import__ = _timed(builtins.__import__)
+importlib.import_module = _timed(importlib.import_module)
+try:
+    from pihim.cli import main
+    rc = main(sys.argv[1:])
+finally:
+    sys.stderr.write(f"\nPIHIM_IMPORTS cpu={_total[0]:.6f} wall={_total[1]:.6f}\n")
+sys.exit(rc)
+"""
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(SRC), env.get("PYTHONPATH", "")) if p)
+    return env
+
+
+def pihim(args: Sequence[str], *, importtime: bool = False) -> dict[str, Any]:
+    """Run ``python -m pihim ARGS``.
+
+    With ``importtime``: the command runs under :data:`_IMPORT_TIMER` and
+    ``-X importtime``, and the result also holds ``import_s`` (sum of the
+    top-level ``-X importtime`` entries, wall clock), ``import_cpu_s`` and
+    ``import_wall_s`` (the timer's).
+    """
+    cmd = [sys.executable, *(["-X", "importtime", "-c", _IMPORT_TIMER] if importtime else ["-m", "pihim"]), *args]
+    res = harness.process_run(cmd, env=_env())
+    if importtime:
+        total, lines = 0, []
+        res["import_cpu_s"] = res["import_wall_s"] = None
+        for line in res["stderr"].splitlines():
+            if line.startswith("PIHIM_IMPORTS "):
+                fields = dict(f.split("=") for f in line.split()[1:])
+                res["import_cpu_s"], res["import_wall_s"] = float(fields["cpu"]), float(fields["wall"])
+            elif line.startswith("import time:"):
+                parts = line.split("|")
+                name = parts[2] if len(parts) > 2 else ""
+                if name.startswith(" ") and not name.startswith("  ") and parts[1].strip().isdigit():
+                    total += int(parts[1])
+            else:
+                lines.append(line)
+        res["import_s"] = total / 1e6
+        res["stderr"] = "\n".join(lines)
+    return res
+
+
+def _median_run(args: Sequence[str], n: int, **kw: Any) -> dict[str, Any]:
+    runs = [pihim(args, **kw) for _ in range(n)]
+    keys = ("wall_s", "cpu_s", "load_before", "load_after", "other_cpu") + (
+        ("import_s", "import_cpu_s", "import_wall_s") if kw.get("importtime") else ())
+    out = {k: statistics.median(r[k] for r in runs if r[k] is not None) if any(r[k] is not None for r in runs)
+           else None for k in keys}
+    out["runs"] = n
+    out["returncode"] = max(r["returncode"] for r in runs)
+    return out
+
+
+def make_frames(folder: Path, n: int, seed: int = 20261122) -> list[Path]:
+    """``n`` distinct 12-bit frames (four scenes, independent noise) as uncompressed TIFFs."""
+    import tifffile
+
+    from bench_polar import BIT_DEPTH, FRAME_SHAPE, synthetic_scene
+    from pihim.render.mosaic import mosaic_from_stokes
+
+    scenes = [synthetic_scene(FRAME_SHAPE, seed + k) for k in range(4)]
+    paths = []
+    for k in range(n):
+        m = mosaic_from_stokes(*scenes[k % 4], bit_depth=BIT_DEPTH, read_noise_dn=1.2, electrons_per_dn=2.5,
+                               rng=seed + 1000 + k)
+        path = folder / f"frame_{k:03d}.tiff"
+        tifffile.imwrite(path, m)
+        paths.append(path)
+    return paths
+
+
+def polar_runs(n_frames: int) -> dict[str, Any]:
+    """``pihim polar`` over ``n_frames`` frames as one process (three settings) and the numpy script anchor."""
+    with tempfile.TemporaryDirectory(prefix="pihim-bench-cli-") as tmp:
+        root = Path(tmp)
+        (root / "in").mkdir()
+        frames = [str(p) for p in make_frames(root / "in", n_frames)]
+        pihim(["polar", frames[0], "--out", str(root / "warm"), "--png"])  # numba and figure caches as after a run
+        pihim(["polar", frames[0], "--out", str(root / "warm2"), "--demosaic", "full"])
+        runs: dict[str, Any] = {}
+        for key, extra in (("superpixel", ["--json"]), ("full", ["--json", "--demosaic", "full"]),
+                           ("superpixel_png", ["--json", "--png"])):
+            out = root / f"out-{key}"
+            res = pihim(["polar", *frames, "--out", str(out), *extra])
+            records = res["stdout"].strip().splitlines()
+            runs[key] = {k: res[k] for k in ("returncode", "wall_s", "cpu_s", "load_before", "load_after", "other_cpu")}
+            runs[key].update(frames=n_frames, records=len(records), ms_per_frame=1e3 * res["wall_s"] / n_frames,
+                             cpu_ms_per_frame=1e3 * res["cpu_s"] / n_frames)
+            shutil.rmtree(out, ignore_errors=True)
+        out = root / "out-anchor"
+        out.mkdir()
+        res = harness.process_run([sys.executable, "-c", _ANCHOR_SCRIPT, str(Path(__file__).resolve().parent),
+                                   str(out), *frames], env=_env())
+        runs["numpy_script"] = {k: res[k] for k in ("returncode", "wall_s", "cpu_s", "load_before", "load_after",
+                                                      "other_cpu")}
+        runs["numpy_script"].update(frames=n_frames, ms_per_frame=1e3 * res["wall_s"] / n_frames,
+                                    cpu_ms_per_frame=1e3 * res["cpu_s"] / n_frames)
+    sp, png = runs["superpixel"], runs["superpixel_png"]
+    runs["previews"] = {"ms_per_frame": png["ms_per_frame"] - sp["ms_per_frame"],
+                        "cpu_ms_per_frame": png["cpu_ms_per_frame"] - sp["cpu_ms_per_frame"]}
+    return runs
+
+
+def run_benchmark(quick: bool = False) -> dict[str, Any]:
+    """All measurements; the JSON-ready report."""
+    n_help = 3 if quick else 7
+    report: dict[str, Any] = {"benchmark": "cli", "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+                              "machine": harness.machine_info()}
+    report["help"] = _median_run(["--help"], n_help, importtime=False)
+    report["help_imports"] = _median_run(["--help"], n_help, importtime=True)
+    report["command_help"] = {c: _median_run([c, "--help"], 1 if quick else 3, importtime=True) for c in COMMANDS}
+    with tempfile.TemporaryDirectory(prefix="pihim-bench-cli-") as tmp:
+        frame = make_frames(Path(tmp), 1)[0]
+        real = {}
+        for label, args in REAL_RUNS:
+            argv = [str(frame) if a == "FRAME" else str(Path(tmp) / f"out-{len(real)}") if a == "OUT" else a
+                    for a in args]
+            pihim(argv)  # caches (numba) as after a first run
+            real[label] = _median_run(argv, 1 if quick else 3, importtime=True)
+        report["real_runs"] = real
+    report["polar"] = polar_runs(20 if quick else 100)
+    p = report["polar"]
+    startup = [report["help_imports"]["import_cpu_s"],
+               *(r["import_cpu_s"] for r in report["command_help"].values()),
+               *(r["import_cpu_s"] for r in report["real_runs"].values())]
+    report["targets"] = [
+        harness.target("pihim --help, process wall (median)", report["help"]["wall_s"], TARGET_HELP_S, "s"),
+        harness.target("pihim --help, process CPU (median)", report["help"]["cpu_s"], TARGET_HELP_S, "s"),
+        harness.target("largest import overhead (CPU) of any command, help or real run", max(startup),
+                       TARGET_IMPORT_S, "s"),
+        harness.target(f"polar super-pixel --json, {p['superpixel']['frames']} frames, per frame",
+                       p["superpixel"]["ms_per_frame"], TARGETS_MS["superpixel"], "ms"),
+        harness.target("polar full --json, per frame", p["full"]["ms_per_frame"], TARGETS_MS["full"], "ms"),
+        harness.target("polar --png previews, added per frame", p["previews"]["ms_per_frame"], TARGETS_MS["previews"],
+                       "ms"),
+    ]
+    return report
+
+
+def _f(v: float | None, spec: str = ".2f") -> str:
+    return "-" if v is None else f"{v:{spec}}"
+
+
+def markdown_report(r: dict[str, Any]) -> str:
+    """The report as markdown."""
+    h = r["help"]
+    lines = ["| Process | runs | wall s | CPU s | imports CPU s | imports wall s | -X importtime s "
+             "| Other CPU % | Load before / after |",
+             "|---|--:|--:|--:|--:|--:|--:|--:|--:|"]
+    hi = r["help_imports"]
+    lines.append(f"| `pihim --help` | {h['runs']} | {_f(h['wall_s'])} | {_f(h['cpu_s'])} | {_f(hi['import_cpu_s'])} | "
+                 f"{_f(hi['import_wall_s'])} | {_f(hi['import_s'])} | {harness.other_pct(h['other_cpu'])} | "
+                 f"{_f(h['load_before'], '.1f')} / {_f(h['load_after'], '.1f')} |")
+    for label, x in [*((f"`pihim {c} --help`", x) for c, x in r["command_help"].items()),
+                     *((f"`pihim {c}` (real run)", x) for c, x in r["real_runs"].items())]:
+        lines.append(f"| {label} | {x['runs']} | {_f(x['wall_s'])} | {_f(x['cpu_s'])} | {_f(x['import_cpu_s'])} | "
+                     f"{_f(x['import_wall_s'])} | {_f(x['import_s'])} | {harness.other_pct(x['other_cpu'])} | "
+                     f"{_f(x['load_before'], '.1f')} / {_f(x['load_after'], '.1f')} |")
+    p = r["polar"]
+    lines += ["", "| `pihim polar` as one process | frames | wall s | CPU s | ms per frame | CPU ms per frame "
+              "| Other CPU % | Load before / after |", "|---|--:|--:|--:|--:|--:|--:|--:|"]
+    for key, label in (("superpixel", "super-pixel `--json`"), ("full", "full resolution `--json`"),
+                       ("superpixel_png", "super-pixel `--json --png`"),
+                       ("numpy_script", "anchor: numpy script (read, super-pixel, 3 TIFFs)")):
+        x = p[key]
+        lines.append(f"| {label} | {x['frames']} | {x['wall_s']:.2f} | {x['cpu_s']:.2f} | {x['ms_per_frame']:.1f} | "
+                     f"{x['cpu_ms_per_frame']:.1f} | {harness.other_pct(x['other_cpu'])} | "
+                     f"{_f(x['load_before'], '.1f')} / {_f(x['load_after'], '.1f')} |")
+    lines.append(f"| previews (`--png` minus super-pixel) | | | | {p['previews']['ms_per_frame']:.1f} | "
+                 f"{p['previews']['cpu_ms_per_frame']:.1f} | | |")
+    lines += harness.target_table(r["targets"], spec=".2f", unit_spec={"ms": ".1f"}, column="Result", align="--:")
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None, *, quick: bool = False, json_path: Path | None = RESULTS_PATH,
+         echo: bool = True) -> dict[str, Any]:
+    """Run the benchmark, print the markdown report and write the JSON.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        ``--quick``, ``--json PATH``.
+    quick : bool
+        20 frames instead of 100, fewer repetitions.
+    json_path : pathlib.Path or None
+        Where to write the JSON report.
+    echo : bool
+        Print the markdown report.
+    """
+    if argv:
+        parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+        parser.add_argument("--quick", action="store_true", help="20 frames, fewer repetitions")
+        parser.add_argument("--json", type=Path, default=json_path, metavar="PATH", help="JSON output path")
+        args = parser.parse_args(list(argv))
+        quick, json_path = quick or args.quick, args.json
+    report = run_benchmark(quick)
+    report["quick"] = quick
+    if echo:
+        print(markdown_report(report))
+    harness.write_json(report, json_path, announce=echo)
+    return report
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:] or None)

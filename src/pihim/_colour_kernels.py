@@ -1,0 +1,124 @@
+"""Compiled pixel loops of :mod:`pihim.visualize` (grey stretch, DoLP colour map, AoP hue).
+
+Each kernel evaluates, pixel by pixel and in float64, the same expressions
+as the numpy formulation documented in :mod:`pihim.visualize` (with numpy's
+``mod`` and round-half-to-even ``rint`` semantics), so the images are
+identical to it, without its float64 temporaries (about 20 full-size arrays
+for an AoP image). Imported on first use: loading numba costs time that only
+callers of these functions should pay.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+
+@njit(inline="always", cache=True)
+def _mod1(h):  # pragma: no cover - compiled
+    """``numpy.mod(h, 1.0)`` of a finite float.
+
+    numpy computes ``fmod(h, 1)`` (exact) and adds 1 when it is negative:
+    one rounding of the real number ``h - floor(h)``, which is what this
+    computes, without the slow libm ``fmod``.
+    """
+    return h - np.floor(h)
+
+
+@njit(inline="always", cache=True)
+def _mod2_nonneg(x):  # pragma: no cover - compiled
+    """``numpy.mod(x, 2.0)`` of a finite ``x >= 0`` (``x - 2 floor(x / 2)`` is exact there)."""
+    return x - 2.0 * np.floor(0.5 * x)
+
+
+@njit(inline="always", cache=True)
+def _to_u8(x):  # pragma: no cover - compiled
+    """``clip(rint(x * 255), 0, 255)`` as uint8 (NaN is not expected here)."""
+    v = np.rint(x * 255.0)
+    if v < 0.0:
+        v = 0.0
+    if v > 255.0:
+        v = 255.0
+    return np.uint8(v)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def gray_stretch(x, lo, hi, out):  # pragma: no cover - compiled
+    """``out = u8(clip(nan_to_num((x - lo) / (hi - lo)), 0, 1))``, all 0 unless ``hi > lo``."""
+    n_rows, n_cols = x.shape
+    span = hi - lo
+    for i in prange(n_rows):
+        for j in range(n_cols):
+            s = 0.0
+            if hi > lo:
+                s = (np.float64(x[i, j]) - lo) / span
+                if s != s:
+                    s = 0.0
+            s = min(max(s, 0.0), 1.0)
+            out[i, j] = _to_u8(s)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def lut_colour(d, vmax, lut_u8, out):  # pragma: no cover - compiled
+    """``out = lut_u8[clip(rint(d / vmax * 255), 0, 255)]``, black where ``d`` is not finite."""
+    n_rows, n_cols = d.shape
+    for i in prange(n_rows):
+        for j in range(n_cols):
+            v = np.float64(d[i, j])
+            if not math.isfinite(v):
+                out[i, j, 0] = 0
+                out[i, j, 1] = 0
+                out[i, j, 2] = 0
+                continue
+            k = np.rint(v / vmax * 255.0)
+            k = min(max(k, 0.0), 255.0)
+            idx = int(k)
+            out[i, j, 0] = lut_u8[idx, 0]
+            out[i, j, 1] = lut_u8[idx, 1]
+            out[i, j, 2] = lut_u8[idx, 2]
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def hue_colour(aop, dolp, use_dolp, dolp_max, out):  # pragma: no cover - compiled
+    """AoP as HSV hue (saturation 1), value 1 or ``clip(dolp / dolp_max, 0, 1)``; black where not finite.
+
+    ``dolp`` is read only when ``use_dolp``.
+    """
+    n_rows, n_cols = aop.shape
+    for i in prange(n_rows):
+        for j in range(n_cols):
+            a = np.float64(aop[i, j])
+            v = 1.0
+            valid = math.isfinite(a)
+            if use_dolp:
+                d = np.float64(dolp[i, j])
+                valid = valid and math.isfinite(d)
+                if valid:
+                    v = min(max(d / dolp_max, 0.0), 1.0)
+            if not valid:
+                out[i, j, 0] = 0
+                out[i, j, 1] = 0
+                out[i, j, 2] = 0
+                continue
+            h6 = _mod1(a / 180.0) * 6.0
+            c = v * 1.0
+            x = c * (1.0 - abs(_mod2_nonneg(h6) - 1.0))
+            m = v - c
+            sector = int(math.floor(h6)) % 6
+            if sector == 0:
+                r, g, b = c, x, 0.0
+            elif sector == 1:
+                r, g, b = x, c, 0.0
+            elif sector == 2:
+                r, g, b = 0.0, c, x
+            elif sector == 3:
+                r, g, b = 0.0, x, c
+            elif sector == 4:
+                r, g, b = x, 0.0, c
+            else:
+                r, g, b = c, 0.0, x
+            out[i, j, 0] = _to_u8(r + m)
+            out[i, j, 1] = _to_u8(g + m)
+            out[i, j, 2] = _to_u8(b + m)

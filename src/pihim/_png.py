@@ -1,0 +1,69 @@
+"""A small PNG encoder for 8-bit grey and RGB(A) images, tuned for speed.
+
+Rows are stored unfiltered (PNG filter type 0) and the whole image is one
+deflate stream at a fast level: with the optional ``isal`` package (Intel
+ISA-L, ``pip install pihim[fast]``) about 4x faster than zlib at a similar
+size, else with the standard library's zlib. Both release the GIL, so
+several images can be encoded at once on several threads.
+
+References
+----------
+.. [1] W3C, "Portable Network Graphics (PNG) Specification (Third Edition)",
+   2025: signature, IHDR / IDAT / IEND chunks, CRC-32, colour types 0, 2, 6.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+
+import numpy as np
+from numpy.typing import NDArray
+
+try:  # optional: ISA-L's deflate, zlib-compatible streams, much faster at low levels
+    from isal import isal_zlib as _deflate
+
+    #: ISA-L level 1: 3-4x faster than zlib level 1 here, files a few per cent larger at most.
+    DEFAULT_LEVEL = 1
+except ImportError:  # pragma: no cover - depends on the environment
+    _deflate = zlib
+    DEFAULT_LEVEL = 1
+
+#: Name of the deflate implementation in use ("isal" or "zlib").
+DEFLATE = "isal" if _deflate is not zlib else "zlib"
+
+_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_COLOUR_TYPE = {1: 0, 3: 2, 4: 6}  # channels -> PNG colour type (grey, RGB, RGBA)
+
+
+def _chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(data, zlib.crc32(kind)))
+
+
+def encode_png(image: NDArray[np.uint8], *, level: int | None = None) -> bytes:
+    """PNG file bytes of a uint8 image.
+
+    Parameters
+    ----------
+    image : numpy.ndarray, uint8, shape (H, W), (H, W, 1), (H, W, 3) or (H, W, 4)
+        Grey, RGB or RGBA, rows top to bottom.
+    level : int, optional
+        Deflate level (default :data:`DEFAULT_LEVEL`: fast).
+
+    Returns
+    -------
+    bytes
+    """
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3, 4)):
+        raise ValueError("encode_png needs a uint8 (H, W), (H, W, 3) or (H, W, 4) image")
+    height, width = img.shape[:2]
+    channels = 1 if img.ndim == 2 else img.shape[2]
+    if height < 1 or width < 1:
+        raise ValueError("encode_png needs a non-empty image")
+    rows = np.empty((height, 1 + width * channels), dtype=np.uint8)
+    rows[:, 0] = 0  # filter type 0 (none) on every row
+    rows[:, 1:].reshape(height, width, channels)[...] = img.reshape(height, width, channels)  # one copy, no temporary
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, _COLOUR_TYPE[channels], 0, 0, 0)
+    idat = _deflate.compress(rows.data, DEFAULT_LEVEL if level is None else level)
+    return _SIGNATURE + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", bytes(idat)) + _chunk(b"IEND", b"")
