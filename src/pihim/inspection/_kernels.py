@@ -1,0 +1,758 @@
+"""Compiled inner loops of the pose and canting fits (private).
+
+The fits evaluate the projection of a few thousand model points tens of
+thousands of times per frame. Going through :class:`pihim.camera.CameraPose`
+(validation of the rotation at every construction) and
+:func:`pihim.camera.pose.project_points` costs far more than the arithmetic,
+so the inner loops use these kernels on raw arrays instead:
+
+* :func:`project_rc`: pixels of world points through a world -> camera
+  rotation ``R`` and a camera centre ``C``, the same arithmetic as
+  ``CameraModel.project(CameraPose(C, R).world_to_camera(X))`` (pinhole and
+  the five-coefficient Brown-Conrady model, NaN at or behind the camera;
+  held to ``cv2.projectPoints`` by ``tests/inspection/test_kernels.py``);
+* :func:`project_rc_jacobian`: the same with the analytic derivatives of
+  ``(u, v)`` with respect to the six pose parameters of the fits -- a rotation
+  vector ``w`` applied in the camera frame (``R(w) = exp([w]x) R0``) and the
+  position offset -- by the chain rule through the pinhole and the
+  distortion polynomial; ``d x_cam / d w = -[x_cam]x J_l(w)`` with ``J_l`` the
+  left Jacobian of SO(3) [1]_;
+* :func:`bilinear`: bilinear sampling with the conventions of
+  ``scipy.ndimage.map_coordinates(order=1, mode="constant", cval=0)`` (zero
+  outside ``[0, n - 1]`` on either axis, and for NaN);
+* :func:`chamfer_level`: one level of the pose's chamfer alignment -- the
+  six parameters minimising ``sum (1 - proximity)^2`` -- solved by a
+  trust-region Gauss-Newton / Levenberg-Marquardt iteration in scaled
+  variables with the exact trust-region step of Moré [2]_, the algorithm of
+  ``scipy.optimize.least_squares(method="trf")`` without bounds, with the
+  analytic Jacobian (image gradient of the proximity map times the
+  projection Jacobian), all in one compiled loop.
+
+References
+----------
+.. [1] J. Solà, J. Deray, D. Atchuthan, "A micro Lie theory for state
+   estimation in robotics", arXiv:1812.01537 (2018), eq. (146) (left
+   Jacobian of SO(3)).
+.. [2] J. J. Moré, "The Levenberg-Marquardt algorithm: implementation and
+   theory", Numerical Analysis, Lecture Notes in Mathematics 630, 105-116
+   (1977), doi:10.1007/BFb0067700.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+__all__ = ["CHAMFER", "POINT_TO_LINE", "bilinear", "camera_vector", "edge_nms", "grid_scores", "jacobian", "left_jacobian", "project_rc",
+           "project_pose", "project_rc_jacobian", "residuals", "rotation_from_vector", "sobel_bilinear", "solve_pose"]
+
+
+def camera_vector(camera) -> NDArray[np.float64]:
+    """``(fx, fy, cx, cy, k1, k2, p1, p2, k3)`` of a :class:`pihim.camera.CameraModel`, pixels."""
+    return np.array([camera.fx_px, camera.fy_px, camera.cx_px, camera.cy_px, *camera.distortion], float)
+
+
+def project_pose(camera, pose, pts: NDArray) -> NDArray[np.float64]:
+    """:func:`project_rc` for a :class:`pihim.camera.CameraModel` and a :class:`pihim.camera.CameraPose`."""
+    return project_rc(np.array(pose.rotation, float), np.array(pose.position_m, float),
+                      np.ascontiguousarray(pts, dtype=float), camera_vector(camera))
+
+
+@njit(cache=True)
+def rotation_from_vector(w: NDArray) -> NDArray:  # pragma: no cover - compiled
+    """Rotation matrix of a rotation vector (Rodrigues' formula), radians."""
+    th2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    th = math.sqrt(th2)
+    if th < 1e-4:  # series to 1e-17
+        a = 1.0 - th2 / 6.0 + th2 * th2 / 120.0
+        b = 0.5 - th2 / 24.0 + th2 * th2 / 720.0
+    else:
+        a = math.sin(th) / th
+        b = (1.0 - math.cos(th)) / th2
+    x, y, z = w[0], w[1], w[2]
+    r = np.empty((3, 3))
+    r[0, 0] = 1.0 - b * (y * y + z * z)
+    r[1, 1] = 1.0 - b * (x * x + z * z)
+    r[2, 2] = 1.0 - b * (x * x + y * y)
+    r[0, 1] = b * x * y - a * z
+    r[1, 0] = b * x * y + a * z
+    r[0, 2] = b * x * z + a * y
+    r[2, 0] = b * x * z - a * y
+    r[1, 2] = b * y * z - a * x
+    r[2, 1] = b * y * z + a * x
+    return r
+
+
+@njit(cache=True)
+def left_jacobian(w: NDArray) -> NDArray:  # pragma: no cover - compiled
+    """Left Jacobian of SO(3): ``exp([w + dw]x) = exp([J_l(w) dw]x) exp([w]x)`` to first order."""
+    th2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    th = math.sqrt(th2)
+    if th < 1e-4:
+        b = 0.5 - th2 / 24.0
+        c = 1.0 / 6.0 - th2 / 120.0
+    else:
+        b = (1.0 - math.cos(th)) / th2
+        c = (th - math.sin(th)) / (th2 * th)
+    x, y, z = w[0], w[1], w[2]
+    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + b * k + c * (k @ k)
+
+
+@njit(cache=True, inline="always")
+def _distort(xn: float, yn: float, cam: NDArray) -> tuple[float, float]:  # pragma: no cover - compiled
+    k1, k2, p1, p2, k3 = cam[4], cam[5], cam[6], cam[7], cam[8]
+    r2 = xn * xn + yn * yn
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xy2 = 2.0 * xn * yn
+    xd = xn * radial + p1 * xy2 + p2 * (r2 + 2.0 * xn * xn)
+    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + p2 * xy2
+    return xd, yd
+
+
+@njit(cache=True)
+def project_rc(rot: NDArray, centre: NDArray, pts: NDArray, cam: NDArray) -> NDArray:  # pragma: no cover
+    """Pixels ``(u, v)`` (N, 2) of world points (N, 3); NaN at or behind the camera."""
+    n = pts.shape[0]
+    out = np.empty((n, 2))
+    for i in range(n):
+        dx = pts[i, 0] - centre[0]
+        dy = pts[i, 1] - centre[1]
+        dz = pts[i, 2] - centre[2]
+        px = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
+        py = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
+        pz = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
+        if not pz > 0.0:
+            out[i, 0] = np.nan
+            out[i, 1] = np.nan
+            continue
+        xd, yd = _distort(px / pz, py / pz, cam)
+        out[i, 0] = cam[0] * xd + cam[2]
+        out[i, 1] = cam[1] * yd + cam[3]
+    return out
+
+
+@njit(cache=True, inline="always")
+def _point_jacobian(rot, jl, px, py, pz, cam, jrow):  # pragma: no cover - compiled
+    """d(u, v) / d(w, dC) (2 x 6, into ``jrow``) at camera-frame point (px, py, pz); returns nothing."""
+    k1, k2, p1, p2, k3 = cam[4], cam[5], cam[6], cam[7], cam[8]
+    iz = 1.0 / pz
+    xn = px * iz
+    yn = py * iz
+    r2 = xn * xn + yn * yn
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    jxx = radial + 2.0 * xn * xn * dradial + 2.0 * p1 * yn + 6.0 * p2 * xn
+    jyy = radial + 2.0 * yn * yn * dradial + 6.0 * p1 * yn + 2.0 * p2 * xn
+    jxy = 2.0 * xn * yn * dradial + 2.0 * p1 * xn + 2.0 * p2 * yn
+    # d(u, v) / d(px, py, pz) = diag(fx, fy) Jd [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
+    a00 = cam[0] * jxx * iz
+    a01 = cam[0] * jxy * iz
+    a02 = -(a00 * xn + a01 * yn)
+    a10 = cam[1] * jxy * iz
+    a11 = cam[1] * jyy * iz
+    a12 = -(a10 * xn + a11 * yn)
+    # d p / d w = -[p]x J_l ; d p / d C = -R
+    # -[p]x = [[0, pz, -py], [-pz, 0, px], [py, -px, 0]]
+    m00, m01, m02 = 0.0, pz, -py
+    m10, m11, m12 = -pz, 0.0, px
+    m20, m21, m22 = py, -px, 0.0
+    for k in range(3):
+        d0 = m00 * jl[0, k] + m01 * jl[1, k] + m02 * jl[2, k]
+        d1 = m10 * jl[0, k] + m11 * jl[1, k] + m12 * jl[2, k]
+        d2 = m20 * jl[0, k] + m21 * jl[1, k] + m22 * jl[2, k]
+        jrow[0, k] = a00 * d0 + a01 * d1 + a02 * d2
+        jrow[1, k] = a10 * d0 + a11 * d1 + a12 * d2
+        jrow[0, 3 + k] = -(a00 * rot[0, k] + a01 * rot[1, k] + a02 * rot[2, k])
+        jrow[1, 3 + k] = -(a10 * rot[0, k] + a11 * rot[1, k] + a12 * rot[2, k])
+
+
+@njit(cache=True)
+def project_rc_jacobian(rot0: NDArray, centre0: NDArray, x: NDArray, pts: NDArray,
+                        cam: NDArray) -> tuple[NDArray, NDArray]:  # pragma: no cover - compiled
+    """Pixels (N, 2) at the pose ``(exp([x[:3]]x) rot0, centre0 + x[3:])`` and their Jacobian (N, 2, 6).
+
+    Points at or behind the camera get NaN pixels and a zero Jacobian.
+    """
+    rot = rotation_from_vector(x[:3]) @ rot0
+    c0, c1, c2 = centre0[0] + x[3], centre0[1] + x[4], centre0[2] + x[5]
+    jl = left_jacobian(x[:3])
+    n = pts.shape[0]
+    uv = np.empty((n, 2))
+    jac = np.zeros((n, 2, 6))
+    for i in range(n):
+        dx = pts[i, 0] - c0
+        dy = pts[i, 1] - c1
+        dz = pts[i, 2] - c2
+        px = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
+        py = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
+        pz = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
+        if not pz > 0.0:
+            uv[i, 0] = np.nan
+            uv[i, 1] = np.nan
+            continue
+        xd, yd = _distort(px / pz, py / pz, cam)
+        uv[i, 0] = cam[0] * xd + cam[2]
+        uv[i, 1] = cam[1] * yd + cam[3]
+        _point_jacobian(rot, jl, px, py, pz, cam, jac[i])
+    return uv, jac
+
+
+@njit(cache=True, inline="always")
+def _bilinear_at(img, u, v):  # pragma: no cover - compiled
+    h, w = img.shape
+    if not (u >= 0.0 and u <= w - 1 and v >= 0.0 and v <= h - 1):
+        return 0.0, -1, -1, 0.0, 0.0
+    j0 = int(math.floor(u))
+    i0 = int(math.floor(v))
+    a = u - j0
+    b = v - i0
+    return 1.0, i0, j0, a, b
+
+
+@njit(cache=True, inline="always")
+def _lerp(img, i0, j0, a, b):  # pragma: no cover - compiled
+    h, w = img.shape
+    i1 = min(i0 + 1, h - 1)
+    j1 = min(j0 + 1, w - 1)
+    return ((1.0 - b) * ((1.0 - a) * img[i0, j0] + a * img[i0, j1])
+            + b * ((1.0 - a) * img[i1, j0] + a * img[i1, j1]))
+
+
+@njit(cache=True)
+def bilinear(img: NDArray, u: NDArray, v: NDArray) -> NDArray:  # pragma: no cover - compiled
+    """``img`` sampled at columns ``u`` and rows ``v`` (bilinear; 0 outside ``[0, n-1]`` and for NaN)."""
+    out = np.zeros(u.shape[0])
+    for k in range(u.shape[0]):
+        ok, i0, j0, a, b = _bilinear_at(img, u[k], v[k])
+        if ok > 0.0:
+            out[k] = _lerp(img, i0, j0, a, b)
+    return out
+
+
+@njit(cache=True, inline="always")
+def _reflect101(k, n):  # pragma: no cover - compiled
+    """OpenCV's default border (``BORDER_REFLECT_101``): -1 -> 1, n -> n - 2."""
+    if k < 0:
+        return -k
+    if k >= n:
+        return 2 * n - 2 - k
+    return k
+
+
+@njit(cache=True, inline="always")
+def _sobel_at(img, i, j):  # pragma: no cover - compiled
+    """``cv2.Sobel(img, ksize=3) / 8`` in x and y at pixel (i, j) (default border)."""
+    h, w = img.shape
+    im = _reflect101(i - 1, h)
+    ip = _reflect101(i + 1, h)
+    jm = _reflect101(j - 1, w)
+    jp = _reflect101(j + 1, w)
+    gx = ((img[im, jp] - img[im, jm]) + 2.0 * (img[i, jp] - img[i, jm]) + (img[ip, jp] - img[ip, jm])) / 8.0
+    gy = ((img[ip, jm] - img[im, jm]) + 2.0 * (img[ip, j] - img[im, j]) + (img[ip, jp] - img[im, jp])) / 8.0
+    return gx, gy
+
+
+@njit(cache=True, inline="always")
+def _sobel_lerp(img, i0, j0, a, b):  # pragma: no cover - compiled
+    """Bilinear interpolation of the Sobel gradient images (as ``map_coordinates`` of them).
+
+    The four Sobel values come from the 4 x 4 neighbourhood of ``(i0, j0)`` (OpenCV's
+    default border); on the last row or column, where the bilinear corners clamp, from
+    each corner's own neighbourhood.
+    """
+    h, w = img.shape
+    if i0 + 1 >= h or j0 + 1 >= w:
+        i1 = min(i0 + 1, h - 1)
+        j1 = min(j0 + 1, w - 1)
+        x00, y00 = _sobel_at(img, i0, j0)
+        x01, y01 = _sobel_at(img, i0, j1)
+        x10, y10 = _sobel_at(img, i1, j0)
+        x11, y11 = _sobel_at(img, i1, j1)
+        gx = (1.0 - b) * ((1.0 - a) * x00 + a * x01) + b * ((1.0 - a) * x10 + a * x11)
+        gy = (1.0 - b) * ((1.0 - a) * y00 + a * y01) + b * ((1.0 - a) * y10 + a * y11)
+        return gx, gy
+    r0, r1, r2, r3 = _reflect101(i0 - 1, h), i0, i0 + 1, _reflect101(i0 + 2, h)
+    c0, c1, c2, c3 = _reflect101(j0 - 1, w), j0, j0 + 1, _reflect101(j0 + 2, w)
+    p00, p01, p02, p03 = img[r0, c0], img[r0, c1], img[r0, c2], img[r0, c3]
+    p10, p11, p12, p13 = img[r1, c0], img[r1, c1], img[r1, c2], img[r1, c3]
+    p20, p21, p22, p23 = img[r2, c0], img[r2, c1], img[r2, c2], img[r2, c3]
+    p30, p31, p32, p33 = img[r3, c0], img[r3, c1], img[r3, c2], img[r3, c3]
+    # Sobel at the corners (1, 1), (1, 2), (2, 1), (2, 2) of the 4 x 4 patch
+    x11 = (p02 - p00) + 2.0 * (p12 - p10) + (p22 - p20)
+    x12 = (p03 - p01) + 2.0 * (p13 - p11) + (p23 - p21)
+    x21 = (p12 - p10) + 2.0 * (p22 - p20) + (p32 - p30)
+    x22 = (p13 - p11) + 2.0 * (p23 - p21) + (p33 - p31)
+    y11 = (p20 - p00) + 2.0 * (p21 - p01) + (p22 - p02)
+    y12 = (p21 - p01) + 2.0 * (p22 - p02) + (p23 - p03)
+    y21 = (p30 - p10) + 2.0 * (p31 - p11) + (p32 - p12)
+    y22 = (p31 - p11) + 2.0 * (p32 - p12) + (p33 - p13)
+    gx = ((1.0 - b) * ((1.0 - a) * x11 + a * x12) + b * ((1.0 - a) * x21 + a * x22)) / 8.0
+    gy = ((1.0 - b) * ((1.0 - a) * y11 + a * y12) + b * ((1.0 - a) * y21 + a * y22)) / 8.0
+    return gx, gy
+
+
+@njit(cache=True)
+def sobel_bilinear(img: NDArray, u: NDArray, v: NDArray) -> NDArray:  # pragma: no cover - compiled
+    """The Sobel gradient of ``img`` (``cv2.Sobel(ksize=3) / 8``) sampled bilinearly at (u, v): (N, 2)."""
+    out = np.zeros((u.shape[0], 2))
+    for k in range(u.shape[0]):
+        ok, i0, j0, a, b = _bilinear_at(img, u[k], v[k])
+        if ok > 0.0:
+            out[k, 0], out[k, 1] = _sobel_lerp(img, i0, j0, a, b)
+    return out
+
+
+#: Residual kinds of :func:`solve_pose`.
+CHAMFER = 0
+POINT_TO_LINE = 1
+
+
+@njit(cache=True, inline="always")
+def _uv_jacobian(px, py, pz, cam, rot, jl):  # pragma: no cover - compiled
+    """Rows ``d u / d(w, dC)`` and ``d v / d(w, dC)`` (two 6-tuples) at camera-frame point (px, py, pz)."""
+    k1, k2, p1, p2, k3 = cam[4], cam[5], cam[6], cam[7], cam[8]
+    iz = 1.0 / pz
+    xn = px * iz
+    yn = py * iz
+    r2 = xn * xn + yn * yn
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    jxx = radial + 2.0 * xn * xn * dradial + 2.0 * p1 * yn + 6.0 * p2 * xn
+    jyy = radial + 2.0 * yn * yn * dradial + 6.0 * p1 * yn + 2.0 * p2 * xn
+    jxy = 2.0 * xn * yn * dradial + 2.0 * p1 * xn + 2.0 * p2 * yn
+    # d(u, v) / d(px, py, pz) = diag(fx, fy) Jd [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
+    a0 = cam[0] * jxx * iz
+    a1 = cam[0] * jxy * iz
+    a2 = -(a0 * xn + a1 * yn)
+    b0 = cam[1] * jxy * iz
+    b1 = cam[1] * jyy * iz
+    b2 = -(b0 * xn + b1 * yn)
+    # d p / d w_k = J_l[:, k] x p ; d p / d C_k = -R[:, k]
+    ux = np.empty(6)
+    vx = np.empty(6)
+    for k in range(3):
+        l0, l1, l2 = jl[0, k], jl[1, k], jl[2, k]
+        d0 = l1 * pz - l2 * py
+        d1 = l2 * px - l0 * pz
+        d2 = l0 * py - l1 * px
+        ux[k] = a0 * d0 + a1 * d1 + a2 * d2
+        vx[k] = b0 * d0 + b1 * d1 + b2 * d2
+        ux[3 + k] = -(a0 * rot[0, k] + a1 * rot[1, k] + a2 * rot[2, k])
+        vx[3 + k] = -(b0 * rot[0, k] + b1 * rot[1, k] + b2 * rot[2, k])
+    return ux, vx
+
+
+@njit(cache=True)
+def _chamfer_eval(rot0, centre0, x, pts, cam, prox, want_jac, f, jac):  # pragma: no cover - compiled
+    rot = rotation_from_vector(x[:3]) @ rot0
+    c0, c1, c2 = centre0[0] + x[3], centre0[1] + x[4], centre0[2] + x[5]
+    jl = left_jacobian(x[:3])
+    k1, k2, p1, p2, k3 = cam[4], cam[5], cam[6], cam[7], cam[8]
+    for i in range(f.shape[0]):
+        f[i] = 1.0
+        if want_jac:
+            for c in range(6):
+                jac[i, c] = 0.0
+        dx = pts[i, 0] - c0
+        dy = pts[i, 1] - c1
+        dz = pts[i, 2] - c2
+        px = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
+        py = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
+        pz = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
+        if not pz > 0.0:
+            continue
+        xn = px / pz
+        yn = py / pz
+        r2 = xn * xn + yn * yn
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xy2 = 2.0 * xn * yn
+        u = cam[0] * (xn * radial + p1 * xy2 + p2 * (r2 + 2.0 * xn * xn)) + cam[2]
+        v = cam[1] * (yn * radial + p1 * (r2 + 2.0 * yn * yn) + p2 * xy2) + cam[3]
+        ok, i0, j0, a, b = _bilinear_at(prox, u, v)
+        if ok == 0.0:
+            continue
+        f[i] = 1.0 - _lerp(prox, i0, j0, a, b)
+        if want_jac:
+            g0, g1 = _sobel_lerp(prox, i0, j0, a, b)
+            ux, vx = _uv_jacobian(px, py, pz, cam, rot, jl)
+            for c in range(6):
+                jac[i, c] = -(g0 * ux[c] + g1 * vx[c])
+
+
+@njit(cache=True)
+def _evaluate(kind, rot0, centre0, x, pts, cam, prox, q, gate, want_jac, f, jac):  # pragma: no cover
+    if kind == CHAMFER:
+        _chamfer_eval(rot0, centre0, x, pts, cam, prox, want_jac, f, jac)
+    else:
+        _evaluate_any(kind, rot0, centre0, x, pts, cam, prox, q, gate, want_jac, f, jac)
+
+
+@njit(cache=True)
+def _evaluate_any(kind, rot0, centre0, x, pts, cam, prox, q, gate, want_jac, f, jac):  # pragma: no cover
+    """Residuals (and their Jacobian) at pose parameters ``x`` for the two fits.
+
+    ``CHAMFER``: ``1 - prox(u, v)`` at each point of ``pts`` (1 outside the map or behind
+    the camera, with a zero Jacobian row); the gradient is the map's Sobel gradient,
+    bilinearly interpolated.
+
+    ``POINT_TO_LINE``: ``pts`` holds M matched model points, then their previous and their
+    next sample on the outline (3 M rows); the residual is the signed distance of the edge
+    point ``q[i]`` from the line through model point ``i`` along the central difference of
+    its neighbours (``gate`` where undefined, with a zero Jacobian row).
+    """
+    rot = rotation_from_vector(x[:3]) @ rot0
+    c0, c1, c2 = centre0[0] + x[3], centre0[1] + x[4], centre0[2] + x[5]
+    jl = left_jacobian(x[:3])
+    m = f.shape[0]
+    npt = 1 if kind == CHAMFER else 3
+    uv = np.empty((npt, 2))
+    duv = np.zeros((npt, 2, 6))
+    front = np.empty(npt, np.bool_)
+    for i in range(m):
+        for k in range(npt):
+            r = i + k * m
+            dx = pts[r, 0] - c0
+            dy = pts[r, 1] - c1
+            dz = pts[r, 2] - c2
+            px = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
+            py = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
+            pz = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
+            front[k] = pz > 0.0
+            if front[k]:
+                xd, yd = _distort(px / pz, py / pz, cam)
+                uv[k, 0] = cam[0] * xd + cam[2]
+                uv[k, 1] = cam[1] * yd + cam[3]
+                if want_jac:
+                    _point_jacobian(rot, jl, px, py, pz, cam, duv[k])
+        if want_jac:
+            for c in range(6):
+                jac[i, c] = 0.0
+        if kind == CHAMFER:  # pragma: no cover - _chamfer_eval
+            f[i] = 1.0
+            if not front[0]:
+                continue
+            ok, i0, j0, a, b = _bilinear_at(prox, uv[0, 0], uv[0, 1])
+            if ok == 0.0:
+                continue
+            f[i] = 1.0 - _lerp(prox, i0, j0, a, b)
+            if want_jac:
+                g0, g1 = _sobel_lerp(prox, i0, j0, a, b)
+                for c in range(6):
+                    jac[i, c] = -(g0 * duv[0, 0, c] + g1 * duv[0, 1, c])
+        else:
+            f[i] = gate
+            if not (front[0] and front[1] and front[2]):
+                continue
+            tx = uv[2, 0] - uv[1, 0]
+            ty = uv[2, 1] - uv[1, 1]
+            ln = math.sqrt(tx * tx + ty * ty)
+            if not ln > 0.0:
+                continue
+            tx /= ln
+            ty /= ln
+            ddx = q[i, 0] - uv[0, 0]
+            ddy = q[i, 1] - uv[0, 1]
+            f[i] = tx * ddy - ty * ddx
+            if want_jac:
+                for c in range(6):
+                    # d(t / |t|) = (I - t t^T) dt / |t|; d(q - uv) = -duv
+                    dtx = (duv[2, 0, c] - duv[1, 0, c]) / ln
+                    dty = (duv[2, 1, c] - duv[1, 1, c]) / ln
+                    proj = tx * dtx + ty * dty
+                    dtx -= proj * tx
+                    dty -= proj * ty
+                    jac[i, c] = (dtx * ddy - dty * ddx) - (tx * duv[0, 1, c] - ty * duv[0, 0, c])
+
+
+@njit(cache=True)
+def _tr_step(s2, suf, vmat, delta, alpha0, m):  # pragma: no cover - compiled
+    """Moré's trust-region step from the eigen-decomposition of the scaled normal matrix.
+
+    ``s2`` are the eigenvalues (squared singular values of the scaled Jacobian),
+    ``suf = V^T g``; the step is ``-V suf / (s2 + alpha)`` with ``alpha = 0`` if that
+    Gauss-Newton step is inside the region, else ``|step| = delta`` to 1 % (then scaled
+    onto the boundary). ``m`` is the number of residuals (rank test as for an SVD of the
+    Jacobian). Returns (step, alpha).
+    """
+    smax = math.sqrt(max(s2.max(), 0.0))
+    smin = math.sqrt(max(s2.min(), 0.0))
+    full_rank = smin > 2.220446049250313e-16 * m * smax
+    if full_rank:
+        p = -(vmat @ (suf / s2))
+        if math.sqrt((p * p).sum()) <= delta:
+            return p, 0.0
+    alpha_upper = math.sqrt((suf * suf).sum()) / delta
+    alpha_lower = 0.0
+    if full_rank:
+        pn = math.sqrt(((suf / s2) ** 2).sum())
+        alpha_lower = -(pn - delta) / (-((suf ** 2) / s2 ** 3).sum() / pn)
+    alpha = alpha0
+    if alpha == 0.0 and not full_rank:
+        alpha = max(0.001 * alpha_upper, math.sqrt(alpha_lower * alpha_upper))
+    for _ in range(10):
+        if alpha < alpha_lower or alpha > alpha_upper:
+            alpha = max(0.001 * alpha_upper, math.sqrt(alpha_lower * alpha_upper))
+        den = s2 + alpha
+        pn = math.sqrt(((suf / den) ** 2).sum())
+        phi = pn - delta
+        dphi = -((suf ** 2) / den ** 3).sum() / pn
+        if phi < 0:
+            alpha_upper = alpha
+        ratio = phi / dphi
+        alpha_lower = max(alpha_lower, alpha - ratio)
+        alpha -= (phi + delta) * ratio / delta
+        if abs(phi) < 0.01 * delta:
+            break
+    p = -(vmat @ (suf / (s2 + alpha)))
+    pn = math.sqrt((p * p).sum())
+    if pn > 0:
+        p *= delta / pn
+    return p, alpha
+
+
+@njit(cache=True)
+def _robust(f, f_scale, soft_l1, jac, scale_jac):  # pragma: no cover - compiled
+    """Cost ``0.5 sum rho(f)``; with ``scale_jac`` also the residuals and Jacobian rescaled
+    in place so that Gauss-Newton on them is the robust problem's (Triggs et al. 2000,
+    as ``least_squares``). ``soft_l1``: ``rho(f) = 2 c^2 (sqrt(1 + (f / c)^2) - 1)``."""
+    if not soft_l1:
+        return 0.5 * (f * f).sum()
+    cost = 0.0
+    c2 = f_scale * f_scale
+    for i in range(f.shape[0]):
+        t = 1.0 + f[i] * f[i] / c2
+        st = math.sqrt(t)
+        cost += c2 * (st - 1.0)
+        if scale_jac:
+            rho1 = 1.0 / st
+            rho2 = -0.5 / (t * st) / c2
+            js = rho1 + 2.0 * rho2 * f[i] * f[i]
+            if js < 2.220446049250313e-16:
+                js = 2.220446049250313e-16
+            js = math.sqrt(js)
+            f[i] *= rho1 / js
+            for c in range(jac.shape[1]):
+                jac[i, c] *= js
+    return cost
+
+
+@njit(cache=True)
+def _normal_equations(jac, f, x_scale, a, g):  # pragma: no cover - compiled
+    """``g = J^T f`` and the scaled normal matrix ``a = (J D)^T (J D)``, ``D = diag(x_scale)`` (no BLAS)."""
+    n = jac.shape[1]
+    for c in range(n):
+        g[c] = 0.0
+        for d in range(n):
+            a[c, d] = 0.0
+    for i in range(jac.shape[0]):
+        fi = f[i]
+        for c in range(n):
+            jc = jac[i, c]
+            if jc == 0.0:
+                continue
+            g[c] += jc * fi
+            for d in range(c, n):
+                a[c, d] += jc * jac[i, d]
+    for c in range(n):
+        for d in range(c, n):
+            a[c, d] *= x_scale[c] * x_scale[d]
+            a[d, c] = a[c, d]
+
+
+@njit(cache=True)
+def solve_pose(kind: int, rot0: NDArray, centre0: NDArray, pts: NDArray, cam: NDArray, prox: NDArray,
+               q: NDArray, gate: float, m: int, x_scale: NDArray, max_nfev: int, soft_l1: bool,
+               f_scale: float) -> NDArray:  # pragma: no cover - compiled
+    """Pose parameters (6,) minimising the (robust) sum of squared residuals of ``kind``, from zero.
+
+    Trust-region least squares in the variables scaled by ``x_scale`` (the algorithm of
+    ``scipy.optimize.least_squares(method="trf", tr_solver="exact")`` without bounds: Moré's
+    exact step, radius halved / doubled on the ratio of actual to predicted reduction,
+    tolerances ``ftol = xtol = gtol = 1e-8``, at most ``max_nfev`` residual evaluations),
+    with the analytic Jacobian of :func:`_evaluate`. ``m`` is the number of residuals.
+    """
+    x = np.zeros(6)
+    f = np.empty(m)
+    jac = np.empty((m, 6))
+    f_new = np.empty(m)
+    jac_new = np.empty((m, 6))
+    _evaluate(kind, rot0, centre0, x, pts, cam, prox, q, gate, True, f, jac)
+    nfev = 1
+    cost = _robust(f, f_scale, soft_l1, jac, True)
+    delta = 1.0
+    alpha = 0.0
+    tol = 1e-8
+    done = False
+    g = np.empty(6)
+    a = np.empty((6, 6))
+    while not done:
+        _normal_equations(jac, f, x_scale, a, g)
+        if np.abs(g).max() < tol or nfev >= max_nfev:
+            break
+        gh = g * x_scale
+        s2, vmat = np.linalg.eigh(a)
+        suf = vmat.T @ gh
+        actual = -1.0
+        x_new = x
+        cost_new = cost
+        while actual <= 0.0 and nfev < max_nfev:
+            h, alpha = _tr_step(s2, suf, vmat, delta, alpha, m)
+            predicted = -(0.5 * (h @ (a @ h)) + gh @ h)
+            step = x_scale * h
+            x_new = x + step
+            # the Jacobian comes with the trial residuals: most trial steps are taken
+            _evaluate(kind, rot0, centre0, x_new, pts, cam, prox, q, gate, True, f_new, jac_new)
+            nfev += 1
+            hn = math.sqrt((h * h).sum())
+            cost_new = _robust(f_new, f_scale, soft_l1, jac_new, False)
+            actual = cost - cost_new
+            if predicted > 0:
+                ratio = actual / predicted
+            elif predicted == 0.0 and actual == 0.0:
+                ratio = 1.0
+            else:
+                ratio = 0.0
+            delta_new = delta
+            if ratio < 0.25:
+                delta_new = 0.25 * hn
+            elif ratio > 0.75 and hn > 0.95 * delta:
+                delta_new = 2.0 * delta
+            step_norm = math.sqrt((step * step).sum())
+            x_norm = math.sqrt((x * x).sum())
+            if (actual < tol * cost and ratio > 0.25) or step_norm < tol * (tol + x_norm):
+                done = True
+                break
+            if delta_new > 0:
+                alpha *= delta / delta_new
+            delta = delta_new
+        if actual > 0.0:
+            x = x_new
+            cost = cost_new
+            f, f_new = f_new, f
+            jac, jac_new = jac_new, jac
+            _robust(f, f_scale, soft_l1, jac, True)
+    return x
+
+
+@njit(cache=True)
+def residuals(kind: int, rot0: NDArray, centre0: NDArray, x: NDArray, pts: NDArray, cam: NDArray, prox: NDArray,
+              q: NDArray, gate: float, m: int) -> NDArray:  # pragma: no cover - compiled
+    """The residuals of :func:`solve_pose` at ``x`` (no loss applied)."""
+    f = np.empty(m)
+    _evaluate(kind, rot0, centre0, x, pts, cam, prox, q, gate, False, f, np.empty((1, 6)))
+    return f
+
+
+@njit(cache=True)
+def jacobian(kind: int, rot0: NDArray, centre0: NDArray, x: NDArray, pts: NDArray, cam: NDArray, prox: NDArray,
+             q: NDArray, gate: float, m: int) -> NDArray:  # pragma: no cover - compiled
+    """The Jacobian (m, 6) of :func:`residuals` at ``x``."""
+    f = np.empty(m)
+    jac = np.empty((m, 6))
+    _evaluate(kind, rot0, centre0, x, pts, cam, prox, q, gate, True, f, jac)
+    return jac
+
+
+@njit(cache=True)
+def edge_nms(gx: NDArray, gy: NDArray, mag: NDArray, threshold: float, mask: NDArray,
+             use_mask: bool) -> tuple[NDArray, NDArray, NDArray]:  # pragma: no cover - compiled
+    """Sub-pixel edge points by non-maximum suppression along the quantised gradient direction.
+
+    For each interior pixel with ``mag >= threshold`` (and ``mask`` if ``use_mask``): the
+    unit gradient ``n = (gx, gy) / |(gx, gy)|`` rounded to the nearest of the eight
+    neighbour offsets ``o``; kept if ``mag >= mag[+o]`` and ``mag > mag[-o]``; moved along
+    ``o`` to the vertex of the parabola through the three magnitudes (clipped to half a
+    pixel). Returns ``xy`` (N, 2), ``normal`` (N, 2) and ``strength`` (N,) in row-major
+    pixel order.
+    """
+    h, w = mag.shape
+    keep = np.zeros((h, w), np.bool_)
+    n = 0
+    for i in range(1, h - 1):
+        for j in range(1, w - 1):
+            c = mag[i, j]
+            if not c >= threshold:
+                continue
+            if use_mask and not mask[i, j]:
+                continue
+            g0 = gx[i, j]
+            g1 = gy[i, j]
+            nrm = math.hypot(g0, g1)
+            if not nrm > 0.0:
+                continue
+            ox = int(np.rint(g0 / nrm))
+            oy = int(np.rint(g1 / nrm))
+            if ox == 0 and oy == 0:
+                continue
+            if c >= mag[i + oy, j + ox] and c > mag[i - oy, j - ox]:
+                keep[i, j] = True
+                n += 1
+    xy = np.empty((n, 2))
+    normal = np.empty((n, 2))
+    strength = np.empty(n)
+    k = 0
+    for i in range(1, h - 1):
+        for j in range(1, w - 1):
+            if not keep[i, j]:
+                continue
+            g0 = gx[i, j]
+            g1 = gy[i, j]
+            nrm = math.hypot(g0, g1)
+            nx = g0 / nrm
+            ny = g1 / nrm
+            ox = int(np.rint(nx))
+            oy = int(np.rint(ny))
+            c = mag[i, j]
+            ff = mag[i + oy, j + ox]
+            bb = mag[i - oy, j - ox]
+            den = ff - 2.0 * c + bb
+            off = 0.5 * (bb - ff) / den if den < 0 else 0.0
+            off = min(max(off, -0.5), 0.5)
+            xy[k, 0] = j + off * ox
+            xy[k, 1] = i + off * oy
+            normal[k, 0] = nx
+            normal[k, 1] = ny
+            strength[k] = c
+            k += 1
+    return xy, normal, strength
+
+
+@njit(cache=True)
+def grid_scores(weights: NDArray, nodes: NDArray, sub: NDArray, r0: int, c0: int, dt: NDArray, tol: float,
+                min_inside: int) -> NDArray:  # pragma: no cover - compiled
+    """Chamfer score of each grid node of the canting search.
+
+    The model point ``n`` lies at ``sum_k weights[g, k] nodes[k, n]`` for node ``g``; rounded
+    to the nearest pixel, it counts if the mask (``sub`` at rows ``r0..``, columns ``c0..``)
+    holds it, and scores if the distance transform ``dt`` there is ``<= tol``. A node's score
+    is the share of its counted points that score, or -1 with fewer than ``min_inside``
+    counted.
+    """
+    n_nodes = weights.shape[0]
+    n_pts = nodes.shape[1]
+    hh, ww = sub.shape
+    out = np.empty(n_nodes)
+    for g in range(n_nodes):
+        n_in = 0
+        n_near = 0
+        for n in range(n_pts):
+            u = 0.0
+            v = 0.0
+            for k in range(nodes.shape[0]):
+                u += weights[g, k] * nodes[k, n, 0]
+                v += weights[g, k] * nodes[k, n, 1]
+            if not (math.isfinite(u) and math.isfinite(v)):
+                continue
+            i = int(np.rint(v)) - r0
+            j = int(np.rint(u)) - c0
+            if i < 0 or i >= hh or j < 0 or j >= ww or not sub[i, j]:
+                continue
+            n_in += 1
+            if dt[i + r0, j + c0] <= tol:
+                n_near += 1
+        out[g] = n_near / max(n_in, 1) if n_in >= min_inside else -1.0
+    return out
