@@ -136,8 +136,12 @@ def project_rc(rot: NDArray, centre: NDArray, pts: NDArray, cam: NDArray) -> NDA
 
 
 @njit(cache=True, inline="always")
-def _point_jacobian(rot, jl, px, py, pz, cam, jrow):  # pragma: no cover - compiled
-    """d(u, v) / d(w, dC) (2 x 6, into ``jrow``) at camera-frame point (px, py, pz); returns nothing."""
+def _pixel_jacobian(px, py, pz, cam):  # pragma: no cover - compiled
+    """``d(u, v) / d(px, py, pz)`` at a camera-frame point: the rows ``(a0, a1, a2)``, ``(b0, b1, b2)``.
+
+    ``diag(fx, fy) Jd [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]`` with ``Jd`` the Jacobian of
+    the distortion polynomial at the normalised point.
+    """
     k1, k2, p1, p2, k3 = cam[4], cam[5], cam[6], cam[7], cam[8]
     iz = 1.0 / pz
     xn = px * iz
@@ -148,26 +152,29 @@ def _point_jacobian(rot, jl, px, py, pz, cam, jrow):  # pragma: no cover - compi
     jxx = radial + 2.0 * xn * xn * dradial + 2.0 * p1 * yn + 6.0 * p2 * xn
     jyy = radial + 2.0 * yn * yn * dradial + 6.0 * p1 * yn + 2.0 * p2 * xn
     jxy = 2.0 * xn * yn * dradial + 2.0 * p1 * xn + 2.0 * p2 * yn
-    # d(u, v) / d(px, py, pz) = diag(fx, fy) Jd [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
-    a00 = cam[0] * jxx * iz
-    a01 = cam[0] * jxy * iz
-    a02 = -(a00 * xn + a01 * yn)
-    a10 = cam[1] * jxy * iz
-    a11 = cam[1] * jyy * iz
-    a12 = -(a10 * xn + a11 * yn)
-    # d p / d w = -[p]x J_l ; d p / d C = -R
-    # -[p]x = [[0, pz, -py], [-pz, 0, px], [py, -px, 0]]
-    m00, m01, m02 = 0.0, pz, -py
-    m10, m11, m12 = -pz, 0.0, px
-    m20, m21, m22 = py, -px, 0.0
+    a0 = cam[0] * jxx * iz
+    a1 = cam[0] * jxy * iz
+    b0 = cam[1] * jxy * iz
+    b1 = cam[1] * jyy * iz
+    return a0, a1, -(a0 * xn + a1 * yn), b0, b1, -(b0 * xn + b1 * yn)
+
+
+@njit(cache=True, inline="always")
+def _pose_jacobian(px, py, pz, cam, rot, jl, ux, vx):  # pragma: no cover - compiled
+    """``d u`` and ``d v`` by the pose parameters (rotation vector, position offset) into ``ux``, ``vx`` (6,).
+
+    ``d p / d w_k = J_l[:, k] x p`` (``-[p]x J_l``) and ``d p / d C = -R``.
+    """
+    a0, a1, a2, b0, b1, b2 = _pixel_jacobian(px, py, pz, cam)
     for k in range(3):
-        d0 = m00 * jl[0, k] + m01 * jl[1, k] + m02 * jl[2, k]
-        d1 = m10 * jl[0, k] + m11 * jl[1, k] + m12 * jl[2, k]
-        d2 = m20 * jl[0, k] + m21 * jl[1, k] + m22 * jl[2, k]
-        jrow[0, k] = a00 * d0 + a01 * d1 + a02 * d2
-        jrow[1, k] = a10 * d0 + a11 * d1 + a12 * d2
-        jrow[0, 3 + k] = -(a00 * rot[0, k] + a01 * rot[1, k] + a02 * rot[2, k])
-        jrow[1, 3 + k] = -(a10 * rot[0, k] + a11 * rot[1, k] + a12 * rot[2, k])
+        l0, l1, l2 = jl[0, k], jl[1, k], jl[2, k]
+        d0 = l1 * pz - l2 * py
+        d1 = l2 * px - l0 * pz
+        d2 = l0 * py - l1 * px
+        ux[k] = a0 * d0 + a1 * d1 + a2 * d2
+        vx[k] = b0 * d0 + b1 * d1 + b2 * d2
+        ux[3 + k] = -(a0 * rot[0, k] + a1 * rot[1, k] + a2 * rot[2, k])
+        vx[3 + k] = -(b0 * rot[0, k] + b1 * rot[1, k] + b2 * rot[2, k])
 
 
 @njit(cache=True)
@@ -183,6 +190,8 @@ def project_rc_jacobian(rot0: NDArray, centre0: NDArray, x: NDArray, pts: NDArra
     n = pts.shape[0]
     uv = np.empty((n, 2))
     jac = np.zeros((n, 2, 6))
+    ux = np.empty(6)
+    vx = np.empty(6)
     for i in range(n):
         dx = pts[i, 0] - c0
         dy = pts[i, 1] - c1
@@ -197,7 +206,10 @@ def project_rc_jacobian(rot0: NDArray, centre0: NDArray, x: NDArray, pts: NDArra
         xd, yd = _distort(px / pz, py / pz, cam)
         uv[i, 0] = cam[0] * xd + cam[2]
         uv[i, 1] = cam[1] * yd + cam[3]
-        _point_jacobian(rot, jl, px, py, pz, cam, jac[i])
+        _pose_jacobian(px, py, pz, cam, rot, jl, ux, vx)
+        for c in range(6):
+            jac[i, 0, c] = ux[c]
+            jac[i, 1, c] = vx[c]
     return uv, jac
 
 
@@ -306,52 +318,61 @@ def sobel_bilinear(img: NDArray, u: NDArray, v: NDArray) -> NDArray:  # pragma: 
     return out
 
 
-#: Residual kinds of :func:`solve_pose`.
+#: Residual kinds of :func:`solve` (the first item of a :func:`problem`).
 CHAMFER = 0
 POINT_TO_LINE = 1
+REFLECTION = 2
 
 
-@njit(cache=True, inline="always")
-def _uv_jacobian(px, py, pz, cam, rot, jl):  # pragma: no cover - compiled
-    """Rows ``d u / d(w, dC)`` and ``d v / d(w, dC)`` (two 6-tuples) at camera-frame point (px, py, pz)."""
-    k1, k2, p1, p2, k3 = cam[4], cam[5], cam[6], cam[7], cam[8]
-    iz = 1.0 / pz
-    xn = px * iz
-    yn = py * iz
-    r2 = xn * xn + yn * yn
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-    jxx = radial + 2.0 * xn * xn * dradial + 2.0 * p1 * yn + 6.0 * p2 * xn
-    jyy = radial + 2.0 * yn * yn * dradial + 6.0 * p1 * yn + 2.0 * p2 * xn
-    jxy = 2.0 * xn * yn * dradial + 2.0 * p1 * xn + 2.0 * p2 * yn
-    # d(u, v) / d(px, py, pz) = diag(fx, fy) Jd [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
-    a0 = cam[0] * jxx * iz
-    a1 = cam[0] * jxy * iz
-    a2 = -(a0 * xn + a1 * yn)
-    b0 = cam[1] * jxy * iz
-    b1 = cam[1] * jyy * iz
-    b2 = -(b0 * xn + b1 * yn)
-    # d p / d w_k = J_l[:, k] x p ; d p / d C_k = -R[:, k]
-    ux = np.empty(6)
-    vx = np.empty(6)
-    for k in range(3):
-        l0, l1, l2 = jl[0, k], jl[1, k], jl[2, k]
-        d0 = l1 * pz - l2 * py
-        d1 = l2 * px - l0 * pz
-        d2 = l0 * py - l1 * px
-        ux[k] = a0 * d0 + a1 * d1 + a2 * d2
-        vx[k] = b0 * d0 + b1 * d1 + b2 * d2
-        ux[3 + k] = -(a0 * rot[0, k] + a1 * rot[1, k] + a2 * rot[2, k])
-        vx[3 + k] = -(b0 * rot[0, k] + b1 * rot[1, k] + b2 * rot[2, k])
-    return ux, vx
+def problem(kind: int, rot: NDArray, centre: NDArray, pts: NDArray, cam: NDArray, *, prox: NDArray | None = None,
+            q: NDArray | None = None, aux: NDArray | None = None, idx: NDArray | None = None,
+            gate: float = 0.0) -> tuple:
+    """The arguments of one least-squares problem for :func:`solve`, :func:`residuals` and :func:`jacobian`.
+
+    Parameters
+    ----------
+    kind : {CHAMFER, POINT_TO_LINE, REFLECTION}
+    rot, centre : ndarray
+        The camera's world -> camera rotation (3, 3) and centre (3,), metres: the pose the
+        pose parameters perturb (``CHAMFER``, ``POINT_TO_LINE``: ``x = (w, dC)``,
+        ``R = exp([w]x) rot``, ``C = centre + dC``) or the fixed pose (``REFLECTION``).
+    pts : ndarray, shape (N, 3)
+        Model points, ENU metres (see :func:`_evaluate` for their layout per kind).
+    cam : ndarray, shape (9,)
+        :func:`camera_vector`.
+    prox : ndarray, 2-D, float32
+        ``CHAMFER``: the proximity map.
+    q : ndarray, shape (M, 2) or (M, 4)
+        ``POINT_TO_LINE``: the matched edge points; ``REFLECTION``: the matched edge
+        points and the unit normals of the model's lines there.
+    aux : ndarray, shape (15,)
+        ``REFLECTION``: the HUA's rotation (9, row-major), the facet centre (3, ENU) and
+        its design normal (3, heliostat frame).
+    idx : ndarray of int
+        ``REFLECTION``: the model point of each residual.
+    gate : float
+        Residual where it is undefined (``POINT_TO_LINE``, ``REFLECTION``), pixels.
+    """
+    f64 = np.float64
+    return (int(kind), np.ascontiguousarray(rot, dtype=f64), np.ascontiguousarray(centre, dtype=f64),
+            np.ascontiguousarray(pts, dtype=f64), np.ascontiguousarray(cam, dtype=f64),
+            np.ascontiguousarray(prox, dtype=np.float32) if prox is not None else np.zeros((1, 1), np.float32),
+            np.ascontiguousarray(q, dtype=f64) if q is not None else np.zeros((0, 2)),
+            np.ascontiguousarray(aux, dtype=f64) if aux is not None else np.zeros(0),
+            np.ascontiguousarray(idx, dtype=np.int64) if idx is not None else np.zeros(0, np.int64),
+            float(gate))
 
 
 @njit(cache=True)
-def _chamfer_eval(rot0, centre0, x, pts, cam, prox, want_jac, f, jac):  # pragma: no cover - compiled
+def _chamfer_eval(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
+    """``1 - prox(u, v)`` at each model point (1 outside the map or behind the camera, zero
+    Jacobian row); the gradient is the map's Sobel gradient, bilinearly interpolated."""
+    rot0, centre0, pts, cam, prox = prob[1], prob[2], prob[3], prob[4], prob[5]
     rot = rotation_from_vector(x[:3]) @ rot0
     c0, c1, c2 = centre0[0] + x[3], centre0[1] + x[4], centre0[2] + x[5]
     jl = left_jacobian(x[:3])
-    k1, k2, p1, p2, k3 = cam[4], cam[5], cam[6], cam[7], cam[8]
+    ux = np.empty(6)
+    vx = np.empty(6)
     for i in range(f.shape[0]):
         f[i] = 1.0
         if want_jac:
@@ -365,55 +386,36 @@ def _chamfer_eval(rot0, centre0, x, pts, cam, prox, want_jac, f, jac):  # pragma
         pz = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
         if not pz > 0.0:
             continue
-        xn = px / pz
-        yn = py / pz
-        r2 = xn * xn + yn * yn
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xy2 = 2.0 * xn * yn
-        u = cam[0] * (xn * radial + p1 * xy2 + p2 * (r2 + 2.0 * xn * xn)) + cam[2]
-        v = cam[1] * (yn * radial + p1 * (r2 + 2.0 * yn * yn) + p2 * xy2) + cam[3]
-        ok, i0, j0, a, b = _bilinear_at(prox, u, v)
+        xd, yd = _distort(px / pz, py / pz, cam)
+        ok, i0, j0, a, b = _bilinear_at(prox, cam[0] * xd + cam[2], cam[1] * yd + cam[3])
         if ok == 0.0:
             continue
         f[i] = 1.0 - _lerp(prox, i0, j0, a, b)
         if want_jac:
             g0, g1 = _sobel_lerp(prox, i0, j0, a, b)
-            ux, vx = _uv_jacobian(px, py, pz, cam, rot, jl)
+            _pose_jacobian(px, py, pz, cam, rot, jl, ux, vx)
             for c in range(6):
                 jac[i, c] = -(g0 * ux[c] + g1 * vx[c])
 
 
 @njit(cache=True)
-def _evaluate(kind, rot0, centre0, x, pts, cam, prox, q, gate, want_jac, f, jac):  # pragma: no cover
-    if kind == CHAMFER:
-        _chamfer_eval(rot0, centre0, x, pts, cam, prox, want_jac, f, jac)
-    else:
-        _evaluate_any(kind, rot0, centre0, x, pts, cam, prox, q, gate, want_jac, f, jac)
-
-
-@njit(cache=True)
-def _evaluate_any(kind, rot0, centre0, x, pts, cam, prox, q, gate, want_jac, f, jac):  # pragma: no cover
-    """Residuals (and their Jacobian) at pose parameters ``x`` for the two fits.
-
-    ``CHAMFER``: ``1 - prox(u, v)`` at each point of ``pts`` (1 outside the map or behind
-    the camera, with a zero Jacobian row); the gradient is the map's Sobel gradient,
-    bilinearly interpolated.
-
-    ``POINT_TO_LINE``: ``pts`` holds M matched model points, then their previous and their
-    next sample on the outline (3 M rows); the residual is the signed distance of the edge
-    point ``q[i]`` from the line through model point ``i`` along the central difference of
-    its neighbours (``gate`` where undefined, with a zero Jacobian row).
-    """
+def _line_eval(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
+    """Signed distance of edge point ``q[i]`` from the line through model point ``i`` along the
+    central difference of its neighbours; ``pts`` holds the M model points, then their
+    previous and their next sample on the outline (3 M rows). ``gate`` (zero Jacobian row)
+    where undefined."""
+    rot0, centre0, pts, cam, q, gate = prob[1], prob[2], prob[3], prob[4], prob[6], prob[9]
     rot = rotation_from_vector(x[:3]) @ rot0
     c0, c1, c2 = centre0[0] + x[3], centre0[1] + x[4], centre0[2] + x[5]
     jl = left_jacobian(x[:3])
     m = f.shape[0]
-    npt = 1 if kind == CHAMFER else 3
-    uv = np.empty((npt, 2))
-    duv = np.zeros((npt, 2, 6))
-    front = np.empty(npt, np.bool_)
+    uv = np.empty((3, 2))
+    duv = np.zeros((3, 2, 6))
+    ux = np.empty(6)
+    vx = np.empty(6)
     for i in range(m):
-        for k in range(npt):
+        front = True
+        for k in range(3):
             r = i + k * m
             dx = pts[r, 0] - c0
             dy = pts[r, 1] - c1
@@ -421,51 +423,122 @@ def _evaluate_any(kind, rot0, centre0, x, pts, cam, prox, q, gate, want_jac, f, 
             px = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
             py = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
             pz = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
-            front[k] = pz > 0.0
-            if front[k]:
-                xd, yd = _distort(px / pz, py / pz, cam)
-                uv[k, 0] = cam[0] * xd + cam[2]
-                uv[k, 1] = cam[1] * yd + cam[3]
-                if want_jac:
-                    _point_jacobian(rot, jl, px, py, pz, cam, duv[k])
+            if not pz > 0.0:
+                front = False
+                break
+            xd, yd = _distort(px / pz, py / pz, cam)
+            uv[k, 0] = cam[0] * xd + cam[2]
+            uv[k, 1] = cam[1] * yd + cam[3]
+            if want_jac:
+                _pose_jacobian(px, py, pz, cam, rot, jl, ux, vx)
+                for c in range(6):
+                    duv[k, 0, c] = ux[c]
+                    duv[k, 1, c] = vx[c]
+        f[i] = gate
         if want_jac:
             for c in range(6):
                 jac[i, c] = 0.0
-        if kind == CHAMFER:  # pragma: no cover - _chamfer_eval
-            f[i] = 1.0
-            if not front[0]:
-                continue
-            ok, i0, j0, a, b = _bilinear_at(prox, uv[0, 0], uv[0, 1])
-            if ok == 0.0:
-                continue
-            f[i] = 1.0 - _lerp(prox, i0, j0, a, b)
-            if want_jac:
-                g0, g1 = _sobel_lerp(prox, i0, j0, a, b)
-                for c in range(6):
-                    jac[i, c] = -(g0 * duv[0, 0, c] + g1 * duv[0, 1, c])
-        else:
-            f[i] = gate
-            if not (front[0] and front[1] and front[2]):
-                continue
-            tx = uv[2, 0] - uv[1, 0]
-            ty = uv[2, 1] - uv[1, 1]
-            ln = math.sqrt(tx * tx + ty * ty)
-            if not ln > 0.0:
-                continue
-            tx /= ln
-            ty /= ln
-            ddx = q[i, 0] - uv[0, 0]
-            ddy = q[i, 1] - uv[0, 1]
-            f[i] = tx * ddy - ty * ddx
-            if want_jac:
-                for c in range(6):
-                    # d(t / |t|) = (I - t t^T) dt / |t|; d(q - uv) = -duv
-                    dtx = (duv[2, 0, c] - duv[1, 0, c]) / ln
-                    dty = (duv[2, 1, c] - duv[1, 1, c]) / ln
-                    proj = tx * dtx + ty * dty
-                    dtx -= proj * tx
-                    dty -= proj * ty
-                    jac[i, c] = (dtx * ddy - dty * ddx) - (tx * duv[0, 1, c] - ty * duv[0, 0, c])
+        if not front:
+            continue
+        tx = uv[2, 0] - uv[1, 0]
+        ty = uv[2, 1] - uv[1, 1]
+        ln = math.hypot(tx, ty)
+        if not ln > 0.0:
+            continue
+        tx /= ln
+        ty /= ln
+        ddx = q[i, 0] - uv[0, 0]
+        ddy = q[i, 1] - uv[0, 1]
+        f[i] = tx * ddy - ty * ddx
+        if want_jac:
+            for c in range(6):
+                # d(t / |t|) = (I - t t^T) dt / |t|; d(q - uv) = -duv
+                dtx = (duv[2, 0, c] - duv[1, 0, c]) / ln
+                dty = (duv[2, 1, c] - duv[1, 1, c]) / ln
+                along = tx * dtx + ty * dty
+                dtx -= along * tx
+                dty -= along * ty
+                jac[i, c] = (dtx * ddy - dty * ddx) - (tx * duv[0, 1, c] - ty * duv[0, 0, c])
+
+
+@njit(cache=True)
+def _reflection_eval(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
+    """Signed distance of edge point ``q[i, :2]`` from the line through model point
+    ``idx[i]`` mirrored in the facet tilted by ``x = (az, el)`` mrad
+    (``R_y(az) R_x(-el)`` of the design normal, :func:`pihim.field.apply_canting_deviation`),
+    along the held unit normal ``q[i, 2:]``; ``gate`` (zero Jacobian row) where undefined."""
+    rot, centre, pts, cam, q, aux, idx, gate = prob[1], prob[2], prob[3], prob[4], prob[6], prob[7], prob[8], prob[9]
+    rh = aux[0:9]
+    fc = aux[9:12]
+    nd = aux[12:15]
+    az = x[0] * 1e-3
+    el = x[1] * 1e-3
+    ca, sa = math.cos(az), math.sin(az)
+    ce, se = math.cos(el), math.sin(el)
+    m1 = np.array([nd[0], ce * nd[1] + se * nd[2], -se * nd[1] + ce * nd[2]])
+    dm1 = np.array([0.0, -se * nd[1] + ce * nd[2], -ce * nd[1] - se * nd[2]])  # d m1 / d el
+    loc = np.array([ca * m1[0] + sa * m1[2], m1[1], -sa * m1[0] + ca * m1[2]])
+    loc_a = np.array([-sa * m1[0] + ca * m1[2], 0.0, -ca * m1[0] - sa * m1[2]])  # d / d az
+    loc_e = np.array([ca * dm1[0] + sa * dm1[2], dm1[1], -sa * dm1[0] + ca * dm1[2]])  # d / d el
+    n = np.empty(3)
+    na = np.empty(3)
+    ne = np.empty(3)
+    for r in range(3):
+        n[r] = rh[3 * r] * loc[0] + rh[3 * r + 1] * loc[1] + rh[3 * r + 2] * loc[2]
+        na[r] = 1e-3 * (rh[3 * r] * loc_a[0] + rh[3 * r + 1] * loc_a[1] + rh[3 * r + 2] * loc_a[2])
+        ne[r] = 1e-3 * (rh[3 * r] * loc_e[0] + rh[3 * r + 1] * loc_e[1] + rh[3 * r + 2] * loc_e[2])
+    k_pts = pts.shape[0]
+    uv = np.empty((k_pts, 2))
+    duv = np.zeros((k_pts, 2, 2))
+    for k in range(k_pts):
+        e0, e1, e2 = pts[k, 0] - fc[0], pts[k, 1] - fc[1], pts[k, 2] - fc[2]
+        d = e0 * n[0] + e1 * n[1] + e2 * n[2]
+        vx_, vy_, vz_ = pts[k, 0] - 2.0 * d * n[0], pts[k, 1] - 2.0 * d * n[1], pts[k, 2] - 2.0 * d * n[2]
+        dx, dy, dz = vx_ - centre[0], vy_ - centre[1], vz_ - centre[2]
+        px = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
+        py = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
+        pz = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
+        if not pz > 0.0:
+            uv[k, 0] = np.nan
+            uv[k, 1] = np.nan
+            continue
+        xd, yd = _distort(px / pz, py / pz, cam)
+        uv[k, 0] = cam[0] * xd + cam[2]
+        uv[k, 1] = cam[1] * yd + cam[3]
+        if want_jac:
+            a0, a1, a2, b0, b1, b2 = _pixel_jacobian(px, py, pz, cam)
+            for c in range(2):
+                dn = na if c == 0 else ne
+                dd = e0 * dn[0] + e1 * dn[1] + e2 * dn[2]
+                # d V = -2 (dd n + d dn), then d p = R d V
+                w0 = -2.0 * (dd * n[0] + d * dn[0])
+                w1 = -2.0 * (dd * n[1] + d * dn[1])
+                w2 = -2.0 * (dd * n[2] + d * dn[2])
+                q0 = rot[0, 0] * w0 + rot[0, 1] * w1 + rot[0, 2] * w2
+                q1 = rot[1, 0] * w0 + rot[1, 1] * w1 + rot[1, 2] * w2
+                q2 = rot[2, 0] * w0 + rot[2, 1] * w1 + rot[2, 2] * w2
+                duv[k, 0, c] = a0 * q0 + a1 * q1 + a2 * q2
+                duv[k, 1, c] = b0 * q0 + b1 * q1 + b2 * q2
+    for i in range(f.shape[0]):
+        k = idx[i]
+        r = (q[i, 0] - uv[k, 0]) * q[i, 2] + (q[i, 1] - uv[k, 1]) * q[i, 3]
+        ok = math.isfinite(r)
+        f[i] = r if ok else gate
+        if want_jac:
+            for c in range(2):
+                jac[i, c] = -(duv[k, 0, c] * q[i, 2] + duv[k, 1, c] * q[i, 3]) if ok else 0.0
+
+
+@njit(cache=True)
+def _evaluate(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
+    """Residuals ``f`` (and their Jacobian ``jac``) of ``prob`` at parameters ``x``."""
+    kind = prob[0]
+    if kind == CHAMFER:
+        _chamfer_eval(prob, x, want_jac, f, jac)
+    elif kind == POINT_TO_LINE:
+        _line_eval(prob, x, want_jac, f, jac)
+    else:
+        _reflection_eval(prob, x, want_jac, f, jac)
 
 
 @njit(cache=True)
@@ -516,9 +589,11 @@ def _tr_step(s2, suf, vmat, delta, alpha0, m):  # pragma: no cover - compiled
 
 @njit(cache=True)
 def _robust(f, f_scale, soft_l1, jac, scale_jac):  # pragma: no cover - compiled
-    """Cost ``0.5 sum rho(f)``; with ``scale_jac`` also the residuals and Jacobian rescaled
-    in place so that Gauss-Newton on them is the robust problem's (Triggs et al. 2000,
-    as ``least_squares``). ``soft_l1``: ``rho(f) = 2 c^2 (sqrt(1 + (f / c)^2) - 1)``."""
+    """Cost ``0.5 sum rho(f)``; with ``scale_jac`` also the residuals and Jacobian rescaled in
+    place so that Gauss-Newton on them is the robust problem's (as ``least_squares``).
+
+    ``soft_l1``: ``rho(f) = 2 c^2 (sqrt(1 + (f / c)^2) - 1)``, ``c = f_scale``; else ``f^2``.
+    """
     if not soft_l1:
         return 0.5 * (f * f).sum()
     cost = 0.0
@@ -542,7 +617,7 @@ def _robust(f, f_scale, soft_l1, jac, scale_jac):  # pragma: no cover - compiled
 
 @njit(cache=True)
 def _normal_equations(jac, f, x_scale, a, g):  # pragma: no cover - compiled
-    """``g = J^T f`` and the scaled normal matrix ``a = (J D)^T (J D)``, ``D = diag(x_scale)`` (no BLAS)."""
+    """``g = J^T f`` and the scaled normal matrix ``a = (J D)^T (J D)``, ``D = diag(x_scale)``."""
     n = jac.shape[1]
     for c in range(n):
         g[c] = 0.0
@@ -564,31 +639,40 @@ def _normal_equations(jac, f, x_scale, a, g):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def solve_pose(kind: int, rot0: NDArray, centre0: NDArray, pts: NDArray, cam: NDArray, prox: NDArray,
-               q: NDArray, gate: float, m: int, x_scale: NDArray, max_nfev: int, soft_l1: bool,
-               f_scale: float) -> NDArray:  # pragma: no cover - compiled
-    """Pose parameters (6,) minimising the (robust) sum of squared residuals of ``kind``, from zero.
+def solve(prob: tuple, x0: NDArray, m: int, x_scale: NDArray, max_nfev: int, soft_l1: bool,
+          f_scale: float) -> tuple[NDArray, NDArray]:  # pragma: no cover - compiled
+    """Parameters minimising the (robust) sum of squared residuals of ``prob`` from ``x0``.
 
-    Trust-region least squares in the variables scaled by ``x_scale`` (the algorithm of
+    Trust-region least squares in the variables scaled by ``x_scale`` -- the algorithm of
     ``scipy.optimize.least_squares(method="trf", tr_solver="exact")`` without bounds: Moré's
-    exact step, radius halved / doubled on the ratio of actual to predicted reduction,
-    tolerances ``ftol = xtol = gtol = 1e-8``, at most ``max_nfev`` residual evaluations),
-    with the analytic Jacobian of :func:`_evaluate`. ``m`` is the number of residuals.
+    exact step, the radius set from ``|x0 / x_scale|`` (1 if zero), quartered or doubled on
+    the ratio of actual to predicted reduction, ``ftol = xtol = gtol = 1e-8``, at most
+    ``max_nfev`` residual evaluations -- with the analytic Jacobian of :func:`_evaluate`.
+    ``m`` is the number of residuals.
+
+    Returns
+    -------
+    x : ndarray
+    jac : ndarray, shape (m, n)
+        The Jacobian at ``x``, rows scaled for the loss as ``least_squares``' ``jac``.
     """
-    x = np.zeros(6)
+    n = x0.shape[0]
+    x = x0.copy()
     f = np.empty(m)
-    jac = np.empty((m, 6))
+    jac = np.empty((m, n))
     f_new = np.empty(m)
-    jac_new = np.empty((m, 6))
-    _evaluate(kind, rot0, centre0, x, pts, cam, prox, q, gate, True, f, jac)
+    jac_new = np.empty((m, n))
+    _evaluate(prob, x, True, f, jac)
     nfev = 1
     cost = _robust(f, f_scale, soft_l1, jac, True)
-    delta = 1.0
+    delta = math.sqrt(((x0 / x_scale) ** 2).sum())
+    if delta == 0.0:
+        delta = 1.0
     alpha = 0.0
     tol = 1e-8
     done = False
-    g = np.empty(6)
-    a = np.empty((6, 6))
+    g = np.empty(n)
+    a = np.empty((n, n))
     while not done:
         _normal_equations(jac, f, x_scale, a, g)
         if np.abs(g).max() < tol or nfev >= max_nfev:
@@ -605,7 +689,7 @@ def solve_pose(kind: int, rot0: NDArray, centre0: NDArray, pts: NDArray, cam: ND
             step = x_scale * h
             x_new = x + step
             # the Jacobian comes with the trial residuals: most trial steps are taken
-            _evaluate(kind, rot0, centre0, x_new, pts, cam, prox, q, gate, True, f_new, jac_new)
+            _evaluate(prob, x_new, True, f_new, jac_new)
             nfev += 1
             hn = math.sqrt((h * h).sum())
             cost_new = _robust(f_new, f_scale, soft_l1, jac_new, False)
@@ -635,25 +719,23 @@ def solve_pose(kind: int, rot0: NDArray, centre0: NDArray, pts: NDArray, cam: ND
             f, f_new = f_new, f
             jac, jac_new = jac_new, jac
             _robust(f, f_scale, soft_l1, jac, True)
-    return x
+    return x, jac
 
 
 @njit(cache=True)
-def residuals(kind: int, rot0: NDArray, centre0: NDArray, x: NDArray, pts: NDArray, cam: NDArray, prox: NDArray,
-              q: NDArray, gate: float, m: int) -> NDArray:  # pragma: no cover - compiled
-    """The residuals of :func:`solve_pose` at ``x`` (no loss applied)."""
+def residuals(prob: tuple, x: NDArray, m: int) -> NDArray:  # pragma: no cover - compiled
+    """The residuals (m,) of ``prob`` at ``x`` (no loss applied)."""
     f = np.empty(m)
-    _evaluate(kind, rot0, centre0, x, pts, cam, prox, q, gate, False, f, np.empty((1, 6)))
+    _evaluate(prob, x, False, f, np.empty((1, x.shape[0])))
     return f
 
 
 @njit(cache=True)
-def jacobian(kind: int, rot0: NDArray, centre0: NDArray, x: NDArray, pts: NDArray, cam: NDArray, prox: NDArray,
-             q: NDArray, gate: float, m: int) -> NDArray:  # pragma: no cover - compiled
-    """The Jacobian (m, 6) of :func:`residuals` at ``x``."""
+def jacobian(prob: tuple, x: NDArray, m: int) -> NDArray:  # pragma: no cover - compiled
+    """The Jacobian (m, n) of :func:`residuals` at ``x``."""
     f = np.empty(m)
-    jac = np.empty((m, 6))
-    _evaluate(kind, rot0, centre0, x, pts, cam, prox, q, gate, True, f, jac)
+    jac = np.empty((m, x.shape[0]))
+    _evaluate(prob, x, True, f, jac)
     return jac
 
 

@@ -68,6 +68,9 @@ from pihim.render.scene import StructureSizes
 
 __all__ = ["CantingResult", "FacetCanting", "PAPER_GRID_STEP_MRAD", "estimate_canting", "target_outline_segments"]
 
+#: Scale of the two canting angles in the refinement, mrad.
+_X_SCALE = np.array([0.1, 0.1])
+
 #: The paper's grid step, 0.1 deg, in mrad.
 PAPER_GRID_STEP_MRAD = float(np.radians(0.1) * 1e3)
 
@@ -329,9 +332,12 @@ class _FacetModel:
 
 def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_mrad: float,
                step_mrad: float, gates_px: tuple[float, ...], grid_tol_px: float = 5.0) -> tuple:
-    """(grid az, grid el, az, el, sigma az, sigma el, points, rms) for one facet (raw, not relative)."""
-    from scipy.optimize import least_squares
+    """(grid az, grid el, az, el, sigma az, sigma el, points, rms) for one facet (raw, not relative).
 
+    The refinement rounds solve the two angles by trust-region least squares with a soft-L1
+    loss (scale 0.5 px) and the analytic Jacobian of the mirrored projection
+    (:func:`pihim.inspection._kernels.solve`).
+    """
     from pihim.inspection import _kernels
 
     # 1. the paper's grid search: every node of the grid, scored by the share of the reflected
@@ -352,7 +358,8 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     ob = obs[mask.inside(obs)]
     if len(ob) < 20:
         raise PihimInputError("too few edge points inside this facet")
-    sol = None
+    aux = np.concatenate([np.ravel(model.rot), model.centre, model.normal_local])
+    jac = None
     r = np.zeros(0)
     for gate in gates_px:
         uv, nrm = model.project(az, el)
@@ -365,23 +372,15 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
         used_pts, inv = np.unique(idx, return_inverse=True)
         sub, nq = model.pts[used_pts], nrm[idx]
 
-        def residuals(p: NDArray, q=q, inv=inv, sub=sub, nq=nq, gate=gate) -> NDArray:
-            uvc = model.project_many(np.array([p[0]]), np.array([p[1]]), sub)[0][inv]
-            return np.nan_to_num(np.einsum("ij,ij->i", q - uvc, nq), nan=gate)
-
-        def jacobian(p: NDArray, inv=inv, sub=sub, nq=nq) -> NDArray:
-            h = 1e-3  # mrad
-            uvs = model.project_many(np.array([p[0], p[0] + h, p[0]]), np.array([p[1], p[1], p[1] + h]), sub)
-            d = (uvs[1:] - uvs[:1])[:, inv] / h  # (2, M, 2)
-            return -np.nan_to_num(np.einsum("kij,ij->ik", d, nq))
-
-        sol = least_squares(residuals, np.array([az, el]), jac=jacobian, loss="soft_l1", f_scale=0.5, x_scale=0.1)
-        az, el = float(sol.x[0]), float(sol.x[1])
-        r = residuals(sol.x)
-    assert sol is not None
+        prob = _kernels.problem(_kernels.REFLECTION, model._r, model._c, sub, model._cam,
+                                q=np.column_stack([q, nq]), aux=aux, idx=inv, gate=gate)
+        x, jac = _kernels.solve(prob, np.array([az, el]), len(q), _X_SCALE, 200, True, 0.5)
+        az, el = float(x[0]), float(x[1])
+        r = _kernels.residuals(prob, x, len(q))
+    assert jac is not None
     inl = np.abs(r) < 1.0
     n = int(inl.sum())
-    jac = sol.jac[inl] if n > 2 else sol.jac
+    jac = jac[inl] if n > 2 else jac
     s2 = float(np.sum(r[inl] ** 2) / max(n - 2, 1))
     try:
         cov = s2 * np.linalg.inv(jac.T @ jac)

@@ -154,11 +154,20 @@ def match_edge_points(uv: NDArray, usable: NDArray[np.bool_], obs: NDArray, gate
     """
     from scipy.spatial import cKDTree
 
-    d, j = cKDTree(uv[usable]).query(obs, distance_upper_bound=gate)
-    hit = np.isfinite(d)
-    if hit.sum() < min_hits:
-        raise PihimInputError(f"{what} matches only {int(hit.sum())} edge points")
-    return np.flatnonzero(usable)[j[hit]], obs[hit]
+    model = uv[usable]
+    # only edge points in the model's bounding box grown by the gate can match
+    lo = model.min(axis=0) - gate if len(model) else np.zeros(2)
+    hi = model.max(axis=0) + gate if len(model) else -np.ones(2)
+    cand = np.flatnonzero((obs[:, 0] >= lo[0]) & (obs[:, 0] <= hi[0]) & (obs[:, 1] >= lo[1]) & (obs[:, 1] <= hi[1]))
+    hit = np.zeros(0, np.int64)
+    j = np.zeros(0, np.int64)
+    if len(cand) and len(model):
+        d, j = cKDTree(model).query(obs[cand], distance_upper_bound=gate)
+        ok = np.isfinite(d)
+        hit, j = cand[ok], j[ok]
+    if len(hit) < min_hits:
+        raise PihimInputError(f"{what} matches only {len(hit)} edge points")
+    return np.flatnonzero(usable)[j], obs[hit]
 
 
 def _rotation_from_vector(r: NDArray) -> NDArray:
@@ -202,7 +211,7 @@ class _CoarseSearch:
         # of at least (padded size + m) keeps the circular correlation free of wrap-around
         self.scale, self.m, self.hs, self.ws = scale, m, hs, ws
         self.shape = (fft.next_fast_len(hs + 3 * m, real=True), fft.next_fast_len(ws + 3 * m, real=True))
-        self.prox_f = fft.rfft2(np.pad(prox, m), self.shape)
+        self.prox_f = fft.rfft2(np.pad(prox.astype(float), m), self.shape)
         self.ones_f = fft.rfft2(np.pad(np.ones_like(prox), m), self.shape)
 
     def scores(self, camera: CameraModel, pose: CameraPose, pts: NDArray) -> tuple[NDArray, NDArray]:
@@ -311,7 +320,7 @@ def _chamfer_align(camera: CameraModel, pose: CameraPose, pts: NDArray, maps: _E
     Each level maximises the summed proximity ``sum exp(-DT^2 / 2 s^2)`` over the six pose
     parameters (a rotation vector in the camera frame and a position offset): trust-region
     least squares on ``1 - proximity`` with the analytic Jacobian (image gradient of the map
-    times the projection Jacobian), compiled (:func:`pihim.inspection._kernels.solve_pose`).
+    times the projection Jacobian), compiled (:func:`pihim.inspection._kernels.solve`).
     A wide ``s`` merges the two edges of a facet gap, and the model's two lines alike, so the
     basin spans a good part of a facet instead of the half gap width that nearest-point
     matching (ICP) allows.
@@ -323,8 +332,8 @@ def _chamfer_align(camera: CameraModel, pose: CameraPose, pts: NDArray, maps: _E
     centre = np.array(pose.position_m)
     pts = np.ascontiguousarray(pts, dtype=float)
     for prox in maps.levels:
-        x = _kernels.solve_pose(_kernels.CHAMFER, rot, centre, pts, cam, prox, _NO_POINTS, 0.0, len(pts),
-                                _X_SCALE, 30, False, 1.0)
+        prob = _kernels.problem(_kernels.CHAMFER, rot, centre, pts, cam, prox=prox)
+        x, _ = _kernels.solve(prob, np.zeros(6), len(pts), _X_SCALE, 30, False, 1.0)
         rot = _kernels.rotation_from_vector(x[:3]) @ rot
         centre = centre + x[3:]
     return CameraPose(centre, rot)
@@ -332,8 +341,6 @@ def _chamfer_align(camera: CameraModel, pose: CameraPose, pts: NDArray, maps: _E
 
 #: Scale of the six pose parameters in the fits: rotation vector (rad) and position (m).
 _X_SCALE = np.array([1e-3, 1e-3, 1e-3, 0.1, 0.1, 0.1])
-_NO_POINTS = np.zeros((0, 2))
-_NO_MAP = np.zeros((1, 1), np.float32)
 
 
 def _start_offsets(search_m: tuple[float, float, float], rings: int = 1) -> list[NDArray]:
@@ -463,7 +470,7 @@ def _icp(camera: CameraModel, start: CameraPose, pts: NDArray, seg: NDArray, obs
 
     Each round re-matches, then solves the six pose parameters by trust-region least squares
     with a soft-L1 loss (scale 1 px) on the distances of the matched edge points from the
-    projected outline's lines (:func:`pihim.inspection._kernels.solve_pose`, analytic
+    projected outline's lines (:func:`pihim.inspection._kernels.solve`, analytic
     Jacobian including the turn of the line); only the matched model points and their two
     neighbours on the outline (the line's central difference, as :func:`line_normals`) are
     projected.
@@ -488,12 +495,12 @@ def _icp(camera: CameraModel, start: CameraPose, pts: NDArray, seg: NDArray, obs
         idx, q = match_edge_points(uv, inside, obs, gate, 30, "the heliostat's outline")
         m = len(idx)
         sub = np.concatenate([pts[idx], pts[prv[idx]], pts[nxt[idx]]])
-        q = np.ascontiguousarray(q, dtype=float)
-        x = _kernels.solve_pose(_kernels.POINT_TO_LINE, rot, centre, sub, cam, _NO_MAP, q, float(gate), m,
-                                _X_SCALE, 50, True, 1.0)
+        prob = _kernels.problem(_kernels.POINT_TO_LINE, rot, centre, sub, cam, q=q, gate=gate)
+        x, _ = _kernels.solve(prob, np.zeros(6), m, _X_SCALE, 50, True, 1.0)
         rot = _kernels.rotation_from_vector(x[:3]) @ rot
         centre = centre + x[3:]
-        r = _kernels.residuals(_kernels.POINT_TO_LINE, rot, centre, np.zeros(6), sub, cam, _NO_MAP, q, float(gate), m)
+        prob = _kernels.problem(_kernels.POINT_TO_LINE, rot, centre, sub, cam, q=q, gate=gate)
+        r = _kernels.residuals(prob, np.zeros(6), m)
         rms = float(np.sqrt(np.mean(r**2)))
         n_used = m
     return CameraPose(centre, rot), rms, n_used
