@@ -101,6 +101,20 @@ def test_bilinear_and_sobel_sampling_match_map_coordinates():
 # ------------------------------------------------------------------------------------ solvers
 
 
+def test_symmetric_eigen_decomposition_matches_numpy():
+    rng = np.random.default_rng(12)
+    for cond in (1.0, 1e6, 1e12):
+        q, _ = np.linalg.qr(rng.normal(size=(6, 6)))
+        lam = np.geomspace(1.0, 1.0 / cond, 6) * rng.choice([1.0, 1.0, 0.0], 6)  # some exactly singular
+        a = (q * lam) @ q.T
+        a = 0.5 * (a + a.T)
+        w, v = np.empty(6), np.empty((6, 6))
+        K._sym_eig(a, w, v)
+        np.testing.assert_allclose(np.sort(w), np.linalg.eigvalsh(a), rtol=0, atol=1e-14)
+        np.testing.assert_allclose(v.T @ v, np.eye(6), rtol=0, atol=1e-13)
+        np.testing.assert_allclose((v * w) @ v.T, a, rtol=0, atol=1e-14)
+
+
 def _outline(n_side: int = 40) -> tuple[np.ndarray, np.ndarray]:
     """Sample points of four 2 m squares (a small facet grid) and the segment of each point."""
     t = np.linspace(0.0, 1.0, n_side)
@@ -185,20 +199,24 @@ def test_point_to_line_solve_recovers_a_known_pose_and_matches_scipy():
     c = np.array([-1.1, 0.0, 0.9])
     # exact edge points: the pose itself
     prob = _line_problem(POSE, pts, seg, q, idx)
-    x, _ = K.solve(prob, np.zeros(6), len(idx), scale, 100, True, 1.0)
+    x = K.solve(prob, np.zeros(6), len(idx), scale, 100, True, 1.0)[0]
     moved = project_points(WIDE, _perturbed(POSE, x), pts) - project_points(WIDE, truth, pts)
     assert np.abs(moved).max() < 1e-4  # pixels
     # with 10 % gross outliers: the robust solution, which scipy finds too
     bad = rng.random(len(idx)) < 0.1
     q[bad] += rng.normal(0.0, 8.0, (bad.sum(), 2))
     prob = _line_problem(POSE, pts, seg, q, idx)
-    x, _ = K.solve(prob, np.zeros(6), len(idx), scale, 100, True, 1.0)
+    x, fun, jac = K.solve(prob, np.zeros(6), len(idx), scale, 100, True, 1.0)
     ref = least_squares(lambda p: K.residuals(prob, p, len(idx)), np.zeros(6), loss="soft_l1", f_scale=1.0,
                         x_scale=scale, max_nfev=100)
     moved = project_points(WIDE, _perturbed(POSE, x), c[None]) - project_points(WIDE, truth, c[None])
     assert np.abs(moved).max() < 0.1
     pix = project_points(WIDE, _perturbed(POSE, x), pts) - project_points(WIDE, _perturbed(POSE, ref.x), pts)
     assert np.abs(pix).max() < 1e-3
+    # the residuals at the solution, and the Jacobian scaled for the loss as scipy returns it
+    np.testing.assert_array_equal(fun, K.residuals(prob, x, len(idx)))
+    np.testing.assert_allclose(fun, ref.fun, rtol=0, atol=1e-3)
+    np.testing.assert_allclose(jac, ref.jac, rtol=1e-3, atol=1e-3 * np.abs(ref.jac).max())
 
 
 def test_chamfer_solve_pulls_the_outline_onto_its_edges():
@@ -213,7 +231,7 @@ def test_chamfer_solve_pulls_the_outline_onto_its_edges():
     prox = np.exp(-0.5 * (dt / 6.0) ** 2).astype(np.float32)
     prob = K.problem(K.CHAMFER, start.rotation, start.position_m, pts, K.camera_vector(WIDE), prox=prox)
     before = np.abs(project_points(WIDE, start, pts) - uv).max()
-    x, _ = K.solve(prob, np.zeros(6), len(pts), np.array([1e-3] * 3 + [0.1] * 3), 50, False, 1.0)
+    x = K.solve(prob, np.zeros(6), len(pts), np.array([1e-3] * 3 + [0.1] * 3), 50, False, 1.0)[0]
     after = np.abs(project_points(WIDE, _perturbed(start, x), pts) - uv).max()
     assert before > 5.0 and after < 0.5
 
@@ -242,7 +260,7 @@ def test_reflection_solve_recovers_known_canting():
     aux = np.concatenate([rot_hua.ravel(), centre, nd])
     prob = K.problem(K.REFLECTION, pose.rotation, pose.position_m, pts[idx], K.camera_vector(WIDE), q=q, aux=aux,
                      idx=np.arange(len(idx)), gate=3.0)
-    x, jac = K.solve(prob, np.array([0.0, 0.0]), len(idx), np.array([0.1, 0.1]), 200, True, 0.5)
+    x, fun, jac = K.solve(prob, np.array([0.0, 0.0]), len(idx), np.array([0.1, 0.1]), 200, True, 0.5)
     # the held normals are those at zero deviation: the answer is exact only to the outline's turn
     assert x == pytest.approx([true_az, true_el], abs=0.02)
     assert jac.shape == (len(idx), 2)
@@ -373,15 +391,19 @@ def test_facet_masks_on_bounding_boxes_equal_whole_image_masks():
 
 def test_grid_scores_equal_the_numpy_statement():
     rng = np.random.default_rng(9)
-    nodes = rng.uniform(-10, 110, (9, 300, 2))
-    nodes[3, 7] = np.nan
-    weights = rng.dirichlet(np.ones(9), 50)
+    coef = rng.normal(0.0, 1.0, (6, 300, 2)) * np.array([20.0, 0.5, 0.5, 0.05, 0.05, 0.05])[:, None, None]
+    coef[1:3] += 6.0  # the outline moves 6 px per mrad: the outer nodes leave the mask
+    coef[0] += [50.0, 45.0]
+    coef[0, 7] = np.nan
+    grid = np.linspace(-10.0, 10.0, 9)
     dt = rng.uniform(0, 10, (100, 100)).astype(np.float32)
     full = np.zeros((100, 100), bool)
     full[20:80, 10:90] = rng.random((60, 80)) < 0.8
     mask = _Mask((100, 100), 20, 10, full[20:80, 10:90])
-    got = K.grid_scores(weights, nodes, mask.sub, mask.r0, mask.c0, dt, 5.0, 10)
-    uv = (weights @ nodes.reshape(9, -1)).reshape(50, -1, 2)
+    got = K.grid_scores(coef, grid, grid, mask.sub, mask.r0, mask.c0, np.ascontiguousarray(dt[20:80, 10:90]), 5.0, 10)
+    gaz, gel = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
+    basis = np.stack([np.ones_like(gaz), gaz, gel, gaz * gaz, gel * gel, gaz * gel], axis=1)
+    uv = (basis @ coef.reshape(6, -1)).reshape(len(gaz), -1, 2)
     fin = np.all(np.isfinite(uv), axis=2)
     ii = np.where(fin, np.rint(np.nan_to_num(uv[..., 1])), -1).astype(int)
     jj = np.where(fin, np.rint(np.nan_to_num(uv[..., 0])), -1).astype(int)
@@ -390,5 +412,19 @@ def test_grid_scores_equal_the_numpy_statement():
     near = ins & (dt[np.clip(ii, 0, 99), np.clip(jj, 0, 99)] <= 5.0)
     n_in = ins.sum(axis=1)
     ref = np.where(n_in >= 10, near.sum(axis=1) / np.maximum(n_in, 1), -1.0)
-    assert np.any(ref > 0)
+    assert np.any(ref > 0) and np.any(ref < 0)
     np.testing.assert_array_equal(got, ref)
+
+
+def test_line_normals_match_the_numpy_statement():
+    pts, seg = _outline(25)
+    uv = project_points(WIDE, POSE, pts)
+    uv[17] = np.nan
+    same_next = np.append(seg[1:] == seg[:-1], False)
+    same_prev = np.insert(seg[1:] == seg[:-1], 0, False)
+    t = np.where(same_next[:, None], np.roll(uv, -1, 0), uv) - np.where(same_prev[:, None], np.roll(uv, 1, 0), uv)
+    with np.errstate(invalid="ignore"):
+        t = t / np.linalg.norm(t, axis=1, keepdims=True)
+    got = line_normals(uv, seg)
+    assert np.isnan(got[[16, 18]]).all() and np.isfinite(got[:16]).all() and np.isfinite(got[17]).all()
+    np.testing.assert_array_equal(got, np.column_stack([-t[:, 1], t[:, 0]]))

@@ -1,41 +1,51 @@
-"""Compiled inner loops of the pose and canting fits (private).
+"""Compiled inner loops of the pose, canting and edge estimators (private).
 
 The fits evaluate the projection of a few thousand model points tens of
 thousands of times per frame. Going through :class:`pihim.camera.CameraPose`
 (validation of the rotation at every construction) and
 :func:`pihim.camera.pose.project_points` costs far more than the arithmetic,
-so the inner loops use these kernels on raw arrays instead:
+so the inner loops use these numba kernels on raw arrays instead. Each is
+held to an independent statement by ``tests/inspection/test_kernels.py``.
 
 * :func:`project_rc`: pixels of world points through a world -> camera
-  rotation ``R`` and a camera centre ``C``, the same arithmetic as
+  rotation ``R`` and a camera centre ``C``: the arithmetic of
   ``CameraModel.project(CameraPose(C, R).world_to_camera(X))`` (pinhole and
   the five-coefficient Brown-Conrady model, NaN at or behind the camera;
-  held to ``cv2.projectPoints`` by ``tests/inspection/test_kernels.py``);
+  held to ``cv2.projectPoints``);
 * :func:`project_rc_jacobian`: the same with the analytic derivatives of
-  ``(u, v)`` with respect to the six pose parameters of the fits -- a rotation
-  vector ``w`` applied in the camera frame (``R(w) = exp([w]x) R0``) and the
+  ``(u, v)`` by the six pose parameters of the fits -- a rotation vector
+  ``w`` applied in the camera frame (``R(w) = exp([w]x) R0``) and the
   position offset -- by the chain rule through the pinhole and the
-  distortion polynomial; ``d x_cam / d w = -[x_cam]x J_l(w)`` with ``J_l`` the
-  left Jacobian of SO(3) [1]_;
-* :func:`bilinear`: bilinear sampling with the conventions of
+  distortion polynomial; ``d x_cam / d w = -[x_cam]x J_l(w)`` with ``J_l``
+  the left Jacobian of SO(3) [1]_;
+* :func:`bilinear`, :func:`sobel_bilinear`: sampling with the conventions of
   ``scipy.ndimage.map_coordinates(order=1, mode="constant", cval=0)`` (zero
-  outside ``[0, n - 1]`` on either axis, and for NaN);
-* :func:`chamfer_level`: one level of the pose's chamfer alignment -- the
-  six parameters minimising ``sum (1 - proximity)^2`` -- solved by a
-  trust-region Gauss-Newton / Levenberg-Marquardt iteration in scaled
-  variables with the exact trust-region step of Moré [2]_, the algorithm of
-  ``scipy.optimize.least_squares(method="trf")`` without bounds, with the
-  analytic Jacobian (image gradient of the proximity map times the
-  projection Jacobian), all in one compiled loop.
+  outside ``[0, n - 1]`` on either axis, and for NaN), of an image and of
+  its ``cv2.Sobel`` gradient (computed where sampled);
+* :func:`solve`: trust-region least squares for three residual kinds
+  (:func:`problem`): the chamfer alignment of the pose (``1 - proximity``
+  of the projected outline), the pose's point-to-line ICP and a facet's
+  mirrored outline (canting). The algorithm of
+  ``scipy.optimize.least_squares(method="trf")`` without bounds -- scaled
+  variables, Moré's exact trust-region step [2]_, the soft-L1 loss by
+  rescaling residuals and Jacobian [3]_ -- with the analytic Jacobians, all
+  in one compiled loop;
+* :func:`edge_nms`: the non-maximum suppression and parabolic sub-pixel peak
+  of :func:`pihim.inspection.features.edge_points`;
+* :func:`grid_scores`: the canting grid search's chamfer score of every node;
+* :func:`line_normals`: the unit normals of projected polylines.
 
 References
 ----------
 .. [1] J. Solà, J. Deray, D. Atchuthan, "A micro Lie theory for state
-   estimation in robotics", arXiv:1812.01537 (2018), eq. (146) (left
-   Jacobian of SO(3)).
+   estimation in robotics", arXiv:1812.01537 (2018) (the left Jacobian of
+   SO(3)).
 .. [2] J. J. Moré, "The Levenberg-Marquardt algorithm: implementation and
    theory", Numerical Analysis, Lecture Notes in Mathematics 630, 105-116
    (1977), doi:10.1007/BFb0067700.
+.. [3] B. Triggs, P. McLauchlan, R. Hartley, A. Fitzgibbon, "Bundle
+   adjustment -- a modern synthesis", Vision Algorithms: Theory and
+   Practice, LNCS 1883, 298-372 (2000), doi:10.1007/3-540-44480-7_21.
 """
 
 from __future__ import annotations
@@ -46,8 +56,9 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-__all__ = ["CHAMFER", "POINT_TO_LINE", "bilinear", "camera_vector", "edge_nms", "grid_scores", "jacobian", "left_jacobian", "project_rc",
-           "project_pose", "project_rc_jacobian", "residuals", "rotation_from_vector", "sobel_bilinear", "solve_pose"]
+__all__ = ["CHAMFER", "POINT_TO_LINE", "REFLECTION", "bilinear", "camera_vector", "edge_nms", "grid_scores",
+           "jacobian", "left_jacobian", "line_normals", "problem", "project_pose", "project_rc",
+           "project_rc_jacobian", "residuals", "rotation_from_vector", "sobel_bilinear", "solve"]
 
 
 def camera_vector(camera) -> NDArray[np.float64]:
@@ -61,7 +72,7 @@ def project_pose(camera, pose, pts: NDArray) -> NDArray[np.float64]:
                       np.ascontiguousarray(pts, dtype=float), camera_vector(camera))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def rotation_from_vector(w: NDArray) -> NDArray:  # pragma: no cover - compiled
     """Rotation matrix of a rotation vector (Rodrigues' formula), radians."""
     th2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
@@ -86,7 +97,7 @@ def rotation_from_vector(w: NDArray) -> NDArray:  # pragma: no cover - compiled
     return r
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def left_jacobian(w: NDArray) -> NDArray:  # pragma: no cover - compiled
     """Left Jacobian of SO(3): ``exp([w + dw]x) = exp([J_l(w) dw]x) exp([w]x)`` to first order."""
     th2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
@@ -102,7 +113,7 @@ def left_jacobian(w: NDArray) -> NDArray:  # pragma: no cover - compiled
     return np.eye(3) + b * k + c * (k @ k)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy")
 def _distort(xn: float, yn: float, cam: NDArray) -> tuple[float, float]:  # pragma: no cover - compiled
     k1, k2, p1, p2, k3 = cam[4], cam[5], cam[6], cam[7], cam[8]
     r2 = xn * xn + yn * yn
@@ -113,7 +124,7 @@ def _distort(xn: float, yn: float, cam: NDArray) -> tuple[float, float]:  # prag
     return xd, yd
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def project_rc(rot: NDArray, centre: NDArray, pts: NDArray, cam: NDArray) -> NDArray:  # pragma: no cover
     """Pixels ``(u, v)`` (N, 2) of world points (N, 3); NaN at or behind the camera."""
     n = pts.shape[0]
@@ -135,7 +146,7 @@ def project_rc(rot: NDArray, centre: NDArray, pts: NDArray, cam: NDArray) -> NDA
     return out
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy")
 def _pixel_jacobian(px, py, pz, cam):  # pragma: no cover - compiled
     """``d(u, v) / d(px, py, pz)`` at a camera-frame point: the rows ``(a0, a1, a2)``, ``(b0, b1, b2)``.
 
@@ -159,7 +170,7 @@ def _pixel_jacobian(px, py, pz, cam):  # pragma: no cover - compiled
     return a0, a1, -(a0 * xn + a1 * yn), b0, b1, -(b0 * xn + b1 * yn)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy")
 def _pose_jacobian(px, py, pz, cam, rot, jl, ux, vx):  # pragma: no cover - compiled
     """``d u`` and ``d v`` by the pose parameters (rotation vector, position offset) into ``ux``, ``vx`` (6,).
 
@@ -177,7 +188,7 @@ def _pose_jacobian(px, py, pz, cam, rot, jl, ux, vx):  # pragma: no cover - comp
         vx[3 + k] = -(b0 * rot[0, k] + b1 * rot[1, k] + b2 * rot[2, k])
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def project_rc_jacobian(rot0: NDArray, centre0: NDArray, x: NDArray, pts: NDArray,
                         cam: NDArray) -> tuple[NDArray, NDArray]:  # pragma: no cover - compiled
     """Pixels (N, 2) at the pose ``(exp([x[:3]]x) rot0, centre0 + x[3:])`` and their Jacobian (N, 2, 6).
@@ -213,7 +224,7 @@ def project_rc_jacobian(rot0: NDArray, centre0: NDArray, x: NDArray, pts: NDArra
     return uv, jac
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy")
 def _bilinear_at(img, u, v):  # pragma: no cover - compiled
     h, w = img.shape
     if not (u >= 0.0 and u <= w - 1 and v >= 0.0 and v <= h - 1):
@@ -225,7 +236,7 @@ def _bilinear_at(img, u, v):  # pragma: no cover - compiled
     return 1.0, i0, j0, a, b
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy")
 def _lerp(img, i0, j0, a, b):  # pragma: no cover - compiled
     h, w = img.shape
     i1 = min(i0 + 1, h - 1)
@@ -234,7 +245,7 @@ def _lerp(img, i0, j0, a, b):  # pragma: no cover - compiled
             + b * ((1.0 - a) * img[i1, j0] + a * img[i1, j1]))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def bilinear(img: NDArray, u: NDArray, v: NDArray) -> NDArray:  # pragma: no cover - compiled
     """``img`` sampled at columns ``u`` and rows ``v`` (bilinear; 0 outside ``[0, n-1]`` and for NaN)."""
     out = np.zeros(u.shape[0])
@@ -245,7 +256,7 @@ def bilinear(img: NDArray, u: NDArray, v: NDArray) -> NDArray:  # pragma: no cov
     return out
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy")
 def _reflect101(k, n):  # pragma: no cover - compiled
     """OpenCV's default border (``BORDER_REFLECT_101``): -1 -> 1, n -> n - 2."""
     if k < 0:
@@ -255,7 +266,7 @@ def _reflect101(k, n):  # pragma: no cover - compiled
     return k
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy")
 def _sobel_at(img, i, j):  # pragma: no cover - compiled
     """``cv2.Sobel(img, ksize=3) / 8`` in x and y at pixel (i, j) (default border)."""
     h, w = img.shape
@@ -268,7 +279,7 @@ def _sobel_at(img, i, j):  # pragma: no cover - compiled
     return gx, gy
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy")
 def _sobel_lerp(img, i0, j0, a, b):  # pragma: no cover - compiled
     """Bilinear interpolation of the Sobel gradient images (as ``map_coordinates`` of them).
 
@@ -307,7 +318,7 @@ def _sobel_lerp(img, i0, j0, a, b):  # pragma: no cover - compiled
     return gx, gy
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def sobel_bilinear(img: NDArray, u: NDArray, v: NDArray) -> NDArray:  # pragma: no cover - compiled
     """The Sobel gradient of ``img`` (``cv2.Sobel(ksize=3) / 8``) sampled bilinearly at (u, v): (N, 2)."""
     out = np.zeros((u.shape[0], 2))
@@ -363,7 +374,7 @@ def problem(kind: int, rot: NDArray, centre: NDArray, pts: NDArray, cam: NDArray
             float(gate))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _chamfer_eval(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
     """``1 - prox(u, v)`` at each model point (1 outside the map or behind the camera, zero
     Jacobian row); the gradient is the map's Sobel gradient, bilinearly interpolated."""
@@ -398,7 +409,7 @@ def _chamfer_eval(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
                 jac[i, c] = -(g0 * ux[c] + g1 * vx[c])
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _line_eval(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
     """Signed distance of edge point ``q[i]`` from the line through model point ``i`` along the
     central difference of its neighbours; ``pts`` holds the M model points, then their
@@ -461,7 +472,7 @@ def _line_eval(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
                 jac[i, c] = (dtx * ddy - dty * ddx) - (tx * duv[0, 1, c] - ty * duv[0, 0, c])
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _reflection_eval(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
     """Signed distance of edge point ``q[i, :2]`` from the line through model point
     ``idx[i]`` mirrored in the facet tilted by ``x = (az, el)`` mrad
@@ -529,7 +540,7 @@ def _reflection_eval(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
                 jac[i, c] = -(duv[k, 0, c] * q[i, 2] + duv[k, 1, c] * q[i, 3]) if ok else 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _evaluate(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
     """Residuals ``f`` (and their Jacobian ``jac``) of ``prob`` at parameters ``x``."""
     kind = prob[0]
@@ -541,38 +552,116 @@ def _evaluate(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
         _reflection_eval(prob, x, want_jac, f, jac)
 
 
-@njit(cache=True)
-def _tr_step(s2, suf, vmat, delta, alpha0, m):  # pragma: no cover - compiled
-    """Moré's trust-region step from the eigen-decomposition of the scaled normal matrix.
+@njit(cache=True, error_model="numpy")
+def _sym_eig(a, w, v):  # pragma: no cover - compiled
+    """Eigenvalues ``w`` and eigenvectors (columns of ``v``) of the small symmetric matrix ``a``
+    by cyclic Jacobi rotations (to rounding; ``a`` is not changed)."""
+    n = a.shape[0]
+    b = a.copy()
+    for i in range(n):
+        for j in range(n):
+            v[i, j] = 1.0 if i == j else 0.0
+    for _ in range(60):
+        off = 0.0
+        scale = 0.0
+        for i in range(n):
+            scale += b[i, i] * b[i, i]
+            for j in range(i + 1, n):
+                off += b[i, j] * b[i, j]
+        if not off > 1e-32 * scale:
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = b[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (b[q, q] - b[p, p]) / (2.0 * apq)
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                sn = t * c
+                for k in range(n):  # columns p, q
+                    bkp = b[k, p]
+                    bkq = b[k, q]
+                    b[k, p] = c * bkp - sn * bkq
+                    b[k, q] = sn * bkp + c * bkq
+                for k in range(n):  # rows p, q
+                    bpk = b[p, k]
+                    bqk = b[q, k]
+                    b[p, k] = c * bpk - sn * bqk
+                    b[q, k] = sn * bpk + c * bqk
+                for k in range(n):
+                    vkp = v[k, p]
+                    vkq = v[k, q]
+                    v[k, p] = c * vkp - sn * vkq
+                    v[k, q] = sn * vkp + c * vkq
+    for i in range(n):
+        w[i] = b[i, i]
+
+
+@njit(cache=True, error_model="numpy")
+def _step_for(s2, suf, vmat, alpha, p):  # pragma: no cover - compiled
+    """``p = -V (suf / (s2 + alpha))``; returns ``|p|``."""
+    n = s2.shape[0]
+    for i in range(n):
+        p[i] = 0.0
+    for k in range(n):
+        c = suf[k] / (s2[k] + alpha)
+        for i in range(n):
+            p[i] -= vmat[i, k] * c
+    nn = 0.0
+    for i in range(n):
+        nn += p[i] * p[i]
+    return math.sqrt(nn)
+
+
+@njit(cache=True, error_model="numpy")
+def _phi(s2, suf, alpha, delta):  # pragma: no cover - compiled
+    """``|p(alpha)| - delta`` and its derivative by ``alpha``."""
+    pn2 = 0.0
+    d3 = 0.0
+    for k in range(s2.shape[0]):
+        den = s2[k] + alpha
+        pn2 += (suf[k] / den) ** 2
+        d3 += suf[k] ** 2 / den ** 3
+    pn = math.sqrt(pn2)
+    return pn - delta, -d3 / pn
+
+
+@njit(cache=True, error_model="numpy")
+def _tr_step(s2, suf, vmat, delta, alpha0, m, p):  # pragma: no cover - compiled
+    """Moré's trust-region step (into ``p``) from the eigen-decomposition of the scaled normal matrix.
 
     ``s2`` are the eigenvalues (squared singular values of the scaled Jacobian),
     ``suf = V^T g``; the step is ``-V suf / (s2 + alpha)`` with ``alpha = 0`` if that
     Gauss-Newton step is inside the region, else ``|step| = delta`` to 1 % (then scaled
     onto the boundary). ``m`` is the number of residuals (rank test as for an SVD of the
-    Jacobian). Returns (step, alpha).
+    Jacobian). Returns ``alpha``.
     """
-    smax = math.sqrt(max(s2.max(), 0.0))
-    smin = math.sqrt(max(s2.min(), 0.0))
-    full_rank = smin > 2.220446049250313e-16 * m * smax
-    if full_rank:
-        p = -(vmat @ (suf / s2))
-        if math.sqrt((p * p).sum()) <= delta:
-            return p, 0.0
-    alpha_upper = math.sqrt((suf * suf).sum()) / delta
+    n = s2.shape[0]
+    smax = 0.0
+    smin = np.inf
+    sufn = 0.0
+    for k in range(n):
+        smax = max(smax, s2[k])
+        smin = min(smin, s2[k])
+        sufn += suf[k] * suf[k]
+    full_rank = math.sqrt(max(smin, 0.0)) > 2.220446049250313e-16 * m * math.sqrt(max(smax, 0.0))
+    if full_rank and _step_for(s2, suf, vmat, 0.0, p) <= delta:
+        return 0.0
+    alpha_upper = math.sqrt(sufn) / delta
     alpha_lower = 0.0
     if full_rank:
-        pn = math.sqrt(((suf / s2) ** 2).sum())
-        alpha_lower = -(pn - delta) / (-((suf ** 2) / s2 ** 3).sum() / pn)
+        phi, dphi = _phi(s2, suf, 0.0, delta)
+        alpha_lower = -phi / dphi
     alpha = alpha0
     if alpha == 0.0 and not full_rank:
         alpha = max(0.001 * alpha_upper, math.sqrt(alpha_lower * alpha_upper))
     for _ in range(10):
         if alpha < alpha_lower or alpha > alpha_upper:
             alpha = max(0.001 * alpha_upper, math.sqrt(alpha_lower * alpha_upper))
-        den = s2 + alpha
-        pn = math.sqrt(((suf / den) ** 2).sum())
-        phi = pn - delta
-        dphi = -((suf ** 2) / den ** 3).sum() / pn
+        phi, dphi = _phi(s2, suf, alpha, delta)
         if phi < 0:
             alpha_upper = alpha
         ratio = phi / dphi
@@ -580,14 +669,14 @@ def _tr_step(s2, suf, vmat, delta, alpha0, m):  # pragma: no cover - compiled
         alpha -= (phi + delta) * ratio / delta
         if abs(phi) < 0.01 * delta:
             break
-    p = -(vmat @ (suf / (s2 + alpha)))
-    pn = math.sqrt((p * p).sum())
+    pn = _step_for(s2, suf, vmat, alpha, p)
     if pn > 0:
-        p *= delta / pn
-    return p, alpha
+        for i in range(n):
+            p[i] *= delta / pn
+    return alpha
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _robust(f, f_scale, soft_l1, jac, scale_jac):  # pragma: no cover - compiled
     """Cost ``0.5 sum rho(f)``; with ``scale_jac`` also the residuals and Jacobian rescaled in
     place so that Gauss-Newton on them is the robust problem's (as ``least_squares``).
@@ -615,7 +704,7 @@ def _robust(f, f_scale, soft_l1, jac, scale_jac):  # pragma: no cover - compiled
     return cost
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _normal_equations(jac, f, x_scale, a, g):  # pragma: no cover - compiled
     """``g = J^T f`` and the scaled normal matrix ``a = (J D)^T (J D)``, ``D = diag(x_scale)``."""
     n = jac.shape[1]
@@ -638,9 +727,9 @@ def _normal_equations(jac, f, x_scale, a, g):  # pragma: no cover - compiled
             a[d, c] = a[c, d]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def solve(prob: tuple, x0: NDArray, m: int, x_scale: NDArray, max_nfev: int, soft_l1: bool,
-          f_scale: float) -> tuple[NDArray, NDArray]:  # pragma: no cover - compiled
+          f_scale: float) -> tuple[NDArray, NDArray, NDArray]:  # pragma: no cover - compiled
     """Parameters minimising the (robust) sum of squared residuals of ``prob`` from ``x0``.
 
     Trust-region least squares in the variables scaled by ``x_scale`` -- the algorithm of
@@ -653,45 +742,78 @@ def solve(prob: tuple, x0: NDArray, m: int, x_scale: NDArray, max_nfev: int, sof
     Returns
     -------
     x : ndarray
+    fun : ndarray, shape (m,)
+        The residuals at ``x`` (no loss applied).
     jac : ndarray, shape (m, n)
         The Jacobian at ``x``, rows scaled for the loss as ``least_squares``' ``jac``.
     """
     n = x0.shape[0]
     x = x0.copy()
+    x_new = np.empty(n)
     f = np.empty(m)
     jac = np.empty((m, n))
     f_new = np.empty(m)
     jac_new = np.empty((m, n))
     _evaluate(prob, x, True, f, jac)
+    f_true = f.copy()
     nfev = 1
     cost = _robust(f, f_scale, soft_l1, jac, True)
-    delta = math.sqrt(((x0 / x_scale) ** 2).sum())
+    delta = 0.0
+    for i in range(n):
+        delta += (x0[i] / x_scale[i]) ** 2
+    delta = math.sqrt(delta)
     if delta == 0.0:
         delta = 1.0
     alpha = 0.0
     tol = 1e-8
     done = False
     g = np.empty(n)
+    gh = np.empty(n)
     a = np.empty((n, n))
+    s2 = np.empty(n)
+    vmat = np.empty((n, n))
+    suf = np.empty(n)
+    h = np.empty(n)
     while not done:
         _normal_equations(jac, f, x_scale, a, g)
-        if np.abs(g).max() < tol or nfev >= max_nfev:
+        gmax = 0.0
+        for i in range(n):
+            gmax = max(gmax, abs(g[i]))
+            gh[i] = g[i] * x_scale[i]
+        if gmax < tol or nfev >= max_nfev:
             break
-        gh = g * x_scale
-        s2, vmat = np.linalg.eigh(a)
-        suf = vmat.T @ gh
+        _sym_eig(a, s2, vmat)
+        for k in range(n):
+            suf[k] = 0.0
+            for i in range(n):
+                suf[k] += vmat[i, k] * gh[i]
         actual = -1.0
-        x_new = x
         cost_new = cost
         while actual <= 0.0 and nfev < max_nfev:
-            h, alpha = _tr_step(s2, suf, vmat, delta, alpha, m)
-            predicted = -(0.5 * (h @ (a @ h)) + gh @ h)
-            step = x_scale * h
-            x_new = x + step
+            alpha = _tr_step(s2, suf, vmat, delta, alpha, m, h)
+            quad = 0.0
+            lin = 0.0
+            hn = 0.0
+            step_norm = 0.0
+            x_norm = 0.0
+            for i in range(n):
+                ah = 0.0
+                for k in range(n):
+                    ah += a[i, k] * h[k]
+                quad += h[i] * ah
+                lin += gh[i] * h[i]
+                hn += h[i] * h[i]
+                st = x_scale[i] * h[i]
+                step_norm += st * st
+                x_norm += x[i] * x[i]
+                x_new[i] = x[i] + st
+            predicted = -(0.5 * quad + lin)
+            hn = math.sqrt(hn)
+            step_norm = math.sqrt(step_norm)
+            x_norm = math.sqrt(x_norm)
             # the Jacobian comes with the trial residuals: most trial steps are taken
             _evaluate(prob, x_new, True, f_new, jac_new)
             nfev += 1
-            hn = math.sqrt((h * h).sum())
             cost_new = _robust(f_new, f_scale, soft_l1, jac_new, False)
             actual = cost - cost_new
             if predicted > 0:
@@ -705,8 +827,6 @@ def solve(prob: tuple, x0: NDArray, m: int, x_scale: NDArray, max_nfev: int, sof
                 delta_new = 0.25 * hn
             elif ratio > 0.75 and hn > 0.95 * delta:
                 delta_new = 2.0 * delta
-            step_norm = math.sqrt((step * step).sum())
-            x_norm = math.sqrt((x * x).sum())
             if (actual < tol * cost and ratio > 0.25) or step_norm < tol * (tol + x_norm):
                 done = True
                 break
@@ -714,32 +834,26 @@ def solve(prob: tuple, x0: NDArray, m: int, x_scale: NDArray, max_nfev: int, sof
                 alpha *= delta / delta_new
             delta = delta_new
         if actual > 0.0:
-            x = x_new
+            x, x_new = x_new, x
             cost = cost_new
             f, f_new = f_new, f
             jac, jac_new = jac_new, jac
+            f_true[:] = f
             _robust(f, f_scale, soft_l1, jac, True)
-    return x, jac
+    return x, f_true, jac
 
 
-@njit(cache=True)
-def residuals(prob: tuple, x: NDArray, m: int) -> NDArray:  # pragma: no cover - compiled
-    """The residuals (m,) of ``prob`` at ``x`` (no loss applied)."""
-    f = np.empty(m)
-    _evaluate(prob, x, False, f, np.empty((1, x.shape[0])))
-    return f
+def residuals(prob: tuple, x: NDArray, m: int) -> NDArray[np.float64]:
+    """The residuals (m,) of ``prob`` at ``x`` (no loss applied): :func:`solve` with one evaluation."""
+    return solve(prob, np.asarray(x, float), m, np.ones(len(x)), 1, False, 1.0)[1]
 
 
-@njit(cache=True)
-def jacobian(prob: tuple, x: NDArray, m: int) -> NDArray:  # pragma: no cover - compiled
-    """The Jacobian (m, n) of :func:`residuals` at ``x``."""
-    f = np.empty(m)
-    jac = np.empty((m, x.shape[0]))
-    _evaluate(prob, x, True, f, jac)
-    return jac
+def jacobian(prob: tuple, x: NDArray, m: int) -> NDArray[np.float64]:
+    """The Jacobian (m, n) of :func:`residuals` at ``x``: :func:`solve` with one evaluation."""
+    return solve(prob, np.asarray(x, float), m, np.ones(len(x)), 1, False, 1.0)[2]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def edge_nms(gx: NDArray, gy: NDArray, mag: NDArray, threshold: float, mask: NDArray,
              use_mask: bool) -> tuple[NDArray, NDArray, NDArray]:  # pragma: no cover - compiled
     """Sub-pixel edge points by non-maximum suppression along the quantised gradient direction.
@@ -803,38 +917,67 @@ def edge_nms(gx: NDArray, gy: NDArray, mag: NDArray, threshold: float, mask: NDA
     return xy, normal, strength
 
 
-@njit(cache=True)
-def grid_scores(weights: NDArray, nodes: NDArray, sub: NDArray, r0: int, c0: int, dt: NDArray, tol: float,
+@njit(cache=True, error_model="numpy")
+def grid_scores(coef: NDArray, az: NDArray, el: NDArray, sub: NDArray, r0: int, c0: int, dt: NDArray, tol: float,
                 min_inside: int) -> NDArray:  # pragma: no cover - compiled
-    """Chamfer score of each grid node of the canting search.
+    """Chamfer score of each node of the canting grid search.
 
-    The model point ``n`` lies at ``sum_k weights[g, k] nodes[k, n]`` for node ``g``; rounded
-    to the nearest pixel, it counts if the mask (``sub`` at rows ``r0..``, columns ``c0..``)
-    holds it, and scores if the distance transform ``dt`` there is ``<= tol``. A node's score
-    is the share of its counted points that score, or -1 with fewer than ``min_inside``
-    counted.
+    Model point ``n`` lies at pixel ``sum_k coef[k, n] b_k(a, e)`` with the quadratic basis
+    ``b = (1, a, e, a^2, e^2, a e)`` at node ``(a, e) = (az[i], el[j])`` (node ``i * len(el) + j``).
+    Rounded to the nearest pixel, it counts if the facet mask ``sub`` (an image crop) holds
+    it, and scores if the distance transform ``dt`` (the same crop) there is ``<= tol``.
+    A node's score is the share of its counted points that score, or -1 with fewer than
+    ``min_inside`` counted. The crop's first pixel is ``(r0, c0)`` of the image.
     """
-    n_nodes = weights.shape[0]
-    n_pts = nodes.shape[1]
+    n_el = el.shape[0]
+    n_pts = coef.shape[1]
     hh, ww = sub.shape
-    out = np.empty(n_nodes)
-    for g in range(n_nodes):
-        n_in = 0
-        n_near = 0
+    n_in = np.zeros(az.shape[0] * n_el, np.int64)
+    n_near = np.zeros(az.shape[0] * n_el, np.int64)
+    for i in range(az.shape[0]):
+        a = az[i]
         for n in range(n_pts):
-            u = 0.0
-            v = 0.0
-            for k in range(nodes.shape[0]):
-                u += weights[g, k] * nodes[k, n, 0]
-                v += weights[g, k] * nodes[k, n, 1]
-            if not (math.isfinite(u) and math.isfinite(v)):
-                continue
-            i = int(np.rint(v)) - r0
-            j = int(np.rint(u)) - c0
-            if i < 0 or i >= hh or j < 0 or j >= ww or not sub[i, j]:
-                continue
-            n_in += 1
-            if dt[i + r0, j + c0] <= tol:
-                n_near += 1
-        out[g] = n_near / max(n_in, 1) if n_in >= min_inside else -1.0
+            # u(e) = ua + e (ub + uc e) along this row of the grid, v alike
+            ua = coef[0, n, 0] + a * (coef[1, n, 0] + a * coef[3, n, 0])
+            ub = coef[2, n, 0] + a * coef[5, n, 0]
+            uc = coef[4, n, 0]
+            va = coef[0, n, 1] + a * (coef[1, n, 1] + a * coef[3, n, 1])
+            vb = coef[2, n, 1] + a * coef[5, n, 1]
+            vc = coef[4, n, 1]
+            for j in range(n_el):
+                e = el[j]
+                u = ua + e * (ub + uc * e) - c0
+                v = va + e * (vb + vc * e) - r0
+                if not (u > -0.5 and u < ww + 0.5 and v > -0.5 and v < hh + 0.5):
+                    continue  # (and NaN)
+                r = int(np.rint(v))
+                c = int(np.rint(u))
+                if r < 0 or r >= hh or c < 0 or c >= ww or not sub[r, c]:
+                    continue
+                g = i * n_el + j
+                n_in[g] += 1
+                if dt[r, c] <= tol:
+                    n_near[g] += 1
+    out = np.empty(n_in.shape[0])
+    for g in range(out.shape[0]):
+        out[g] = n_near[g] / max(n_in[g], 1) if n_in[g] >= min_inside else -1.0
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def line_normals(uv: NDArray, seg: NDArray) -> NDArray:  # pragma: no cover - compiled
+    """Unit normals (N, 2) of projected polylines: ``(-t_y, t_x)`` of the unit central difference
+    of each point's neighbours on the same segment (one-sided at its ends); NaN where undefined."""
+    n = uv.shape[0]
+    out = np.empty((n, 2))
+    for i in range(n):
+        p = i - 1 if i > 0 and seg[i - 1] == seg[i] else i
+        q = i + 1 if i < n - 1 and seg[i + 1] == seg[i] else i
+        tx = uv[q, 0] - uv[p, 0]
+        ty = uv[q, 1] - uv[p, 1]
+        ln = math.sqrt(tx * tx + ty * ty)
+        tx = tx / ln
+        ty = ty / ln
+        out[i, 0] = -ty
+        out[i, 1] = tx
     return out

@@ -27,9 +27,9 @@ deviation **relative to the best-fit heliostat orientation** (the mean over
 the facets used) and that orientation separately.
 
 The estimator reads the frame and the ``log`` only; its forward model is
-projection of mirrored points (held to ``cv2.projectPoints`` through
-:func:`pihim.camera.pose.project_points`), independent of the renderer's
-ray tracer that made the test frames.
+projection of mirrored points (the compiled projection of
+:mod:`pihim.inspection._kernels`, held to ``cv2.projectPoints``), independent
+of the renderer's ray tracer that made the test frames.
 
 Status (measured on 20 rendered NSTTF UFACET frames, ``benchmarks/canting_quality.py``)
 -----------------------------------------------------------------------------------
@@ -59,7 +59,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from pihim.camera.model import CameraModel
-from pihim.camera.pose import CameraPose, project_points
+from pihim.camera.pose import CameraPose
 from pihim.errors import PihimInputError
 from pihim.field.kinematics import FieldPose, apply_canting_deviation
 from pihim.inspection.features import EdgePoints
@@ -242,6 +242,10 @@ def _facet_masks(camera: CameraModel, pose: CameraPose, corners: NDArray, margin
     return masks
 
 
+def _quadratic_basis(a: NDArray, e: NDArray) -> NDArray:
+    return np.stack([np.ones_like(a), a, e, a * a, e * e, a * e], axis=1)
+
+
 class _FacetModel:
     """The target's outlines reflected in one HUA facet, projected for candidate canting angles."""
 
@@ -286,34 +290,28 @@ class _FacetModel:
         return _FacetModel(self.camera, self.pose, self.rot, self.centre, self.normal_local, self.pts[keep],
                            self.seg[keep])
 
-    def quadratic_nodes(self, az_mrad: NDArray, el_mrad: NDArray) -> tuple[NDArray, NDArray]:
-        """Projections (9, N, 2) on the nodes ``{-s, 0, s}^2`` and weights (G, 9) that make
-        ``weights @ nodes`` the quadratic approximation of :meth:`project_quadratic` at the
-        G angle pairs."""
-        az = np.asarray(az_mrad, float)
-        el = np.asarray(el_mrad, float)
-        s = max(float(np.max(np.abs(az), initial=0.0)), float(np.max(np.abs(el), initial=0.0)), 1.0)
+    def quadratic_coefficients(self, s: float) -> NDArray:
+        """Coefficients (6, N, 2) of each point's pixel as a quadratic in the angles (mrad),
+        on the basis ``(1, az, el, az^2, el^2, az el)``.
+
+        Exact projections on the 3 x 3 grid ``{-s, 0, s}^2`` fix the quadratic (least
+        squares on the nine nodes); its error is third order, far below a pixel over
+        +-17.5 mrad, and it costs nine projections instead of one per grid node (the
+        refinement uses :meth:`project`, exact).
+        """
         k = np.array([-s, 0.0, s])
         na, ne = (g.ravel() for g in np.meshgrid(k, k, indexing="ij"))
         uv = self.project_many(na, ne)  # (9, N, 2)
-
-        def basis(a: NDArray, e: NDArray) -> NDArray:
-            return np.stack([np.ones_like(a), a, e, a * a, e * e, a * e], axis=1)
-
-        # the least-squares quadratic through the nine nodes: coefficients pinv(B9) @ nodes
-        return uv, basis(az, el) @ np.linalg.pinv(basis(na, ne))
+        return (np.linalg.pinv(_quadratic_basis(na, ne)) @ uv.reshape(9, -1)).reshape(6, -1, 2)
 
     def project_quadratic(self, az_mrad: NDArray, el_mrad: NDArray) -> NDArray:
-        """Projected points (G, N, 2) for G angle pairs, to second order in the angles.
-
-        Exact projections on the 3 x 3 grid ``{-s, 0, s}^2`` (``s`` the largest
-        ``|angle|`` asked for) fix a quadratic in (az, el) per point (least squares on the
-        nine nodes); its error is third order, far below a pixel over +-17.5 mrad, and it
-        costs nine projections instead of one per node (the refinement uses
-        :meth:`project`, exact).
-        """
-        uv, weights = self.quadratic_nodes(az_mrad, el_mrad)
-        return (weights @ uv.reshape(9, -1)).reshape(len(weights), -1, 2)
+        """Projected points (G, N, 2) for G angle pairs, to second order in the angles
+        (:meth:`quadratic_coefficients` with ``s`` the largest ``|angle|`` asked for)."""
+        az = np.asarray(az_mrad, float)
+        el = np.asarray(el_mrad, float)
+        s = max(float(np.max(np.abs(az), initial=0.0)), float(np.max(np.abs(el), initial=0.0)), 1.0)
+        coef = self.quadratic_coefficients(s)
+        return (_quadratic_basis(az, el) @ coef.reshape(6, -1)).reshape(len(az), -1, 2)
 
     def project_many(self, az_mrad: NDArray, el_mrad: NDArray, pts: NDArray | None = None) -> NDArray:
         """Projected points (G, N, 2) for G candidate angle pairs at once (no normals)."""
@@ -346,8 +344,11 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     grid = np.arange(-span_mrad, span_mrad + 1e-9, step_mrad)
     gaz, gel = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
     coarse_model = model.subsampled(6)  # every 6 cm of outline: the score is a share, not a sum
-    nodes, weights = coarse_model.quadratic_nodes(gaz, gel)  # every grid node at once
-    score = _kernels.grid_scores(weights, nodes, mask.sub, mask.r0, mask.c0, dt, float(grid_tol_px), 10)
+    # every grid node at once, from the quadratic through the nodes {-s, 0, s}^2
+    coef = coarse_model.quadratic_coefficients(max(float(np.max(np.abs(grid))), 1.0))
+    hh, ww = mask.sub.shape
+    dt_crop = np.ascontiguousarray(dt[mask.r0:mask.r0 + hh, mask.c0:mask.c0 + ww])
+    score = _kernels.grid_scores(coef, grid, grid, mask.sub, mask.r0, mask.c0, dt_crop, float(grid_tol_px), 10)
     k = int(np.argmax(score))  # first maximum: the same node the loop over az, then el, kept
     g_best = (float(score[k]), float(gaz[k]), float(gel[k]))
     if g_best[0] < 0:
@@ -374,9 +375,8 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
 
         prob = _kernels.problem(_kernels.REFLECTION, model._r, model._c, sub, model._cam,
                                 q=np.column_stack([q, nq]), aux=aux, idx=inv, gate=gate)
-        x, jac = _kernels.solve(prob, np.array([az, el]), len(q), _X_SCALE, 200, True, 0.5)
+        x, r, jac = _kernels.solve(prob, np.array([az, el]), len(q), _X_SCALE, 200, True, 0.5)
         az, el = float(x[0]), float(x[1])
-        r = _kernels.residuals(prob, x, len(q))
     assert jac is not None
     inl = np.abs(r) < 1.0
     n = int(inl.sum())

@@ -133,15 +133,9 @@ def line_normals(uv: NDArray, seg: NDArray) -> NDArray:
     central difference of neighbours on the same segment (one-sided at its
     ends).
     """
-    same_next = np.append(seg[1:] == seg[:-1], False)
-    same_prev = np.insert(seg[1:] == seg[:-1], 0, False)
-    nxt = np.where(same_next[:, None], np.roll(uv, -1, axis=0), uv)
-    prv = np.where(same_prev[:, None], np.roll(uv, 1, axis=0), uv)
-    tangent = nxt - prv
-    ln = np.linalg.norm(tangent, axis=1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        tangent = tangent / ln
-    return np.column_stack([-tangent[:, 1], tangent[:, 0]])
+    from pihim.inspection import _kernels
+
+    return _kernels.line_normals(np.ascontiguousarray(uv, dtype=float), np.ascontiguousarray(seg, dtype=np.int64))
 
 
 def match_edge_points(uv: NDArray, usable: NDArray[np.bool_], obs: NDArray, gate: float, min_hits: int,
@@ -333,7 +327,7 @@ def _chamfer_align(camera: CameraModel, pose: CameraPose, pts: NDArray, maps: _E
     pts = np.ascontiguousarray(pts, dtype=float)
     for prox in maps.levels:
         prob = _kernels.problem(_kernels.CHAMFER, rot, centre, pts, cam, prox=prox)
-        x, _ = _kernels.solve(prob, np.zeros(6), len(pts), _X_SCALE, 30, False, 1.0)
+        x = _kernels.solve(prob, np.zeros(6), len(pts), _X_SCALE, 30, False, 1.0)[0]
         rot = _kernels.rotation_from_vector(x[:3]) @ rot
         centre = centre + x[3:]
     return CameraPose(centre, rot)
@@ -496,11 +490,9 @@ def _icp(camera: CameraModel, start: CameraPose, pts: NDArray, seg: NDArray, obs
         m = len(idx)
         sub = np.concatenate([pts[idx], pts[prv[idx]], pts[nxt[idx]]])
         prob = _kernels.problem(_kernels.POINT_TO_LINE, rot, centre, sub, cam, q=q, gate=gate)
-        x, _ = _kernels.solve(prob, np.zeros(6), m, _X_SCALE, 50, True, 1.0)
+        x, r, _ = _kernels.solve(prob, np.zeros(6), m, _X_SCALE, 50, True, 1.0)
         rot = _kernels.rotation_from_vector(x[:3]) @ rot
         centre = centre + x[3:]
-        prob = _kernels.problem(_kernels.POINT_TO_LINE, rot, centre, sub, cam, q=q, gate=gate)
-        r = _kernels.residuals(prob, np.zeros(6), m)
         rms = float(np.sqrt(np.mean(r**2)))
         n_used = m
     return CameraPose(centre, rot), rms, n_used
