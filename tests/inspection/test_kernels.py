@@ -428,3 +428,28 @@ def test_line_normals_match_the_numpy_statement():
     got = line_normals(uv, seg)
     assert np.isnan(got[[16, 18]]).all() and np.isfinite(got[:16]).all() and np.isfinite(got[17]).all()
     np.testing.assert_array_equal(got, np.column_stack([-t[:, 1], t[:, 0]]))
+
+
+def test_edge_point_matching_is_the_kdtree_s_including_coincident_points():
+    from scipy.spatial import cKDTree
+
+    from pihim.inspection.pose import match_edge_points
+
+    rng = np.random.default_rng(13)
+    pts, seg = _outline(25)  # every corner twice: the end of one side and the start of the next
+    uv = project_points(WIDE, POSE, pts)
+    usable = rng.random(len(uv)) < 0.95
+    obs = uv[usable][rng.integers(0, usable.sum(), 3000)] + rng.normal(0.0, 2.0, (3000, 2))
+    obs = np.concatenate([obs, uv[:100] + 1e-3, rng.uniform(-50, 700, (500, 2))])
+    d, j = cKDTree(uv[usable]).query(obs, distance_upper_bound=3.0)
+    hit = np.isfinite(d)
+    idx, q = match_edge_points(uv, usable, obs, 3.0, 10, "test")
+    assert 1000 < len(idx) < len(obs)
+    np.testing.assert_array_equal(idx, np.flatnonzero(usable)[j[hit]])
+    np.testing.assert_array_equal(q, obs[hit])
+    k, tie = K.nearest_within(uv[usable], obs, 3.0)
+    assert tie.sum() > 10  # the coincident corners were met
+    np.testing.assert_array_equal(k[~tie], np.where(hit, j, -1)[~tie])
+    with pytest.raises(Exception, match="test matches only"):
+        match_edge_points(uv, usable, obs + 1e4, 3.0, 10, "test")
+

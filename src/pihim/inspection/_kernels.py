@@ -33,7 +33,10 @@ held to an independent statement by ``tests/inspection/test_kernels.py``.
 * :func:`edge_nms`: the non-maximum suppression and parabolic sub-pixel peak
   of :func:`pihim.inspection.features.edge_points`;
 * :func:`grid_scores`: the canting grid search's chamfer score of every node;
-* :func:`line_normals`: the unit normals of projected polylines.
+* :func:`line_normals`, :func:`nearest_within`: the unit normals of projected
+  polylines, and the nearest model point of each edge point within a gate
+  (a bucket grid; exact ties are left to the k-d tree the estimators used
+  before, so that the same one of two coincident points is picked).
 
 References
 ----------
@@ -57,7 +60,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 __all__ = ["CHAMFER", "POINT_TO_LINE", "REFLECTION", "bilinear", "camera_vector", "edge_nms", "grid_scores",
-           "jacobian", "left_jacobian", "line_normals", "problem", "project_pose", "project_rc",
+           "jacobian", "left_jacobian", "line_normals", "nearest_within", "problem", "project_pose", "project_rc",
            "project_rc_jacobian", "residuals", "rotation_from_vector", "sobel_bilinear", "solve"]
 
 
@@ -981,3 +984,62 @@ def line_normals(uv: NDArray, seg: NDArray) -> NDArray:  # pragma: no cover - co
         out[i, 0] = -ty
         out[i, 1] = tx
     return out
+
+
+@njit(cache=True, error_model="numpy")
+def nearest_within(model: NDArray, obs: NDArray, gate: float) -> tuple[NDArray, NDArray]:  # pragma: no cover
+    """For each point of ``obs`` (M, 2), the index of the nearest point of ``model`` (N, 2, finite)
+    closer than ``gate`` (-1 if none), and whether another model point is exactly as near.
+
+    A bucket grid of cells at least ``gate`` wide (at most 512 x 512 cells).
+    """
+    n = model.shape[0]
+    out = np.full(obs.shape[0], -1, np.int64)
+    tie = np.zeros(obs.shape[0], np.bool_)
+    if n == 0 or not gate > 0:
+        return out, tie
+    x0, y0 = model[:, 0].min(), model[:, 1].min()
+    x1, y1 = model[:, 0].max(), model[:, 1].max()
+    cell = max(gate, (x1 - x0) / 512.0, (y1 - y0) / 512.0)
+    nx = int((x1 - x0) / cell) + 1
+    ny = int((y1 - y0) / cell) + 1
+    start = np.zeros(nx * ny + 1, np.int64)
+    cid = np.empty(n, np.int64)
+    for k in range(n):
+        cid[k] = int((model[k, 1] - y0) / cell) * nx + int((model[k, 0] - x0) / cell)
+        start[cid[k] + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    order = np.empty(n, np.int64)
+    for k in range(n):  # counting sort by cell
+        order[fill[cid[k]]] = k
+        fill[cid[k]] += 1
+    g2 = gate * gate
+    for m in range(obs.shape[0]):
+        ox = obs[m, 0]
+        oy = obs[m, 1]
+        if not (ox > x0 - gate and ox < x1 + gate and oy > y0 - gate and oy < y1 + gate):
+            continue
+        cx = int(math.floor((ox - x0) / cell))
+        cy = int(math.floor((oy - y0) / cell))
+        best = g2
+        bi = -1
+        same = False
+        for yy in range(max(cy - 1, 0), min(cy + 2, ny)):
+            for xx in range(max(cx - 1, 0), min(cx + 2, nx)):
+                c = yy * nx + xx
+                for t in range(start[c], start[c + 1]):
+                    k = order[t]
+                    dx = model[k, 0] - ox
+                    dy = model[k, 1] - oy
+                    d2 = dx * dx + dy * dy
+                    if d2 < best:
+                        best = d2
+                        bi = k
+                        same = False
+                    elif d2 == best and bi >= 0:
+                        same = True
+        out[m] = bi
+        tie[m] = same
+    return out, tie

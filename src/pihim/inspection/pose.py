@@ -148,17 +148,19 @@ def match_edge_points(uv: NDArray, usable: NDArray[np.bool_], obs: NDArray, gate
     """
     from scipy.spatial import cKDTree
 
+    from pihim.inspection import _kernels
+
     model = uv[usable]
     # only edge points in the model's bounding box grown by the gate can match
     lo = model.min(axis=0) - gate if len(model) else np.zeros(2)
     hi = model.max(axis=0) + gate if len(model) else -np.ones(2)
     cand = np.flatnonzero((obs[:, 0] >= lo[0]) & (obs[:, 0] <= hi[0]) & (obs[:, 1] >= lo[1]) & (obs[:, 1] <= hi[1]))
-    hit = np.zeros(0, np.int64)
-    j = np.zeros(0, np.int64)
-    if len(cand) and len(model):
-        d, j = cKDTree(model).query(obs[cand], distance_upper_bound=gate)
-        ok = np.isfinite(d)
-        hit, j = cand[ok], j[ok]
+    j, tie = _kernels.nearest_within(np.ascontiguousarray(model, dtype=float),
+                                     np.ascontiguousarray(obs[cand], dtype=float), float(gate))
+    if tie.any():  # coincident model points (a corner ends one side and starts the next): the tree's pick
+        j[tie] = cKDTree(model).query(obs[cand[tie]], distance_upper_bound=gate)[1]
+    ok = j >= 0
+    hit, j = cand[ok], j[ok]
     if len(hit) < min_hits:
         raise PihimInputError(f"{what} matches only {len(hit)} edge points")
     return np.flatnonzero(usable)[j], obs[hit]
