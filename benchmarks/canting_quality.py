@@ -53,18 +53,18 @@ Scores:
   refined estimate and for the paper's grid search (``grid_*``, same
   reference) side by side;
 * facets used per frame, a histogram of the skip reasons, the pose fit's
-  RMS residual, and wall seconds per step (render excluded from the
-  per-frame estimation time).
+  RMS residual, and wall and CPU seconds per step (render excluded from the
+  per-frame estimation time), with the 1-min load average at each frame's
+  end.
 
 Anchors: the paper's grid step 0.1 deg = 1.75 mrad; Sandia's H-FACET
 1.17 mrad; issue 9's targets <= 0.5 mrad per axis and <= 3 s per frame.
 
-Run time: each frame is rendered twice (once per prior setting; the raw
-bytes are the same, only the logged pose differs), ~10 s each, and estimated
-twice, ~45-65 s each (the canting step runs also on the frames whose pose
-failed), so ~2.5 min per frame on a 2-core machine. The default of 6 frames
-takes ~15 min, ``--quick`` (4 frames) ~10 min; ``--frames 20`` is the
-issue's full study (~50 min).
+Run time: each frame is rendered once per prior setting (the raw bytes are
+the same, only the logged pose differs), ~10 s each on an idle 2-core
+machine (20 s under heavy load), and estimated once per setting, ~1.2 s of
+CPU each, so rendering dominates. ``--frames 20 --priors issue_priors`` took
+11 min on a heavily loaded machine; both settings take about twice as long.
 """
 
 from __future__ import annotations
