@@ -53,29 +53,31 @@ Scores:
   refined estimate and for the paper's grid search (``grid_*``, same
   reference) side by side;
 * facets used per frame, a histogram of the skip reasons, the pose fit's
-  RMS residual, and wall seconds per step (render excluded from the
-  per-frame estimation time).
+  RMS residual, and wall and CPU seconds per step (render excluded from the
+  per-frame estimation time), with the 1-min load average at each frame's
+  end.
 
 Anchors: the paper's grid step 0.1 deg = 1.75 mrad; Sandia's H-FACET
 1.17 mrad; issue 9's targets <= 0.5 mrad per axis and <= 3 s per frame.
 
-Run time: each frame is rendered twice (once per prior setting; the raw
-bytes are the same, only the logged pose differs), ~10 s each, and estimated
-twice, ~45-65 s each (the canting step runs also on the frames whose pose
-failed), so ~2.5 min per frame on a 2-core machine. The default of 6 frames
-takes ~15 min, ``--quick`` (4 frames) ~10 min; ``--frames 20`` is the
-issue's full study (~50 min).
+Run time: each frame is rendered once per prior setting (the raw bytes are
+the same, only the logged pose differs), ~10 s each on an idle 2-core
+machine (20 s under heavy load), and estimated once per setting, ~1.2 s of
+CPU each, so rendering dominates. ``--frames 20 --priors issue_priors`` took
+11 min on a heavily loaded machine; both settings take about twice as long.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import platform
 import random
 import sys
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -163,46 +165,42 @@ def estimate_frame(field: Any, sim: Any, refine_kw: dict[str, Any]) -> dict[str,
     log, truth = sim.log, sim.truth
     hua, target = log["hua"], log["target"]
     camera = CameraModel.from_dict(log["camera"])
-    sec: dict[str, float] = {}
-    t0 = time.perf_counter()
-    pim = polar_image(sim.raw, demosaic="full", bit_depth=12)
-    sec["polar"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    edges = edge_points(pim.s0)
-    sec["edges"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    fp = logged_field(field, log)
-    h = field.index(hua)
-    corners = fp.facet_corners()[h]
-    prior = CameraPose.from_dict(log["pose"])
-    sec["field"] = time.perf_counter() - t0
+    clock = _Clock()
+    sec, cpu = clock.wall, clock.cpu
+    with clock("polar"):
+        pim = polar_image(sim.raw, demosaic="full", bit_depth=12)
+    with clock("edges"):
+        edges = edge_points(pim.s0)
+    with clock("field"):
+        fp = logged_field(field, log)
+        h = field.index(hua)
+        corners = fp.facet_corners()[h]
+        prior = CameraPose.from_dict(log["pose"])
     out: dict[str, Any] = {"hua": hua, "target": target, "time": log["time"], "edge_points": len(edges)}
     true_pose = CameraPose.from_dict(truth["pose"])
     uv_true = project_points(camera, true_pose, corners.reshape(-1, 3))
     uv_prior = project_points(camera, prior, corners.reshape(-1, 3))
     out["prior_corner_error_px"] = float(np.nanmax(np.linalg.norm(uv_prior - uv_true, axis=1)))
-    t0 = time.perf_counter()
-    try:
-        fit = refine_pose(camera, prior, facet_outline_segments(corners), edges, **refine_kw)
-    except PihimInputError as exc:
-        fit = None
-        out["pose_error"] = str(exc)
-    sec["pose"] = time.perf_counter() - t0
+    fit = None
+    with clock("pose"):
+        try:
+            fit = refine_pose(camera, prior, facet_outline_segments(corners), edges, **refine_kw)
+        except PihimInputError as exc:
+            out["pose_error"] = str(exc)
     if fit is None:
+        sec["canting"] = cpu["canting"] = 0.0
+        clock.total()
         out.update(pose_ok=False, pose_rms_px=None, corner_error_max_px=None, corner_error_rms_px=None,
-                   facets=[], used=0, reasons={}, seconds=sec)
-        sec["canting"] = 0.0
-        sec["estimation"] = sum(sec.values())
+                   facets=[], used=0, reasons={}, seconds=sec, cpu_seconds=cpu, load_avg_1min=os.getloadavg()[0])
         return out
     d = np.linalg.norm(project_points(camera, fit.pose, corners.reshape(-1, 3)) - uv_true, axis=1)
     out["pose_rms_px"] = float(fit.rms_px)
     out["corner_error_max_px"] = float(np.nanmax(d))
     out["corner_error_rms_px"] = float(np.sqrt(np.nanmean(d**2)))
     out["pose_ok"] = bool(np.all(np.isfinite(d)) and out["corner_error_max_px"] <= POSE_FAIL_PX)
-    t0 = time.perf_counter()
-    res = estimate_canting(camera, fit.pose, fp, hua, target, edges, dolp=pim.dolp, saturated=pim.saturated)
-    sec["canting"] = time.perf_counter() - t0
-    sec["estimation"] = sum(v for k, v in sec.items())
+    with clock("canting"):
+        res = estimate_canting(camera, fit.pose, fp, hua, target, edges, dolp=pim.dolp, saturated=pim.saturated)
+    clock.total()
     true_h = next(e for e in truth["heliostats"] if e["name"] == hua)
     tf = {f["id"]: (f["az_mrad"], f["el_mrad"]) for f in true_h["facets"]}
     used = [f for f in res.facets if f.used]
@@ -221,7 +219,30 @@ def estimate_frame(field: Any, sim: Any, refine_kw: dict[str, Any]) -> dict[str,
     out["edge_success"] = edge_success_per_type(sim, pim, hua)
     out["reasons"] = dict(Counter(_reason_key(f.reason or "", target) for f in res.facets if not f.used))
     out["seconds"] = sec
+    out["cpu_seconds"] = cpu
+    out["load_avg_1min"] = os.getloadavg()[0]
     return out
+
+
+class _Clock:
+    """Wall and CPU seconds (this process, all threads) per named step; ``total()`` adds ``estimation``."""
+
+    def __init__(self) -> None:
+        self.wall: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        w, c = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            self.wall[name] = time.perf_counter() - w
+            self.cpu[name] = time.process_time() - c
+
+    def total(self) -> None:
+        for d in (self.wall, self.cpu):
+            d["estimation"] = sum(v for k, v in d.items() if k != "estimation")
 
 
 def edge_success_per_type(sim: Any, pim: Any, hua: str) -> dict[str, bool]:
@@ -273,6 +294,12 @@ def summarise(frames: list[dict[str, Any]]) -> dict[str, Any]:
         "corner_error_max_px_median_good": med(col("corner_error_max_px", good)),
         "prior_corner_error_px_median": med(col("prior_corner_error_px", frames)),
         "seconds_median": {k: med([f["seconds"][k] for f in frames if k in f["seconds"]]) for k in sec_keys},
+        "cpu_seconds_median": {k: med([f["cpu_seconds"][k] for f in frames if k in f.get("cpu_seconds", {})])
+                               for k in sec_keys},
+        "seconds_max": {k: max([f["seconds"][k] for f in frames if k in f["seconds"]], default=None)
+                        for k in sec_keys},
+        "load_avg_1min_median": med(col("load_avg_1min", frames)),
+        "load_avg_1min_max": max(col("load_avg_1min", frames), default=None),
         "edge_success": {name: sum(1 for f in frames if f.get("edge_success", {}).get(name)) for name in
                          ("S0", "DoLP", "AoP")},
     }
@@ -384,6 +411,7 @@ def markdown_report(rep: dict[str, Any]) -> str:
             continue
         s = rep["summary"][key]
         sec = s["seconds_median"]
+        cpu = s.get("cpu_seconds_median") or {k: None for k in sec}
         lines += [
             "",
             f"**{label}** ({s['frames']} frames; pose failures (true corner error > {POSE_FAIL_PX:g} px or no fit): "
@@ -405,10 +433,15 @@ def markdown_report(rep: dict[str, Any]) -> str:
              f"| {_f(s['corner_error_max_px_median_all'], '.2f')} / {_f(s['corner_error_max_px_median_good'], '.2f')} "
              f"| | <= {POSE_FAIL_PX:g} px = good pose |"),
             (f"| seconds per frame, median: polar / edges / field / pose / canting "
-             f"| {_f(sec['polar'])} / {_f(sec['edges'])} / {_f(sec['field'])} / {_f(sec['pose'], '.1f')} / "
-             f"{_f(sec['canting'], '.1f')} | | |"),
-            (f"| seconds per frame, estimation total (median) | {_f(sec['estimation'], '.1f')} | "
-             f"| target <= {TARGET_S:g} s |"),
+             f"| {_f(sec['polar'])} / {_f(sec['edges'])} / {_f(sec['field'])} / {_f(sec['pose'])} / "
+             f"{_f(sec['canting'])} | | |"),
+            (f"| seconds per frame, estimation total (median; max) | {_f(sec['estimation'], '.1f')}; "
+             f"{_f(s['seconds_max']['estimation'], '.1f')} | | target <= {TARGET_S:g} s |"),
+            (f"| CPU seconds per frame, median: polar / edges / field / pose / canting (total) "
+             f"| {_f(cpu['polar'])} / {_f(cpu['edges'])} / {_f(cpu['field'])} / {_f(cpu['pose'])} / "
+             f"{_f(cpu['canting'])} ({_f(cpu['estimation'])}) | | |"),
+            (f"| 1-min load average at the frames' end (2 cores), median / max "
+             f"| {_f(s['load_avg_1min_median'], '.1f')} / {_f(s['load_avg_1min_max'], '.1f')} | | |"),
         ]
         es = s.get("edge_success")
         if es:

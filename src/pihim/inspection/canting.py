@@ -27,9 +27,9 @@ deviation **relative to the best-fit heliostat orientation** (the mean over
 the facets used) and that orientation separately.
 
 The estimator reads the frame and the ``log`` only; its forward model is
-projection of mirrored points (held to ``cv2.projectPoints`` through
-:func:`pihim.camera.pose.project_points`), independent of the renderer's
-ray tracer that made the test frames.
+projection of mirrored points (the compiled projection of
+:mod:`pihim.inspection._kernels`, held to ``cv2.projectPoints``), independent
+of the renderer's ray tracer that made the test frames.
 
 Status (measured on 20 rendered NSTTF UFACET frames, ``benchmarks/canting_quality.py``)
 -----------------------------------------------------------------------------------
@@ -39,8 +39,11 @@ median) and S0 edge points (the DoLP of the dark target back is too noisy at
 gates and their deviations are recovered to 0.16 / 0.25 mrad RMS (azimuth /
 elevation) against 0.84 / 0.41 mrad for the paper's grid search on the same
 frames; a facet whose fit locks onto other features is mostly caught by its
-residual. Not yet: polarimetric edge weighting, and speed (about 5 s for
-this step on a full frame).
+residual. This step takes a median 0.5 s of CPU on a full frame (1.1 s wall
+on a heavily loaded 2-core machine; the whole frame, polar image to
+canting, 1.2 s CPU / 2.9 s wall), the grid search and the refinement running
+in compiled loops (:mod:`pihim.inspection._kernels`). Not yet: polarimetric
+edge weighting.
 
 References
 ----------
@@ -59,7 +62,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from pihim.camera.model import CameraModel
-from pihim.camera.pose import CameraPose, project_points
+from pihim.camera.pose import CameraPose
 from pihim.errors import PihimInputError
 from pihim.field.kinematics import FieldPose, apply_canting_deviation
 from pihim.inspection.features import EdgePoints
@@ -67,6 +70,9 @@ from pihim.inspection.pose import facet_outline_segments, line_normals, match_ed
 from pihim.render.scene import StructureSizes
 
 __all__ = ["CantingResult", "FacetCanting", "PAPER_GRID_STEP_MRAD", "estimate_canting", "target_outline_segments"]
+
+#: Scale of the two canting angles in the refinement, mrad.
+_X_SCALE = np.array([0.1, 0.1])
 
 #: The paper's grid step, 0.1 deg, in mrad.
 PAPER_GRID_STEP_MRAD = float(np.radians(0.1) * 1e3)
@@ -162,38 +168,110 @@ def target_outline_segments(field_pose: FieldPose, index: int, sizes: StructureS
     return np.concatenate(segs)
 
 
-def _facet_masks(camera: CameraModel, pose: CameraPose, corners: NDArray, margin_px: float) -> list[NDArray]:
-    """Boolean image masks of each facet's projected outline, eroded by ``margin_px``."""
+class _Mask:
+    """A boolean image mask stored as its bounding box: ``sub`` at rows ``r0..``, columns ``c0..``
+    of an image of ``shape``; everything outside the box is False."""
+
+    def __init__(self, shape: tuple[int, int], r0: int = 0, c0: int = 0, sub: NDArray | None = None):
+        self.shape = shape
+        self.r0, self.c0 = int(r0), int(c0)
+        self.sub = np.zeros((0, 0), bool) if sub is None else sub
+
+    def full(self) -> NDArray[np.bool_]:
+        """The mask as a whole image."""
+        m = np.zeros(self.shape, bool)
+        hh, ww = self.sub.shape
+        m[self.r0:self.r0 + hh, self.c0:self.c0 + ww] = self.sub
+        return m
+
+    def area(self) -> int:
+        return int(self.sub.sum())
+
+    def values(self, img: NDArray) -> NDArray:
+        """``img[mask]`` (same order)."""
+        hh, ww = self.sub.shape
+        return img[self.r0:self.r0 + hh, self.c0:self.c0 + ww][self.sub]
+
+    def extent(self) -> tuple[int, int, int, int] | None:
+        """First and last row and column that hold a True pixel (None if none)."""
+        rows = np.flatnonzero(self.sub.any(axis=1))
+        cols = np.flatnonzero(self.sub.any(axis=0))
+        if rows.size == 0:
+            return None
+        return self.r0 + rows[0], self.r0 + rows[-1], self.c0 + cols[0], self.c0 + cols[-1]
+
+    def inside(self, uv: NDArray) -> NDArray[np.bool_]:
+        """Whether each pixel position ``uv`` (N, 2), rounded to the nearest pixel, is in the mask."""
+        hh, ww = self.sub.shape
+        out = np.zeros(len(uv), bool)
+        with np.errstate(invalid="ignore"):
+            box = (uv[:, 0] > self.c0 - 0.5 - 1) & (uv[:, 0] < self.c0 + ww + 0.5) \
+                & (uv[:, 1] > self.r0 - 0.5 - 1) & (uv[:, 1] < self.r0 + hh + 0.5)
+        k = np.flatnonzero(box)
+        i = np.rint(uv[k, 1]).astype(int) - self.r0
+        j = np.rint(uv[k, 0]).astype(int) - self.c0
+        ok = (i >= 0) & (i < hh) & (j >= 0) & (j < ww)
+        out[k[ok]] = self.sub[i[ok], j[ok]]
+        return out
+
+
+def _facet_masks(camera: CameraModel, pose: CameraPose, corners: NDArray, margin_px: float) -> list[_Mask]:
+    """Masks of each facet's projected outline, eroded by ``margin_px`` (filled and eroded
+    on the outline's bounding box grown by the kernel: the same pixels as on the whole image)."""
     import cv2
 
+    from pihim.inspection import _kernels
+
+    shape = (camera.height_px, camera.width_px)
     masks = []
     k = max(1, int(round(2 * margin_px + 1)))
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    t = np.linspace(0.0, 1.0, 24, endpoint=False)[:, None]
     for f in range(corners.shape[0]):
-        t = np.linspace(0.0, 1.0, 24, endpoint=False)[:, None]
         ring = np.concatenate([corners[f, j] + t * (corners[f, (j + 1) % 4] - corners[f, j]) for j in range(4)])
-        uv = project_points(camera, pose, ring)
-        m = np.zeros((camera.height_px, camera.width_px), np.uint8)
-        if np.all(np.isfinite(uv)):
-            cv2.fillPoly(m, [np.rint(uv).astype(np.int32)], 1)
-            m = cv2.erode(m, kernel)
-        masks.append(m.astype(bool))
+        uv = _kernels.project_pose(camera, pose, ring)
+        if not np.all(np.isfinite(uv)):
+            masks.append(_Mask(shape))
+            continue
+        poly = np.rint(uv).astype(np.int32)
+        lo = np.maximum(poly.min(axis=0) - k, 0)
+        hi = np.minimum(poly.max(axis=0) + k + 1, [shape[1], shape[0]])
+        if np.any(hi <= lo):
+            masks.append(_Mask(shape))
+            continue
+        m = np.zeros((hi[1] - lo[1], hi[0] - lo[0]), np.uint8)
+        cv2.fillPoly(m, [poly - lo.astype(np.int32)], 1)
+        masks.append(_Mask(shape, lo[1], lo[0], cv2.erode(m, kernel).astype(bool)))
     return masks
+
+
+def _quadratic_basis(a: NDArray, e: NDArray) -> NDArray:
+    return np.stack([np.ones_like(a), a, e, a * a, e * e, a * e], axis=1)
 
 
 class _FacetModel:
     """The target's outlines reflected in one HUA facet, projected for candidate canting angles."""
 
     def __init__(self, camera, pose, rot_hua, centre, normal_local, pts, seg):
+        from pihim.inspection import _kernels
+
         self.camera, self.pose, self.rot, self.centre = camera, pose, rot_hua, centre
-        self.normal_local, self.pts, self.seg = normal_local, pts, seg
+        self.normal_local, self.pts, self.seg = normal_local, np.ascontiguousarray(pts, dtype=float), seg
+        self._cam = _kernels.camera_vector(camera)
+        self._r = np.array(pose.rotation, float)
+        self._c = np.array(pose.position_m, float)
+
+    def _project(self, pts: NDArray) -> NDArray:
+        from pihim.inspection import _kernels
+
+        return _kernels.project_rc(self._r, self._c, np.ascontiguousarray(pts), self._cam)
 
     def subsampled(self, k: int) -> _FacetModel:
         """The same model with every ``k``-th sample point (a cheaper score for the grid search)."""
         return _FacetModel(self.camera, self.pose, self.rot, self.centre, self.normal_local, self.pts[::k],
                            self.seg[::k])
 
-    def near(self, mask: NDArray[np.bool_], span_mrad: float, margin_px: float = 20.0) -> _FacetModel:
+    def near(self, mask: _Mask, span_mrad: float, margin_px: float = 20.0) -> _FacetModel:
         """The model restricted to the points that can reach the facet's mask within the search span.
 
         A point is kept if its projection at zero deviation lies inside the mask's bounding box
@@ -201,41 +279,42 @@ class _FacetModel:
         corners of the ``+-span_mrad`` grid (measured on every 16th point; the reflection moves
         almost affinely with the angles).
         """
-        rows = np.flatnonzero(mask.any(axis=1))
-        cols = np.flatnonzero(mask.any(axis=0))
-        if rows.size == 0:
+        ext = mask.extent()
+        if ext is None:
             return self
+        r_lo, r_hi, c_lo, c_hi = ext
         s = float(span_mrad)
         sub = self.project_many(np.array([0.0, -s, -s, s, s]), np.array([0.0, -s, s, -s, s]), self.pts[::16])
         reach = float(np.nanmax(np.linalg.norm(sub[1:] - sub[:1], axis=2), initial=0.0))
         grow = margin_px + reach
         uv = self.project_many(np.zeros(1), np.zeros(1))[0]
-        keep = (uv[:, 0] >= cols[0] - grow) & (uv[:, 0] <= cols[-1] + grow) \
-            & (uv[:, 1] >= rows[0] - grow) & (uv[:, 1] <= rows[-1] + grow)
+        keep = (uv[:, 0] >= c_lo - grow) & (uv[:, 0] <= c_hi + grow) \
+            & (uv[:, 1] >= r_lo - grow) & (uv[:, 1] <= r_hi + grow)
         return _FacetModel(self.camera, self.pose, self.rot, self.centre, self.normal_local, self.pts[keep],
                            self.seg[keep])
 
-    def project_quadratic(self, az_mrad: NDArray, el_mrad: NDArray) -> NDArray:
-        """Projected points (G, N, 2) for G angle pairs, to second order in the angles.
+    def quadratic_coefficients(self, s: float) -> NDArray:
+        """Coefficients (6, N, 2) of each point's pixel as a quadratic in the angles (mrad),
+        on the basis ``(1, az, el, az^2, el^2, az el)``.
 
-        Exact projections on the 3 x 3 grid ``{-s, 0, s}^2`` (``s`` the largest
-        ``|angle|`` asked for) fix a quadratic in (az, el) per point (least squares on the
-        nine nodes); its error is third order, far below a pixel over +-17.5 mrad, and it
-        costs nine projections instead of one per node (the refinement uses
-        :meth:`project`, exact).
+        Exact projections on the 3 x 3 grid ``{-s, 0, s}^2`` fix the quadratic (least
+        squares on the nine nodes); its error is third order, far below a pixel over
+        +-17.5 mrad, and it costs nine projections instead of one per grid node (the
+        refinement uses :meth:`project`, exact).
         """
-        az = np.asarray(az_mrad, float)
-        el = np.asarray(el_mrad, float)
-        s = max(float(np.max(np.abs(az), initial=0.0)), float(np.max(np.abs(el), initial=0.0)), 1.0)
         k = np.array([-s, 0.0, s])
         na, ne = (g.ravel() for g in np.meshgrid(k, k, indexing="ij"))
         uv = self.project_many(na, ne)  # (9, N, 2)
+        return (np.linalg.pinv(_quadratic_basis(na, ne)) @ uv.reshape(9, -1)).reshape(6, -1, 2)
 
-        def basis(a: NDArray, e: NDArray) -> NDArray:
-            return np.stack([np.ones_like(a), a, e, a * a, e * e, a * e], axis=1)
-
-        coef, *_ = np.linalg.lstsq(basis(na, ne), uv.reshape(9, -1), rcond=None)  # (6, N*2)
-        return (basis(az, el) @ coef).reshape(len(az), -1, 2)
+    def project_quadratic(self, az_mrad: NDArray, el_mrad: NDArray) -> NDArray:
+        """Projected points (G, N, 2) for G angle pairs, to second order in the angles
+        (:meth:`quadratic_coefficients` with ``s`` the largest ``|angle|`` asked for)."""
+        az = np.asarray(az_mrad, float)
+        el = np.asarray(el_mrad, float)
+        s = max(float(np.max(np.abs(az), initial=0.0)), float(np.max(np.abs(el), initial=0.0)), 1.0)
+        coef = self.quadratic_coefficients(s)
+        return (_quadratic_basis(az, el) @ coef.reshape(6, -1)).reshape(len(az), -1, 2)
 
     def project_many(self, az_mrad: NDArray, el_mrad: NDArray, pts: NDArray | None = None) -> NDArray:
         """Projected points (G, N, 2) for G candidate angle pairs at once (no normals)."""
@@ -243,32 +322,24 @@ class _FacetModel:
         n = apply_canting_deviation(self.normal_local, az_mrad, el_mrad) @ self.rot.T  # (G, 3)
         d = (pts - self.centre) @ n.T  # (N, G)
         virt = pts[None, :, :] - 2.0 * d.T[:, :, None] * n[:, None, :]
-        return project_points(self.camera, self.pose, virt.reshape(-1, 3)).reshape(len(n), -1, 2)
+        return self._project(virt.reshape(-1, 3)).reshape(len(n), -1, 2)
 
     def project(self, az_mrad: float, el_mrad: float) -> tuple[NDArray, NDArray]:
         n = self.rot @ apply_canting_deviation(self.normal_local, az_mrad, el_mrad)
         virt = self.pts - 2.0 * ((self.pts - self.centre) @ n)[:, None] * n
-        uv = project_points(self.camera, self.pose, virt)
+        uv = self._project(virt)
         return uv, line_normals(uv, self.seg)
 
 
-def _inside(mask: NDArray[np.bool_], uv: NDArray) -> NDArray[np.bool_]:
-    h, w = mask.shape
-    ok = np.all(np.isfinite(uv), axis=1)
-    i = np.full(len(uv), -1)
-    j = np.full(len(uv), -1)
-    i[ok] = np.rint(uv[ok, 1]).astype(int)
-    j[ok] = np.rint(uv[ok, 0]).astype(int)
-    ok &= (i >= 0) & (i < h) & (j >= 0) & (j < w)
-    out = np.zeros(len(uv), bool)
-    out[ok] = mask[i[ok], j[ok]]
-    return out
-
-
-def _fit_facet(model: _FacetModel, mask: NDArray, obs: NDArray, dt: NDArray, span_mrad: float,
+def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_mrad: float,
                step_mrad: float, gates_px: tuple[float, ...], grid_tol_px: float = 5.0) -> tuple:
-    """(grid az, grid el, az, el, sigma az, sigma el, points, rms) for one facet (raw, not relative)."""
-    from scipy.optimize import least_squares
+    """(grid az, grid el, az, el, sigma az, sigma el, points, rms) for one facet (raw, not relative).
+
+    The refinement rounds solve the two angles by trust-region least squares with a soft-L1
+    loss (scale 0.5 px) and the analytic Jacobian of the mirrored projection
+    (:func:`pihim.inspection._kernels.solve`).
+    """
+    from pihim.inspection import _kernels
 
     # 1. the paper's grid search: every node of the grid, scored by the share of the reflected
     #    outline (inside the facet) within ``grid_tol_px`` of an image edge; the peak is narrow
@@ -276,18 +347,11 @@ def _fit_facet(model: _FacetModel, mask: NDArray, obs: NDArray, dt: NDArray, spa
     grid = np.arange(-span_mrad, span_mrad + 1e-9, step_mrad)
     gaz, gel = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
     coarse_model = model.subsampled(6)  # every 6 cm of outline: the score is a share, not a sum
-    uv = coarse_model.project_quadratic(gaz, gel)  # (G, N, 2), every node at once
-    hgt, wid = mask.shape
-    fin = np.all(np.isfinite(uv), axis=2)
-    ii = np.where(fin, np.rint(np.nan_to_num(uv[..., 1])), -1).astype(np.int64)
-    jj = np.where(fin, np.rint(np.nan_to_num(uv[..., 0])), -1).astype(np.int64)
-    ok = fin & (ii >= 0) & (ii < hgt) & (jj >= 0) & (jj < wid)
-    ii_c = np.clip(ii, 0, hgt - 1)
-    jj_c = np.clip(jj, 0, wid - 1)
-    ins = ok & mask[ii_c, jj_c]
-    near = ins & (dt[ii_c, jj_c] <= grid_tol_px)
-    n_in = ins.sum(axis=1)
-    score = np.where(n_in >= 10, near.sum(axis=1) / np.maximum(n_in, 1), -1.0)
+    # every grid node at once, from the quadratic through the nodes {-s, 0, s}^2
+    coef = coarse_model.quadratic_coefficients(max(float(np.max(np.abs(grid))), 1.0))
+    hh, ww = mask.sub.shape
+    dt_crop = np.ascontiguousarray(dt[mask.r0:mask.r0 + hh, mask.c0:mask.c0 + ww])
+    score = _kernels.grid_scores(coef, grid, grid, mask.sub, mask.r0, mask.c0, dt_crop, float(grid_tol_px), 10)
     k = int(np.argmax(score))  # first maximum: the same node the loop over az, then el, kept
     g_best = (float(score[k]), float(gaz[k]), float(gel[k]))
     if g_best[0] < 0:
@@ -295,14 +359,15 @@ def _fit_facet(model: _FacetModel, mask: NDArray, obs: NDArray, dt: NDArray, spa
     grid_az, grid_el = g_best[1], g_best[2]
     # 2. continuous refinement: point-to-line ICP with LM
     az, el = grid_az, grid_el
-    ob = obs[_inside(mask, obs)]
+    ob = obs[mask.inside(obs)]
     if len(ob) < 20:
         raise PihimInputError("too few edge points inside this facet")
-    sol = None
+    aux = np.concatenate([np.ravel(model.rot), model.centre, model.normal_local])
+    jac = None
     r = np.zeros(0)
     for gate in gates_px:
         uv, nrm = model.project(az, el)
-        ins = _inside(mask, uv) & np.all(np.isfinite(nrm), axis=1)
+        ins = mask.inside(uv) & np.all(np.isfinite(nrm), axis=1)
         if ins.sum() < 20:
             raise PihimInputError("the reflected target leaves the facet")
         idx, q = match_edge_points(uv, ins, ob, gate, 15, "the reflected target")
@@ -311,23 +376,14 @@ def _fit_facet(model: _FacetModel, mask: NDArray, obs: NDArray, dt: NDArray, spa
         used_pts, inv = np.unique(idx, return_inverse=True)
         sub, nq = model.pts[used_pts], nrm[idx]
 
-        def residuals(p: NDArray, q=q, inv=inv, sub=sub, nq=nq, gate=gate) -> NDArray:
-            uvc = model.project_many(np.array([p[0]]), np.array([p[1]]), sub)[0][inv]
-            return np.nan_to_num(np.einsum("ij,ij->i", q - uvc, nq), nan=gate)
-
-        def jacobian(p: NDArray, inv=inv, sub=sub, nq=nq) -> NDArray:
-            h = 1e-3  # mrad
-            uvs = model.project_many(np.array([p[0], p[0] + h, p[0]]), np.array([p[1], p[1], p[1] + h]), sub)
-            d = (uvs[1:] - uvs[:1])[:, inv] / h  # (2, M, 2)
-            return -np.nan_to_num(np.einsum("kij,ij->ik", d, nq))
-
-        sol = least_squares(residuals, np.array([az, el]), jac=jacobian, loss="soft_l1", f_scale=0.5, x_scale=0.1)
-        az, el = float(sol.x[0]), float(sol.x[1])
-        r = residuals(sol.x)
-    assert sol is not None
+        prob = _kernels.problem(_kernels.REFLECTION, model._r, model._c, sub, model._cam,
+                                q=np.column_stack([q, nq]), aux=aux, idx=inv, gate=gate)
+        x, r, jac = _kernels.solve(prob, np.array([az, el]), len(q), _X_SCALE, 200, True, 0.5)
+        az, el = float(x[0]), float(x[1])
+    assert jac is not None
     inl = np.abs(r) < 1.0
     n = int(inl.sum())
-    jac = sol.jac[inl] if n > 2 else sol.jac
+    jac = jac[inl] if n > 2 else jac
     s2 = float(np.sum(r[inl] ** 2) / max(n - 2, 1))
     try:
         cov = s2 * np.linalg.inv(jac.T @ jac)
@@ -337,7 +393,7 @@ def _fit_facet(model: _FacetModel, mask: NDArray, obs: NDArray, dt: NDArray, spa
     rms = float(np.sqrt(np.mean(r[inl] ** 2))) if n else float("nan")
     # support: the share of the reflected outline (inside the facet) that lies on an image edge
     uv, _ = model.project(az, el)
-    ins = _inside(mask, uv)
+    ins = mask.inside(uv)
     qq = np.rint(uv[ins]).astype(int)
     support = float(np.mean(dt[qq[:, 1], qq[:, 0]] <= 1.5)) if ins.any() else 0.0
     return grid_az, grid_el, az, el, float(sig[0]), float(sig[1]), n, rms, support
@@ -429,15 +485,16 @@ def estimate_canting(
     for f in range(spec.n_facets):
         fid = f + 1
         mask = masks[f]
-        area = int(mask.sum())
+        area = mask.area()
         if area < 200:
             raw.append((fid, "facet not in view (or too small)"))
             continue
-        if sat is not None and sat.shape == mask.shape and sat[mask].mean() > 0.3:
+        if sat is not None and sat.shape == mask.shape and mask.values(sat).mean() > 0.3:
             raw.append((fid, "saturated"))
             continue
         if min_dolp is not None and dolp_img is not None and dolp_img.shape == mask.shape:
-            p90 = np.nanpercentile(dolp_img[mask], 90) if np.isfinite(dolp_img[mask]).any() else 0.0
+            vals = mask.values(dolp_img)
+            p90 = np.nanpercentile(vals, 90) if np.isfinite(vals).any() else 0.0
             if not p90 > min_dolp:
                 raw.append((fid, f"DoLP <= {min_dolp:g} on the reflection (paper sec. 4.1)"))
                 continue

@@ -65,8 +65,8 @@ class EdgePoints:
 def _sobel(img: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     import cv2
 
-    gx = cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=3, borderType=cv2.BORDER_REPLICATE) / 8.0
-    gy = cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE) / 8.0
+    gx = cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=3, scale=0.125, borderType=cv2.BORDER_REPLICATE)
+    gy = cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=3, scale=0.125, borderType=cv2.BORDER_REPLICATE)
     return gx, gy
 
 
@@ -97,13 +97,17 @@ def combined_gradient(
             a = np.radians(np.asarray(aop_deg, float))
             chans += [p, p * np.cos(2 * a), p * np.sin(2 * a)]
     weights = [1.0, 4.0, 2.0, 2.0]
+    if len(chans) == 1:  # S0 alone: its own gradient (no orientation or weighting to combine)
+        c = _filled(ls0)
+        if smooth_px > 0:
+            c = cv2.GaussianBlur(c, (0, 0), smooth_px)
+        gx, gy = _sobel(c)
+        return gx, gy, np.sqrt(gx * gx + gy * gy)
     gx_t = np.zeros_like(s0)
     gy_t = np.zeros_like(s0)
     mag2 = np.zeros_like(s0)
     for c, w in zip(chans, weights[:len(chans)]):
-        finite = np.isfinite(c)
-        if not finite.all():
-            c = np.where(finite, c, np.nanmedian(c))
+        c = _filled(c)
         if smooth_px > 0:
             c = cv2.GaussianBlur(c, (0, 0), smooth_px)
         gx, gy = _sobel(c)
@@ -113,6 +117,40 @@ def combined_gradient(
         gy_t += w * sign * gy
         mag2 += (w * w) * (gx * gx + gy * gy)
     return gx_t, gy_t, np.sqrt(mag2)
+
+
+def _filled(c: NDArray) -> NDArray:
+    """``c`` with its non-finite pixels replaced by the median of the finite ones."""
+    finite = np.isfinite(c)
+    if not finite.all():
+        c = np.where(finite, c, np.nanmedian(c))
+    return c
+
+
+def _median_and_percentile(a: NDArray, q: float) -> tuple[float, float]:
+    """``(np.median(a), np.percentile(a, q))``, ``q > 50``, from one selection and one on its upper half.
+
+    The same order statistics and interpolation formulas as numpy's (the median: the mean
+    of the two middle values for an even count; the percentile: linear between the order
+    statistics around ``(n - 1) q / 100``), bit for bit.
+    """
+    v = np.ravel(a)
+    n = v.size
+    pos = (n - 1) * np.true_divide(q, 100)
+    k = int(np.floor(pos))
+    lo, hi = (n - 1) // 2, n // 2
+    if n < 4 or k < hi or np.isnan(v).any():
+        return float(np.median(v)), float(np.percentile(v, q))
+    part = np.partition(v, hi)
+    med = part[hi] if lo == hi else np.mean(np.array([np.max(part[:hi]), part[hi]]))
+    # order statistics k and k + 1 lie in the upper part (every value there is >= part[hi])
+    upper = np.partition(part[hi:], [k - hi, k + 1 - hi] if k + 1 < n else [k - hi])
+    a_k = upper[k - hi]
+    b_k = upper[k + 1 - hi] if k + 1 < n else a_k
+    gamma = pos - k
+    diff = b_k - a_k
+    pct = b_k - diff * (1 - gamma) if gamma >= 0.5 else a_k + diff * gamma
+    return float(med), float(pct)
 
 
 def edge_points(
@@ -143,37 +181,18 @@ def edge_points(
     -------
     EdgePoints
     """
+    from pihim.inspection import _kernels
+
     gx, gy, mag = combined_gradient(s0, dolp, aop_deg, smooth_px=smooth_px)
-    norm = np.hypot(gx, gy)
     if threshold is None:
         sel = mag if mask is None else mag[mask]
         if sel.size == 0:
             raise PihimInputError("no pixels to look for edges in")
-        threshold = max(5.0 * float(np.median(sel)), float(np.percentile(sel, 90)))
-    h, w = mag.shape
-    with np.errstate(invalid="ignore", divide="ignore"):
-        nx = np.where(norm > 0, gx / norm, 0.0)
-        ny = np.where(norm > 0, gy / norm, 0.0)
-    # quantised gradient direction -> the two neighbours across the edge
-    ox = np.rint(nx).astype(int)
-    oy = np.rint(ny).astype(int)
-    ii, jj = np.mgrid[1:h - 1, 1:w - 1]
-    c = mag[1:-1, 1:-1]
-    oxi = ox[1:-1, 1:-1]
-    oyi = oy[1:-1, 1:-1]
-    fwd = mag[ii + oyi, jj + oxi]
-    bwd = mag[ii - oyi, jj - oxi]
-    keep = (c >= threshold) & (c >= fwd) & (c > bwd) & ((oxi != 0) | (oyi != 0))
-    if mask is not None:
-        keep &= np.asarray(mask, bool)[1:-1, 1:-1]
-    i, j = np.nonzero(keep)
-    cc, ff, bb = c[i, j], fwd[i, j], bwd[i, j]
-    den = ff - 2 * cc + bb
-    with np.errstate(invalid="ignore", divide="ignore"):
-        off = np.where(den < 0, 0.5 * (bb - ff) / den, 0.0)
-    off = np.clip(off, -0.5, 0.5)
-    # the parabola's samples are at -/+ (ox, oy): its peak is off * (ox, oy) from the pixel
-    x = (j + 1) + off * oxi[i, j]
-    y = (i + 1) + off * oyi[i, j]
-    nrm = np.column_stack([nx[i + 1, j + 1], ny[i + 1, j + 1]])
-    return EdgePoints(np.column_stack([x, y]).astype(float), nrm, cc)
+        med, p90 = _median_and_percentile(sel, 90)
+        threshold = max(5.0 * med, p90)
+    use_mask = mask is not None
+    m = np.asarray(mask, bool) if use_mask else np.zeros((1, 1), bool)
+    if use_mask and m.shape != mag.shape:
+        raise PihimInputError(f"the mask must have the image's shape {mag.shape}, got {m.shape}")
+    xy, nrm, strength = _kernels.edge_nms(gx, gy, mag, float(threshold), m, use_mask)
+    return EdgePoints(xy, nrm, strength)

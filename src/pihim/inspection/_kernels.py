@@ -1,0 +1,1045 @@
+"""Compiled inner loops of the pose, canting and edge estimators (private).
+
+The fits evaluate the projection of a few thousand model points tens of
+thousands of times per frame. Going through :class:`pihim.camera.CameraPose`
+(validation of the rotation at every construction) and
+:func:`pihim.camera.pose.project_points` costs far more than the arithmetic,
+so the inner loops use these numba kernels on raw arrays instead. Each is
+held to an independent statement by ``tests/inspection/test_kernels.py``.
+
+* :func:`project_rc`: pixels of world points through a world -> camera
+  rotation ``R`` and a camera centre ``C``: the arithmetic of
+  ``CameraModel.project(CameraPose(C, R).world_to_camera(X))`` (pinhole and
+  the five-coefficient Brown-Conrady model, NaN at or behind the camera;
+  held to ``cv2.projectPoints``);
+* :func:`project_rc_jacobian`: the same with the analytic derivatives of
+  ``(u, v)`` by the six pose parameters of the fits -- a rotation vector
+  ``w`` applied in the camera frame (``R(w) = exp([w]x) R0``) and the
+  position offset -- by the chain rule through the pinhole and the
+  distortion polynomial; ``d x_cam / d w = -[x_cam]x J_l(w)`` with ``J_l``
+  the left Jacobian of SO(3) [1]_;
+* :func:`bilinear`, :func:`sobel_bilinear`: sampling with the conventions of
+  ``scipy.ndimage.map_coordinates(order=1, mode="constant", cval=0)`` (zero
+  outside ``[0, n - 1]`` on either axis, and for NaN), of an image and of
+  its ``cv2.Sobel`` gradient (computed where sampled);
+* :func:`solve`: trust-region least squares for three residual kinds
+  (:func:`problem`): the chamfer alignment of the pose (``1 - proximity``
+  of the projected outline), the pose's point-to-line ICP and a facet's
+  mirrored outline (canting). The algorithm of
+  ``scipy.optimize.least_squares(method="trf")`` without bounds -- scaled
+  variables, Moré's exact trust-region step [2]_, the soft-L1 loss by
+  rescaling residuals and Jacobian [3]_ -- with the analytic Jacobians, all
+  in one compiled loop;
+* :func:`edge_nms`: the non-maximum suppression and parabolic sub-pixel peak
+  of :func:`pihim.inspection.features.edge_points`;
+* :func:`grid_scores`: the canting grid search's chamfer score of every node;
+* :func:`line_normals`, :func:`nearest_within`: the unit normals of projected
+  polylines, and the nearest model point of each edge point within a gate
+  (a bucket grid; exact ties are left to the k-d tree the estimators used
+  before, so that the same one of two coincident points is picked).
+
+References
+----------
+.. [1] J. Solà, J. Deray, D. Atchuthan, "A micro Lie theory for state
+   estimation in robotics", arXiv:1812.01537 (2018) (the left Jacobian of
+   SO(3)).
+.. [2] J. J. Moré, "The Levenberg-Marquardt algorithm: implementation and
+   theory", Numerical Analysis, Lecture Notes in Mathematics 630, 105-116
+   (1977), doi:10.1007/BFb0067700.
+.. [3] B. Triggs, P. McLauchlan, R. Hartley, A. Fitzgibbon, "Bundle
+   adjustment -- a modern synthesis", Vision Algorithms: Theory and
+   Practice, LNCS 1883, 298-372 (2000), doi:10.1007/3-540-44480-7_21.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+__all__ = ["CHAMFER", "POINT_TO_LINE", "REFLECTION", "bilinear", "camera_vector", "edge_nms", "grid_scores",
+           "jacobian", "left_jacobian", "line_normals", "nearest_within", "problem", "project_pose", "project_rc",
+           "project_rc_jacobian", "residuals", "rotation_from_vector", "sobel_bilinear", "solve"]
+
+
+def camera_vector(camera) -> NDArray[np.float64]:
+    """``(fx, fy, cx, cy, k1, k2, p1, p2, k3)`` of a :class:`pihim.camera.CameraModel`, pixels."""
+    return np.array([camera.fx_px, camera.fy_px, camera.cx_px, camera.cy_px, *camera.distortion], float)
+
+
+def project_pose(camera, pose, pts: NDArray) -> NDArray[np.float64]:
+    """:func:`project_rc` for a :class:`pihim.camera.CameraModel` and a :class:`pihim.camera.CameraPose`."""
+    return project_rc(np.array(pose.rotation, float), np.array(pose.position_m, float),
+                      np.ascontiguousarray(pts, dtype=float), camera_vector(camera))
+
+
+@njit(cache=True, error_model="numpy")
+def rotation_from_vector(w: NDArray) -> NDArray:  # pragma: no cover - compiled
+    """Rotation matrix of a rotation vector (Rodrigues' formula), radians."""
+    th2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    th = math.sqrt(th2)
+    if th < 1e-4:  # series to 1e-17
+        a = 1.0 - th2 / 6.0 + th2 * th2 / 120.0
+        b = 0.5 - th2 / 24.0 + th2 * th2 / 720.0
+    else:
+        a = math.sin(th) / th
+        b = (1.0 - math.cos(th)) / th2
+    x, y, z = w[0], w[1], w[2]
+    r = np.empty((3, 3))
+    r[0, 0] = 1.0 - b * (y * y + z * z)
+    r[1, 1] = 1.0 - b * (x * x + z * z)
+    r[2, 2] = 1.0 - b * (x * x + y * y)
+    r[0, 1] = b * x * y - a * z
+    r[1, 0] = b * x * y + a * z
+    r[0, 2] = b * x * z + a * y
+    r[2, 0] = b * x * z - a * y
+    r[1, 2] = b * y * z - a * x
+    r[2, 1] = b * y * z + a * x
+    return r
+
+
+@njit(cache=True, error_model="numpy")
+def left_jacobian(w: NDArray) -> NDArray:  # pragma: no cover - compiled
+    """Left Jacobian of SO(3): ``exp([w + dw]x) = exp([J_l(w) dw]x) exp([w]x)`` to first order."""
+    th2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    th = math.sqrt(th2)
+    if th < 1e-4:
+        b = 0.5 - th2 / 24.0
+        c = 1.0 / 6.0 - th2 / 120.0
+    else:
+        b = (1.0 - math.cos(th)) / th2
+        c = (th - math.sin(th)) / (th2 * th)
+    x, y, z = w[0], w[1], w[2]
+    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + b * k + c * (k @ k)
+
+
+@njit(cache=True, error_model="numpy")
+def _distort(xn: float, yn: float, cam: NDArray) -> tuple[float, float]:  # pragma: no cover - compiled
+    k1, k2, p1, p2, k3 = cam[4], cam[5], cam[6], cam[7], cam[8]
+    r2 = xn * xn + yn * yn
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xy2 = 2.0 * xn * yn
+    xd = xn * radial + p1 * xy2 + p2 * (r2 + 2.0 * xn * xn)
+    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + p2 * xy2
+    return xd, yd
+
+
+@njit(cache=True, error_model="numpy")
+def project_rc(rot: NDArray, centre: NDArray, pts: NDArray, cam: NDArray) -> NDArray:  # pragma: no cover
+    """Pixels ``(u, v)`` (N, 2) of world points (N, 3); NaN at or behind the camera."""
+    n = pts.shape[0]
+    out = np.empty((n, 2))
+    for i in range(n):
+        dx = pts[i, 0] - centre[0]
+        dy = pts[i, 1] - centre[1]
+        dz = pts[i, 2] - centre[2]
+        px = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
+        py = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
+        pz = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
+        if not pz > 0.0:
+            out[i, 0] = np.nan
+            out[i, 1] = np.nan
+            continue
+        xd, yd = _distort(px / pz, py / pz, cam)
+        out[i, 0] = cam[0] * xd + cam[2]
+        out[i, 1] = cam[1] * yd + cam[3]
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _pixel_jacobian(px, py, pz, cam):  # pragma: no cover - compiled
+    """``d(u, v) / d(px, py, pz)`` at a camera-frame point: the rows ``(a0, a1, a2)``, ``(b0, b1, b2)``.
+
+    ``diag(fx, fy) Jd [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]`` with ``Jd`` the Jacobian of
+    the distortion polynomial at the normalised point.
+    """
+    k1, k2, p1, p2, k3 = cam[4], cam[5], cam[6], cam[7], cam[8]
+    iz = 1.0 / pz
+    xn = px * iz
+    yn = py * iz
+    r2 = xn * xn + yn * yn
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    jxx = radial + 2.0 * xn * xn * dradial + 2.0 * p1 * yn + 6.0 * p2 * xn
+    jyy = radial + 2.0 * yn * yn * dradial + 6.0 * p1 * yn + 2.0 * p2 * xn
+    jxy = 2.0 * xn * yn * dradial + 2.0 * p1 * xn + 2.0 * p2 * yn
+    a0 = cam[0] * jxx * iz
+    a1 = cam[0] * jxy * iz
+    b0 = cam[1] * jxy * iz
+    b1 = cam[1] * jyy * iz
+    return a0, a1, -(a0 * xn + a1 * yn), b0, b1, -(b0 * xn + b1 * yn)
+
+
+@njit(cache=True, error_model="numpy")
+def _pose_jacobian(px, py, pz, cam, rot, jl, ux, vx):  # pragma: no cover - compiled
+    """``d u`` and ``d v`` by the pose parameters (rotation vector, position offset) into ``ux``, ``vx`` (6,).
+
+    ``d p / d w_k = J_l[:, k] x p`` (``-[p]x J_l``) and ``d p / d C = -R``.
+    """
+    a0, a1, a2, b0, b1, b2 = _pixel_jacobian(px, py, pz, cam)
+    for k in range(3):
+        l0, l1, l2 = jl[0, k], jl[1, k], jl[2, k]
+        d0 = l1 * pz - l2 * py
+        d1 = l2 * px - l0 * pz
+        d2 = l0 * py - l1 * px
+        ux[k] = a0 * d0 + a1 * d1 + a2 * d2
+        vx[k] = b0 * d0 + b1 * d1 + b2 * d2
+        ux[3 + k] = -(a0 * rot[0, k] + a1 * rot[1, k] + a2 * rot[2, k])
+        vx[3 + k] = -(b0 * rot[0, k] + b1 * rot[1, k] + b2 * rot[2, k])
+
+
+@njit(cache=True, error_model="numpy")
+def project_rc_jacobian(rot0: NDArray, centre0: NDArray, x: NDArray, pts: NDArray,
+                        cam: NDArray) -> tuple[NDArray, NDArray]:  # pragma: no cover - compiled
+    """Pixels (N, 2) at the pose ``(exp([x[:3]]x) rot0, centre0 + x[3:])`` and their Jacobian (N, 2, 6).
+
+    Points at or behind the camera get NaN pixels and a zero Jacobian.
+    """
+    rot = rotation_from_vector(x[:3]) @ rot0
+    c0, c1, c2 = centre0[0] + x[3], centre0[1] + x[4], centre0[2] + x[5]
+    jl = left_jacobian(x[:3])
+    n = pts.shape[0]
+    uv = np.empty((n, 2))
+    jac = np.zeros((n, 2, 6))
+    ux = np.empty(6)
+    vx = np.empty(6)
+    for i in range(n):
+        dx = pts[i, 0] - c0
+        dy = pts[i, 1] - c1
+        dz = pts[i, 2] - c2
+        px = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
+        py = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
+        pz = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
+        if not pz > 0.0:
+            uv[i, 0] = np.nan
+            uv[i, 1] = np.nan
+            continue
+        xd, yd = _distort(px / pz, py / pz, cam)
+        uv[i, 0] = cam[0] * xd + cam[2]
+        uv[i, 1] = cam[1] * yd + cam[3]
+        _pose_jacobian(px, py, pz, cam, rot, jl, ux, vx)
+        for c in range(6):
+            jac[i, 0, c] = ux[c]
+            jac[i, 1, c] = vx[c]
+    return uv, jac
+
+
+@njit(cache=True, error_model="numpy")
+def _bilinear_at(img, u, v):  # pragma: no cover - compiled
+    h, w = img.shape
+    if not (u >= 0.0 and u <= w - 1 and v >= 0.0 and v <= h - 1):
+        return 0.0, -1, -1, 0.0, 0.0
+    j0 = int(math.floor(u))
+    i0 = int(math.floor(v))
+    a = u - j0
+    b = v - i0
+    return 1.0, i0, j0, a, b
+
+
+@njit(cache=True, error_model="numpy")
+def _lerp(img, i0, j0, a, b):  # pragma: no cover - compiled
+    h, w = img.shape
+    i1 = min(i0 + 1, h - 1)
+    j1 = min(j0 + 1, w - 1)
+    return ((1.0 - b) * ((1.0 - a) * img[i0, j0] + a * img[i0, j1])
+            + b * ((1.0 - a) * img[i1, j0] + a * img[i1, j1]))
+
+
+@njit(cache=True, error_model="numpy")
+def bilinear(img: NDArray, u: NDArray, v: NDArray) -> NDArray:  # pragma: no cover - compiled
+    """``img`` sampled at columns ``u`` and rows ``v`` (bilinear; 0 outside ``[0, n-1]`` and for NaN)."""
+    out = np.zeros(u.shape[0])
+    for k in range(u.shape[0]):
+        ok, i0, j0, a, b = _bilinear_at(img, u[k], v[k])
+        if ok > 0.0:
+            out[k] = _lerp(img, i0, j0, a, b)
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _reflect101(k, n):  # pragma: no cover - compiled
+    """OpenCV's default border (``BORDER_REFLECT_101``): -1 -> 1, n -> n - 2."""
+    if k < 0:
+        return -k
+    if k >= n:
+        return 2 * n - 2 - k
+    return k
+
+
+@njit(cache=True, error_model="numpy")
+def _sobel_at(img, i, j):  # pragma: no cover - compiled
+    """``cv2.Sobel(img, ksize=3) / 8`` in x and y at pixel (i, j) (default border)."""
+    h, w = img.shape
+    im = _reflect101(i - 1, h)
+    ip = _reflect101(i + 1, h)
+    jm = _reflect101(j - 1, w)
+    jp = _reflect101(j + 1, w)
+    gx = ((img[im, jp] - img[im, jm]) + 2.0 * (img[i, jp] - img[i, jm]) + (img[ip, jp] - img[ip, jm])) / 8.0
+    gy = ((img[ip, jm] - img[im, jm]) + 2.0 * (img[ip, j] - img[im, j]) + (img[ip, jp] - img[im, jp])) / 8.0
+    return gx, gy
+
+
+@njit(cache=True, error_model="numpy")
+def _sobel_lerp(img, i0, j0, a, b):  # pragma: no cover - compiled
+    """Bilinear interpolation of the Sobel gradient images (as ``map_coordinates`` of them).
+
+    The four Sobel values come from the 4 x 4 neighbourhood of ``(i0, j0)`` (OpenCV's
+    default border); on the last row or column, where the bilinear corners clamp, from
+    each corner's own neighbourhood.
+    """
+    h, w = img.shape
+    if i0 + 1 >= h or j0 + 1 >= w:
+        i1 = min(i0 + 1, h - 1)
+        j1 = min(j0 + 1, w - 1)
+        x00, y00 = _sobel_at(img, i0, j0)
+        x01, y01 = _sobel_at(img, i0, j1)
+        x10, y10 = _sobel_at(img, i1, j0)
+        x11, y11 = _sobel_at(img, i1, j1)
+        gx = (1.0 - b) * ((1.0 - a) * x00 + a * x01) + b * ((1.0 - a) * x10 + a * x11)
+        gy = (1.0 - b) * ((1.0 - a) * y00 + a * y01) + b * ((1.0 - a) * y10 + a * y11)
+        return gx, gy
+    r0, r1, r2, r3 = _reflect101(i0 - 1, h), i0, i0 + 1, _reflect101(i0 + 2, h)
+    c0, c1, c2, c3 = _reflect101(j0 - 1, w), j0, j0 + 1, _reflect101(j0 + 2, w)
+    p00, p01, p02, p03 = img[r0, c0], img[r0, c1], img[r0, c2], img[r0, c3]
+    p10, p11, p12, p13 = img[r1, c0], img[r1, c1], img[r1, c2], img[r1, c3]
+    p20, p21, p22, p23 = img[r2, c0], img[r2, c1], img[r2, c2], img[r2, c3]
+    p30, p31, p32, p33 = img[r3, c0], img[r3, c1], img[r3, c2], img[r3, c3]
+    # Sobel at the corners (1, 1), (1, 2), (2, 1), (2, 2) of the 4 x 4 patch
+    x11 = (p02 - p00) + 2.0 * (p12 - p10) + (p22 - p20)
+    x12 = (p03 - p01) + 2.0 * (p13 - p11) + (p23 - p21)
+    x21 = (p12 - p10) + 2.0 * (p22 - p20) + (p32 - p30)
+    x22 = (p13 - p11) + 2.0 * (p23 - p21) + (p33 - p31)
+    y11 = (p20 - p00) + 2.0 * (p21 - p01) + (p22 - p02)
+    y12 = (p21 - p01) + 2.0 * (p22 - p02) + (p23 - p03)
+    y21 = (p30 - p10) + 2.0 * (p31 - p11) + (p32 - p12)
+    y22 = (p31 - p11) + 2.0 * (p32 - p12) + (p33 - p13)
+    gx = ((1.0 - b) * ((1.0 - a) * x11 + a * x12) + b * ((1.0 - a) * x21 + a * x22)) / 8.0
+    gy = ((1.0 - b) * ((1.0 - a) * y11 + a * y12) + b * ((1.0 - a) * y21 + a * y22)) / 8.0
+    return gx, gy
+
+
+@njit(cache=True, error_model="numpy")
+def sobel_bilinear(img: NDArray, u: NDArray, v: NDArray) -> NDArray:  # pragma: no cover - compiled
+    """The Sobel gradient of ``img`` (``cv2.Sobel(ksize=3) / 8``) sampled bilinearly at (u, v): (N, 2)."""
+    out = np.zeros((u.shape[0], 2))
+    for k in range(u.shape[0]):
+        ok, i0, j0, a, b = _bilinear_at(img, u[k], v[k])
+        if ok > 0.0:
+            out[k, 0], out[k, 1] = _sobel_lerp(img, i0, j0, a, b)
+    return out
+
+
+#: Residual kinds of :func:`solve` (the first item of a :func:`problem`).
+CHAMFER = 0
+POINT_TO_LINE = 1
+REFLECTION = 2
+
+
+def problem(kind: int, rot: NDArray, centre: NDArray, pts: NDArray, cam: NDArray, *, prox: NDArray | None = None,
+            q: NDArray | None = None, aux: NDArray | None = None, idx: NDArray | None = None,
+            gate: float = 0.0) -> tuple:
+    """The arguments of one least-squares problem for :func:`solve`, :func:`residuals` and :func:`jacobian`.
+
+    Parameters
+    ----------
+    kind : {CHAMFER, POINT_TO_LINE, REFLECTION}
+    rot, centre : ndarray
+        The camera's world -> camera rotation (3, 3) and centre (3,), metres: the pose the
+        pose parameters perturb (``CHAMFER``, ``POINT_TO_LINE``: ``x = (w, dC)``,
+        ``R = exp([w]x) rot``, ``C = centre + dC``) or the fixed pose (``REFLECTION``).
+    pts : ndarray, shape (N, 3)
+        Model points, ENU metres (see :func:`_evaluate` for their layout per kind).
+    cam : ndarray, shape (9,)
+        :func:`camera_vector`.
+    prox : ndarray, 2-D, float32
+        ``CHAMFER``: the proximity map.
+    q : ndarray, shape (M, 2) or (M, 4)
+        ``POINT_TO_LINE``: the matched edge points; ``REFLECTION``: the matched edge
+        points and the unit normals of the model's lines there.
+    aux : ndarray, shape (15,)
+        ``REFLECTION``: the HUA's rotation (9, row-major), the facet centre (3, ENU) and
+        its design normal (3, heliostat frame).
+    idx : ndarray of int
+        ``REFLECTION``: the model point of each residual.
+    gate : float
+        Residual where it is undefined (``POINT_TO_LINE``, ``REFLECTION``), pixels.
+    """
+    f64 = np.float64
+    return (int(kind), np.ascontiguousarray(rot, dtype=f64), np.ascontiguousarray(centre, dtype=f64),
+            np.ascontiguousarray(pts, dtype=f64), np.ascontiguousarray(cam, dtype=f64),
+            np.ascontiguousarray(prox, dtype=np.float32) if prox is not None else np.zeros((1, 1), np.float32),
+            np.ascontiguousarray(q, dtype=f64) if q is not None else np.zeros((0, 2)),
+            np.ascontiguousarray(aux, dtype=f64) if aux is not None else np.zeros(0),
+            np.ascontiguousarray(idx, dtype=np.int64) if idx is not None else np.zeros(0, np.int64),
+            float(gate))
+
+
+@njit(cache=True, error_model="numpy")
+def _chamfer_eval(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
+    """``1 - prox(u, v)`` at each model point (1 outside the map or behind the camera, zero
+    Jacobian row); the gradient is the map's Sobel gradient, bilinearly interpolated."""
+    rot0, centre0, pts, cam, prox = prob[1], prob[2], prob[3], prob[4], prob[5]
+    rot = rotation_from_vector(x[:3]) @ rot0
+    c0, c1, c2 = centre0[0] + x[3], centre0[1] + x[4], centre0[2] + x[5]
+    jl = left_jacobian(x[:3])
+    ux = np.empty(6)
+    vx = np.empty(6)
+    for i in range(f.shape[0]):
+        f[i] = 1.0
+        if want_jac:
+            for c in range(6):
+                jac[i, c] = 0.0
+        dx = pts[i, 0] - c0
+        dy = pts[i, 1] - c1
+        dz = pts[i, 2] - c2
+        px = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
+        py = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
+        pz = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
+        if not pz > 0.0:
+            continue
+        xd, yd = _distort(px / pz, py / pz, cam)
+        ok, i0, j0, a, b = _bilinear_at(prox, cam[0] * xd + cam[2], cam[1] * yd + cam[3])
+        if ok == 0.0:
+            continue
+        f[i] = 1.0 - _lerp(prox, i0, j0, a, b)
+        if want_jac:
+            g0, g1 = _sobel_lerp(prox, i0, j0, a, b)
+            _pose_jacobian(px, py, pz, cam, rot, jl, ux, vx)
+            for c in range(6):
+                jac[i, c] = -(g0 * ux[c] + g1 * vx[c])
+
+
+@njit(cache=True, error_model="numpy")
+def _line_eval(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
+    """Signed distance of edge point ``q[i]`` from the line through model point ``i`` along the
+    central difference of its neighbours; ``pts`` holds the M model points, then their
+    previous and their next sample on the outline (3 M rows). ``gate`` (zero Jacobian row)
+    where undefined."""
+    rot0, centre0, pts, cam, q, gate = prob[1], prob[2], prob[3], prob[4], prob[6], prob[9]
+    rot = rotation_from_vector(x[:3]) @ rot0
+    c0, c1, c2 = centre0[0] + x[3], centre0[1] + x[4], centre0[2] + x[5]
+    jl = left_jacobian(x[:3])
+    m = f.shape[0]
+    uv = np.empty((3, 2))
+    duv = np.zeros((3, 2, 6))
+    ux = np.empty(6)
+    vx = np.empty(6)
+    for i in range(m):
+        front = True
+        for k in range(3):
+            r = i + k * m
+            dx = pts[r, 0] - c0
+            dy = pts[r, 1] - c1
+            dz = pts[r, 2] - c2
+            px = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
+            py = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
+            pz = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
+            if not pz > 0.0:
+                front = False
+                break
+            xd, yd = _distort(px / pz, py / pz, cam)
+            uv[k, 0] = cam[0] * xd + cam[2]
+            uv[k, 1] = cam[1] * yd + cam[3]
+            if want_jac:
+                _pose_jacobian(px, py, pz, cam, rot, jl, ux, vx)
+                for c in range(6):
+                    duv[k, 0, c] = ux[c]
+                    duv[k, 1, c] = vx[c]
+        f[i] = gate
+        if want_jac:
+            for c in range(6):
+                jac[i, c] = 0.0
+        if not front:
+            continue
+        tx = uv[2, 0] - uv[1, 0]
+        ty = uv[2, 1] - uv[1, 1]
+        ln = math.hypot(tx, ty)
+        if not ln > 0.0:
+            continue
+        tx /= ln
+        ty /= ln
+        ddx = q[i, 0] - uv[0, 0]
+        ddy = q[i, 1] - uv[0, 1]
+        f[i] = tx * ddy - ty * ddx
+        if want_jac:
+            for c in range(6):
+                # d(t / |t|) = (I - t t^T) dt / |t|; d(q - uv) = -duv
+                dtx = (duv[2, 0, c] - duv[1, 0, c]) / ln
+                dty = (duv[2, 1, c] - duv[1, 1, c]) / ln
+                along = tx * dtx + ty * dty
+                dtx -= along * tx
+                dty -= along * ty
+                jac[i, c] = (dtx * ddy - dty * ddx) - (tx * duv[0, 1, c] - ty * duv[0, 0, c])
+
+
+@njit(cache=True, error_model="numpy")
+def _reflection_eval(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
+    """Signed distance of edge point ``q[i, :2]`` from the line through model point
+    ``idx[i]`` mirrored in the facet tilted by ``x = (az, el)`` mrad
+    (``R_y(az) R_x(-el)`` of the design normal, :func:`pihim.field.apply_canting_deviation`),
+    along the held unit normal ``q[i, 2:]``; ``gate`` (zero Jacobian row) where undefined."""
+    rot, centre, pts, cam, q, aux, idx, gate = prob[1], prob[2], prob[3], prob[4], prob[6], prob[7], prob[8], prob[9]
+    rh = aux[0:9]
+    fc = aux[9:12]
+    nd = aux[12:15]
+    az = x[0] * 1e-3
+    el = x[1] * 1e-3
+    ca, sa = math.cos(az), math.sin(az)
+    ce, se = math.cos(el), math.sin(el)
+    m1 = np.array([nd[0], ce * nd[1] + se * nd[2], -se * nd[1] + ce * nd[2]])
+    dm1 = np.array([0.0, -se * nd[1] + ce * nd[2], -ce * nd[1] - se * nd[2]])  # d m1 / d el
+    loc = np.array([ca * m1[0] + sa * m1[2], m1[1], -sa * m1[0] + ca * m1[2]])
+    loc_a = np.array([-sa * m1[0] + ca * m1[2], 0.0, -ca * m1[0] - sa * m1[2]])  # d / d az
+    loc_e = np.array([ca * dm1[0] + sa * dm1[2], dm1[1], -sa * dm1[0] + ca * dm1[2]])  # d / d el
+    n = np.empty(3)
+    na = np.empty(3)
+    ne = np.empty(3)
+    for r in range(3):
+        n[r] = rh[3 * r] * loc[0] + rh[3 * r + 1] * loc[1] + rh[3 * r + 2] * loc[2]
+        na[r] = 1e-3 * (rh[3 * r] * loc_a[0] + rh[3 * r + 1] * loc_a[1] + rh[3 * r + 2] * loc_a[2])
+        ne[r] = 1e-3 * (rh[3 * r] * loc_e[0] + rh[3 * r + 1] * loc_e[1] + rh[3 * r + 2] * loc_e[2])
+    k_pts = pts.shape[0]
+    uv = np.empty((k_pts, 2))
+    duv = np.zeros((k_pts, 2, 2))
+    for k in range(k_pts):
+        e0, e1, e2 = pts[k, 0] - fc[0], pts[k, 1] - fc[1], pts[k, 2] - fc[2]
+        d = e0 * n[0] + e1 * n[1] + e2 * n[2]
+        vx_, vy_, vz_ = pts[k, 0] - 2.0 * d * n[0], pts[k, 1] - 2.0 * d * n[1], pts[k, 2] - 2.0 * d * n[2]
+        dx, dy, dz = vx_ - centre[0], vy_ - centre[1], vz_ - centre[2]
+        px = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
+        py = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
+        pz = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
+        if not pz > 0.0:
+            uv[k, 0] = np.nan
+            uv[k, 1] = np.nan
+            continue
+        xd, yd = _distort(px / pz, py / pz, cam)
+        uv[k, 0] = cam[0] * xd + cam[2]
+        uv[k, 1] = cam[1] * yd + cam[3]
+        if want_jac:
+            a0, a1, a2, b0, b1, b2 = _pixel_jacobian(px, py, pz, cam)
+            for c in range(2):
+                dn = na if c == 0 else ne
+                dd = e0 * dn[0] + e1 * dn[1] + e2 * dn[2]
+                # d V = -2 (dd n + d dn), then d p = R d V
+                w0 = -2.0 * (dd * n[0] + d * dn[0])
+                w1 = -2.0 * (dd * n[1] + d * dn[1])
+                w2 = -2.0 * (dd * n[2] + d * dn[2])
+                q0 = rot[0, 0] * w0 + rot[0, 1] * w1 + rot[0, 2] * w2
+                q1 = rot[1, 0] * w0 + rot[1, 1] * w1 + rot[1, 2] * w2
+                q2 = rot[2, 0] * w0 + rot[2, 1] * w1 + rot[2, 2] * w2
+                duv[k, 0, c] = a0 * q0 + a1 * q1 + a2 * q2
+                duv[k, 1, c] = b0 * q0 + b1 * q1 + b2 * q2
+    for i in range(f.shape[0]):
+        k = idx[i]
+        r = (q[i, 0] - uv[k, 0]) * q[i, 2] + (q[i, 1] - uv[k, 1]) * q[i, 3]
+        ok = math.isfinite(r)
+        f[i] = r if ok else gate
+        if want_jac:
+            for c in range(2):
+                jac[i, c] = -(duv[k, 0, c] * q[i, 2] + duv[k, 1, c] * q[i, 3]) if ok else 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _evaluate(prob, x, want_jac, f, jac):  # pragma: no cover - compiled
+    """Residuals ``f`` (and their Jacobian ``jac``) of ``prob`` at parameters ``x``."""
+    kind = prob[0]
+    if kind == CHAMFER:
+        _chamfer_eval(prob, x, want_jac, f, jac)
+    elif kind == POINT_TO_LINE:
+        _line_eval(prob, x, want_jac, f, jac)
+    else:
+        _reflection_eval(prob, x, want_jac, f, jac)
+
+
+@njit(cache=True, error_model="numpy")
+def _sym_eig(a, w, v):  # pragma: no cover - compiled
+    """Eigenvalues ``w`` and eigenvectors (columns of ``v``) of the small symmetric matrix ``a``
+    by cyclic Jacobi rotations (to rounding; ``a`` is not changed)."""
+    n = a.shape[0]
+    b = a.copy()
+    for i in range(n):
+        for j in range(n):
+            v[i, j] = 1.0 if i == j else 0.0
+    for _ in range(60):
+        off = 0.0
+        scale = 0.0
+        for i in range(n):
+            scale += b[i, i] * b[i, i]
+            for j in range(i + 1, n):
+                off += b[i, j] * b[i, j]
+        if not off > 1e-32 * scale:
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = b[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (b[q, q] - b[p, p]) / (2.0 * apq)
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                sn = t * c
+                for k in range(n):  # columns p, q
+                    bkp = b[k, p]
+                    bkq = b[k, q]
+                    b[k, p] = c * bkp - sn * bkq
+                    b[k, q] = sn * bkp + c * bkq
+                for k in range(n):  # rows p, q
+                    bpk = b[p, k]
+                    bqk = b[q, k]
+                    b[p, k] = c * bpk - sn * bqk
+                    b[q, k] = sn * bpk + c * bqk
+                for k in range(n):
+                    vkp = v[k, p]
+                    vkq = v[k, q]
+                    v[k, p] = c * vkp - sn * vkq
+                    v[k, q] = sn * vkp + c * vkq
+    for i in range(n):
+        w[i] = b[i, i]
+
+
+@njit(cache=True, error_model="numpy")
+def _step_for(s2, suf, vmat, alpha, p):  # pragma: no cover - compiled
+    """``p = -V (suf / (s2 + alpha))``; returns ``|p|``."""
+    n = s2.shape[0]
+    for i in range(n):
+        p[i] = 0.0
+    for k in range(n):
+        c = suf[k] / (s2[k] + alpha)
+        for i in range(n):
+            p[i] -= vmat[i, k] * c
+    nn = 0.0
+    for i in range(n):
+        nn += p[i] * p[i]
+    return math.sqrt(nn)
+
+
+@njit(cache=True, error_model="numpy")
+def _phi(s2, suf, alpha, delta):  # pragma: no cover - compiled
+    """``|p(alpha)| - delta`` and its derivative by ``alpha``."""
+    pn2 = 0.0
+    d3 = 0.0
+    for k in range(s2.shape[0]):
+        den = s2[k] + alpha
+        pn2 += (suf[k] / den) ** 2
+        d3 += suf[k] ** 2 / den ** 3
+    pn = math.sqrt(pn2)
+    return pn - delta, -d3 / pn
+
+
+@njit(cache=True, error_model="numpy")
+def _tr_step(s2, suf, vmat, delta, alpha0, m, p):  # pragma: no cover - compiled
+    """Moré's trust-region step (into ``p``) from the eigen-decomposition of the scaled normal matrix.
+
+    ``s2`` are the eigenvalues (squared singular values of the scaled Jacobian),
+    ``suf = V^T g``; the step is ``-V suf / (s2 + alpha)`` with ``alpha = 0`` if that
+    Gauss-Newton step is inside the region, else ``|step| = delta`` to 1 % (then scaled
+    onto the boundary). ``m`` is the number of residuals (rank test as for an SVD of the
+    Jacobian). Returns ``alpha``.
+    """
+    n = s2.shape[0]
+    smax = 0.0
+    smin = np.inf
+    sufn = 0.0
+    for k in range(n):
+        smax = max(smax, s2[k])
+        smin = min(smin, s2[k])
+        sufn += suf[k] * suf[k]
+    full_rank = math.sqrt(max(smin, 0.0)) > 2.220446049250313e-16 * m * math.sqrt(max(smax, 0.0))
+    if full_rank and _step_for(s2, suf, vmat, 0.0, p) <= delta:
+        return 0.0
+    alpha_upper = math.sqrt(sufn) / delta
+    alpha_lower = 0.0
+    if full_rank:
+        phi, dphi = _phi(s2, suf, 0.0, delta)
+        alpha_lower = -phi / dphi
+    alpha = alpha0
+    if alpha == 0.0 and not full_rank:
+        alpha = max(0.001 * alpha_upper, math.sqrt(alpha_lower * alpha_upper))
+    for _ in range(10):
+        if alpha < alpha_lower or alpha > alpha_upper:
+            alpha = max(0.001 * alpha_upper, math.sqrt(alpha_lower * alpha_upper))
+        phi, dphi = _phi(s2, suf, alpha, delta)
+        if phi < 0:
+            alpha_upper = alpha
+        ratio = phi / dphi
+        alpha_lower = max(alpha_lower, alpha - ratio)
+        alpha -= (phi + delta) * ratio / delta
+        if abs(phi) < 0.01 * delta:
+            break
+    pn = _step_for(s2, suf, vmat, alpha, p)
+    if pn > 0:
+        for i in range(n):
+            p[i] *= delta / pn
+    return alpha
+
+
+@njit(cache=True, error_model="numpy")
+def _robust(f, f_scale, soft_l1, jac, scale_jac):  # pragma: no cover - compiled
+    """Cost ``0.5 sum rho(f)``; with ``scale_jac`` also the residuals and Jacobian rescaled in
+    place so that Gauss-Newton on them is the robust problem's (as ``least_squares``).
+
+    ``soft_l1``: ``rho(f) = 2 c^2 (sqrt(1 + (f / c)^2) - 1)``, ``c = f_scale``; else ``f^2``.
+    """
+    if not soft_l1:
+        return 0.5 * (f * f).sum()
+    cost = 0.0
+    c2 = f_scale * f_scale
+    for i in range(f.shape[0]):
+        t = 1.0 + f[i] * f[i] / c2
+        st = math.sqrt(t)
+        cost += c2 * (st - 1.0)
+        if scale_jac:
+            rho1 = 1.0 / st
+            rho2 = -0.5 / (t * st) / c2
+            js = rho1 + 2.0 * rho2 * f[i] * f[i]
+            if js < 2.220446049250313e-16:
+                js = 2.220446049250313e-16
+            js = math.sqrt(js)
+            f[i] *= rho1 / js
+            for c in range(jac.shape[1]):
+                jac[i, c] *= js
+    return cost
+
+
+@njit(cache=True, error_model="numpy")
+def _normal_equations(jac, f, x_scale, a, g):  # pragma: no cover - compiled
+    """``g = J^T f`` and the scaled normal matrix ``a = (J D)^T (J D)``, ``D = diag(x_scale)``."""
+    n = jac.shape[1]
+    for c in range(n):
+        g[c] = 0.0
+        for d in range(n):
+            a[c, d] = 0.0
+    for i in range(jac.shape[0]):
+        fi = f[i]
+        for c in range(n):
+            jc = jac[i, c]
+            if jc == 0.0:
+                continue
+            g[c] += jc * fi
+            for d in range(c, n):
+                a[c, d] += jc * jac[i, d]
+    for c in range(n):
+        for d in range(c, n):
+            a[c, d] *= x_scale[c] * x_scale[d]
+            a[d, c] = a[c, d]
+
+
+@njit(cache=True, error_model="numpy")
+def solve(prob: tuple, x0: NDArray, m: int, x_scale: NDArray, max_nfev: int, soft_l1: bool,
+          f_scale: float) -> tuple[NDArray, NDArray, NDArray]:  # pragma: no cover - compiled
+    """Parameters minimising the (robust) sum of squared residuals of ``prob`` from ``x0``.
+
+    Trust-region least squares in the variables scaled by ``x_scale`` -- the algorithm of
+    ``scipy.optimize.least_squares(method="trf", tr_solver="exact")`` without bounds: Moré's
+    exact step, the radius set from ``|x0 / x_scale|`` (1 if zero), quartered or doubled on
+    the ratio of actual to predicted reduction, ``ftol = xtol = gtol = 1e-8``, at most
+    ``max_nfev`` residual evaluations -- with the analytic Jacobian of :func:`_evaluate`.
+    ``m`` is the number of residuals.
+
+    Returns
+    -------
+    x : ndarray
+    fun : ndarray, shape (m,)
+        The residuals at ``x`` (no loss applied).
+    jac : ndarray, shape (m, n)
+        The Jacobian at ``x``, rows scaled for the loss as ``least_squares``' ``jac``.
+    """
+    n = x0.shape[0]
+    x = x0.copy()
+    x_new = np.empty(n)
+    f = np.empty(m)
+    jac = np.empty((m, n))
+    f_new = np.empty(m)
+    jac_new = np.empty((m, n))
+    _evaluate(prob, x, True, f, jac)
+    f_true = f.copy()
+    nfev = 1
+    cost = _robust(f, f_scale, soft_l1, jac, True)
+    delta = 0.0
+    for i in range(n):
+        delta += (x0[i] / x_scale[i]) ** 2
+    delta = math.sqrt(delta)
+    if delta == 0.0:
+        delta = 1.0
+    alpha = 0.0
+    tol = 1e-8
+    done = False
+    g = np.empty(n)
+    gh = np.empty(n)
+    a = np.empty((n, n))
+    s2 = np.empty(n)
+    vmat = np.empty((n, n))
+    suf = np.empty(n)
+    h = np.empty(n)
+    while not done:
+        _normal_equations(jac, f, x_scale, a, g)
+        gmax = 0.0
+        for i in range(n):
+            gmax = max(gmax, abs(g[i]))
+            gh[i] = g[i] * x_scale[i]
+        if gmax < tol or nfev >= max_nfev:
+            break
+        _sym_eig(a, s2, vmat)
+        for k in range(n):
+            suf[k] = 0.0
+            for i in range(n):
+                suf[k] += vmat[i, k] * gh[i]
+        actual = -1.0
+        cost_new = cost
+        while actual <= 0.0 and nfev < max_nfev:
+            alpha = _tr_step(s2, suf, vmat, delta, alpha, m, h)
+            quad = 0.0
+            lin = 0.0
+            hn = 0.0
+            step_norm = 0.0
+            x_norm = 0.0
+            for i in range(n):
+                ah = 0.0
+                for k in range(n):
+                    ah += a[i, k] * h[k]
+                quad += h[i] * ah
+                lin += gh[i] * h[i]
+                hn += h[i] * h[i]
+                st = x_scale[i] * h[i]
+                step_norm += st * st
+                x_norm += x[i] * x[i]
+                x_new[i] = x[i] + st
+            predicted = -(0.5 * quad + lin)
+            hn = math.sqrt(hn)
+            step_norm = math.sqrt(step_norm)
+            x_norm = math.sqrt(x_norm)
+            # the Jacobian comes with the trial residuals: most trial steps are taken
+            _evaluate(prob, x_new, True, f_new, jac_new)
+            nfev += 1
+            cost_new = _robust(f_new, f_scale, soft_l1, jac_new, False)
+            actual = cost - cost_new
+            if predicted > 0:
+                ratio = actual / predicted
+            elif predicted == 0.0 and actual == 0.0:
+                ratio = 1.0
+            else:
+                ratio = 0.0
+            delta_new = delta
+            if ratio < 0.25:
+                delta_new = 0.25 * hn
+            elif ratio > 0.75 and hn > 0.95 * delta:
+                delta_new = 2.0 * delta
+            if (actual < tol * cost and ratio > 0.25) or step_norm < tol * (tol + x_norm):
+                done = True
+                break
+            if delta_new > 0:
+                alpha *= delta / delta_new
+            delta = delta_new
+        if actual > 0.0:
+            x, x_new = x_new, x
+            cost = cost_new
+            f, f_new = f_new, f
+            jac, jac_new = jac_new, jac
+            f_true[:] = f
+            _robust(f, f_scale, soft_l1, jac, True)
+    return x, f_true, jac
+
+
+def residuals(prob: tuple, x: NDArray, m: int) -> NDArray[np.float64]:
+    """The residuals (m,) of ``prob`` at ``x`` (no loss applied): :func:`solve` with one evaluation."""
+    return solve(prob, np.asarray(x, float), m, np.ones(len(x)), 1, False, 1.0)[1]
+
+
+def jacobian(prob: tuple, x: NDArray, m: int) -> NDArray[np.float64]:
+    """The Jacobian (m, n) of :func:`residuals` at ``x``: :func:`solve` with one evaluation."""
+    return solve(prob, np.asarray(x, float), m, np.ones(len(x)), 1, False, 1.0)[2]
+
+
+@njit(cache=True, error_model="numpy")
+def edge_nms(gx: NDArray, gy: NDArray, mag: NDArray, threshold: float, mask: NDArray,
+             use_mask: bool) -> tuple[NDArray, NDArray, NDArray]:  # pragma: no cover - compiled
+    """Sub-pixel edge points by non-maximum suppression along the quantised gradient direction.
+
+    For each interior pixel with ``mag >= threshold`` (and ``mask`` if ``use_mask``): the
+    unit gradient ``n = (gx, gy) / |(gx, gy)|`` rounded to the nearest of the eight
+    neighbour offsets ``o``; kept if ``mag >= mag[+o]`` and ``mag > mag[-o]``; moved along
+    ``o`` to the vertex of the parabola through the three magnitudes (clipped to half a
+    pixel). Returns ``xy`` (N, 2), ``normal`` (N, 2) and ``strength`` (N,) in row-major
+    pixel order.
+    """
+    h, w = mag.shape
+    keep = np.zeros((h, w), np.bool_)
+    n = 0
+    for i in range(1, h - 1):
+        for j in range(1, w - 1):
+            c = mag[i, j]
+            if not c >= threshold:
+                continue
+            if use_mask and not mask[i, j]:
+                continue
+            g0 = gx[i, j]
+            g1 = gy[i, j]
+            nrm = math.hypot(g0, g1)
+            if not nrm > 0.0:
+                continue
+            ox = int(np.rint(g0 / nrm))
+            oy = int(np.rint(g1 / nrm))
+            if ox == 0 and oy == 0:
+                continue
+            if c >= mag[i + oy, j + ox] and c > mag[i - oy, j - ox]:
+                keep[i, j] = True
+                n += 1
+    xy = np.empty((n, 2))
+    normal = np.empty((n, 2))
+    strength = np.empty(n)
+    k = 0
+    for i in range(1, h - 1):
+        for j in range(1, w - 1):
+            if not keep[i, j]:
+                continue
+            g0 = gx[i, j]
+            g1 = gy[i, j]
+            nrm = math.hypot(g0, g1)
+            nx = g0 / nrm
+            ny = g1 / nrm
+            ox = int(np.rint(nx))
+            oy = int(np.rint(ny))
+            c = mag[i, j]
+            ff = mag[i + oy, j + ox]
+            bb = mag[i - oy, j - ox]
+            den = ff - 2.0 * c + bb
+            off = 0.5 * (bb - ff) / den if den < 0 else 0.0
+            off = min(max(off, -0.5), 0.5)
+            xy[k, 0] = j + off * ox
+            xy[k, 1] = i + off * oy
+            normal[k, 0] = nx
+            normal[k, 1] = ny
+            strength[k] = c
+            k += 1
+    return xy, normal, strength
+
+
+@njit(cache=True, error_model="numpy")
+def grid_scores(coef: NDArray, az: NDArray, el: NDArray, sub: NDArray, r0: int, c0: int, dt: NDArray, tol: float,
+                min_inside: int) -> NDArray:  # pragma: no cover - compiled
+    """Chamfer score of each node of the canting grid search.
+
+    Model point ``n`` lies at pixel ``sum_k coef[k, n] b_k(a, e)`` with the quadratic basis
+    ``b = (1, a, e, a^2, e^2, a e)`` at node ``(a, e) = (az[i], el[j])`` (node ``i * len(el) + j``).
+    Rounded to the nearest pixel, it counts if the facet mask ``sub`` (an image crop) holds
+    it, and scores if the distance transform ``dt`` (the same crop) there is ``<= tol``.
+    A node's score is the share of its counted points that score, or -1 with fewer than
+    ``min_inside`` counted. The crop's first pixel is ``(r0, c0)`` of the image.
+    """
+    n_el = el.shape[0]
+    n_pts = coef.shape[1]
+    hh, ww = sub.shape
+    n_in = np.zeros(az.shape[0] * n_el, np.int64)
+    n_near = np.zeros(az.shape[0] * n_el, np.int64)
+    for i in range(az.shape[0]):
+        a = az[i]
+        for n in range(n_pts):
+            # u(e) = ua + e (ub + uc e) along this row of the grid, v alike
+            ua = coef[0, n, 0] + a * (coef[1, n, 0] + a * coef[3, n, 0])
+            ub = coef[2, n, 0] + a * coef[5, n, 0]
+            uc = coef[4, n, 0]
+            va = coef[0, n, 1] + a * (coef[1, n, 1] + a * coef[3, n, 1])
+            vb = coef[2, n, 1] + a * coef[5, n, 1]
+            vc = coef[4, n, 1]
+            for j in range(n_el):
+                e = el[j]
+                u = ua + e * (ub + uc * e) - c0
+                v = va + e * (vb + vc * e) - r0
+                if not (u > -0.5 and u < ww + 0.5 and v > -0.5 and v < hh + 0.5):
+                    continue  # (and NaN)
+                r = int(np.rint(v))
+                c = int(np.rint(u))
+                if r < 0 or r >= hh or c < 0 or c >= ww or not sub[r, c]:
+                    continue
+                g = i * n_el + j
+                n_in[g] += 1
+                if dt[r, c] <= tol:
+                    n_near[g] += 1
+    out = np.empty(n_in.shape[0])
+    for g in range(out.shape[0]):
+        out[g] = n_near[g] / max(n_in[g], 1) if n_in[g] >= min_inside else -1.0
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def line_normals(uv: NDArray, seg: NDArray) -> NDArray:  # pragma: no cover - compiled
+    """Unit normals (N, 2) of projected polylines: ``(-t_y, t_x)`` of the unit central difference
+    of each point's neighbours on the same segment (one-sided at its ends); NaN where undefined."""
+    n = uv.shape[0]
+    out = np.empty((n, 2))
+    for i in range(n):
+        p = i - 1 if i > 0 and seg[i - 1] == seg[i] else i
+        q = i + 1 if i < n - 1 and seg[i + 1] == seg[i] else i
+        tx = uv[q, 0] - uv[p, 0]
+        ty = uv[q, 1] - uv[p, 1]
+        ln = math.sqrt(tx * tx + ty * ty)
+        tx = tx / ln
+        ty = ty / ln
+        out[i, 0] = -ty
+        out[i, 1] = tx
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def nearest_within(model: NDArray, obs: NDArray, gate: float) -> tuple[NDArray, NDArray]:  # pragma: no cover
+    """For each point of ``obs`` (M, 2), the index of the nearest point of ``model`` (N, 2, finite)
+    closer than ``gate`` (-1 if none), and whether another model point is exactly as near.
+
+    A bucket grid of cells at least ``gate`` wide (at most 512 x 512 cells).
+    """
+    n = model.shape[0]
+    out = np.full(obs.shape[0], -1, np.int64)
+    tie = np.zeros(obs.shape[0], np.bool_)
+    if n == 0 or not gate > 0:
+        return out, tie
+    x0, y0 = model[:, 0].min(), model[:, 1].min()
+    x1, y1 = model[:, 0].max(), model[:, 1].max()
+    cell = max(gate, (x1 - x0) / 512.0, (y1 - y0) / 512.0)
+    nx = int((x1 - x0) / cell) + 1
+    ny = int((y1 - y0) / cell) + 1
+    start = np.zeros(nx * ny + 1, np.int64)
+    cid = np.empty(n, np.int64)
+    for k in range(n):
+        cid[k] = int((model[k, 1] - y0) / cell) * nx + int((model[k, 0] - x0) / cell)
+        start[cid[k] + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    order = np.empty(n, np.int64)
+    for k in range(n):  # counting sort by cell
+        order[fill[cid[k]]] = k
+        fill[cid[k]] += 1
+    g2 = gate * gate
+    for m in range(obs.shape[0]):
+        ox = obs[m, 0]
+        oy = obs[m, 1]
+        if not (ox > x0 - gate and ox < x1 + gate and oy > y0 - gate and oy < y1 + gate):
+            continue
+        cx = int(math.floor((ox - x0) / cell))
+        cy = int(math.floor((oy - y0) / cell))
+        best = g2
+        bi = -1
+        same = False
+        for yy in range(max(cy - 1, 0), min(cy + 2, ny)):
+            for xx in range(max(cx - 1, 0), min(cx + 2, nx)):
+                c = yy * nx + xx
+                for t in range(start[c], start[c + 1]):
+                    k = order[t]
+                    dx = model[k, 0] - ox
+                    dy = model[k, 1] - oy
+                    d2 = dx * dx + dy * dy
+                    if d2 < best:
+                        best = d2
+                        bi = k
+                        same = False
+                    elif d2 == best and bi >= 0:
+                        same = True
+        out[m] = bi
+        tie[m] = same
+    return out, tie
