@@ -283,6 +283,7 @@ class _Leg:
     capture: bool = False
     hua: str | None = None
     waypoint: Waypoint | None = None  # already geodetic (pass waypoints)
+    pass_start: bool = False  # first waypoint of a scan pass (a turn: model.turn_s)
 
 
 def _xyz(w: Waypoint) -> tuple[float, float, float]:
@@ -340,7 +341,8 @@ def _build(passes: Sequence[ScanPass], home: Waypoint, keepout: Any, model: Dron
         for i, w in enumerate(p.waypoints):
             if i == 0:  # the pass is reached at the transit speed
                 w = replace(w, speed_m_s=model.transit_speed_m_s)
-            legs.append(_Leg(_xyz(w), w.heading_deg, w.gimbal_pitch_deg, w.speed_m_s, w.kind, w.capture, w.hua, w))
+            legs.append(_Leg(_xyz(w), w.heading_deg, w.gimbal_pitch_deg, w.speed_m_s, w.kind, w.capture, w.hua, w,
+                             pass_start=i == 0))
         cur = _xyz(p.waypoints[-1])
     back = _transit(cur, h, z_c, keepout, model, start_heading=legs[-1].heading_deg)
     if back:
@@ -379,7 +381,7 @@ def _time_and_distance(legs: Sequence[_Leg], model: DroneEndurance) -> tuple[flo
     speed = np.array([leg.speed_m_s if leg.speed_m_s > 0 else model.transit_speed_m_s for leg in legs[1:]])
     t = horiz / speed + np.where(dz > 0, dz / model.climb_rate_m_s, -dz / model.descent_rate_m_s)
     captures = sum(leg.capture for leg in legs)
-    turns = sum(leg.kind == "lead_in" for leg in legs)
+    turns = sum(leg.pass_start for leg in legs)
     total = float(t.sum()) + captures * model.capture_s + turns * model.turn_s + model.takeoff_landing_s
     return total, float(np.linalg.norm(d, axis=1).sum())
 
@@ -388,13 +390,16 @@ def flight_time_s(waypoints: Sequence[Waypoint], model: DroneEndurance = DroneEn
     """Estimated duration of a flight through ``waypoints``, seconds (see the module notes).
 
     Legs are flown at the destination waypoint's ``speed_m_s`` (the transit
-    speed where it is 0); captures, pass starts (``lead_in`` waypoints) and
-    the take-off/landing overhead add fixed times.
+    speed where it is 0); captures, pass starts (``lead_in`` waypoints, and
+    ``scan`` waypoints that follow neither a ``lead_in`` nor a ``scan``
+    waypoint) and the take-off/landing overhead add fixed times.
     """
     if len(waypoints) < 2:
         raise PihimInputError("a flight needs at least two waypoints")
-    legs = [_Leg(_xyz(w), w.heading_deg, w.gimbal_pitch_deg, w.speed_m_s, w.kind, w.capture, w.hua, w)
-            for w in waypoints]
+    legs = [_Leg(_xyz(w), w.heading_deg, w.gimbal_pitch_deg, w.speed_m_s, w.kind, w.capture, w.hua, w,
+                 pass_start=w.kind == "lead_in" or (w.kind == "scan" and (k == 0 or waypoints[k - 1].kind
+                                                                        not in ("lead_in", "scan"))))
+            for k, w in enumerate(waypoints)]
     return _time_and_distance(legs, model)[0]
 
 
