@@ -343,20 +343,16 @@ def _cone_intervals(q: NDArray[np.float64], a: NDArray[np.float64], e: NDArray[n
     lhs_e = np.concatenate([e, -np.cross(e, q)], axis=-1)
     alpha = np.matmul(lhs_a, PD.transpose(0, 2, 1)).reshape(*q.shape[:2], J, K)
     beta = np.matmul(lhs_e, PD.transpose(0, 2, 1)).reshape(*q.shape[:2], J, K)
-    # orientation: the polygon's centroid on the positive side of every edge plane
-    side = np.matmul(q, wind.transpose(0, 2, 1)) - np.sum(cen * wind, axis=-1)[:, None, :]  # (q - c) . N, (B, I, J)
-    sign = np.where(side > 0, -1.0, 1.0)[..., None]  # m_k . (c - q) has the sign of (c - q) . N
-    if negative:
-        sign = -sign
-    alpha = alpha * sign
-    beta = beta * sign
-    scale = np.abs(alpha).max(axis=-1, keepdims=True) + np.abs(beta).max(axis=-1, keepdims=True)
-    flat = np.abs(beta) <= 1e-12 * np.maximum(scale, 1e-300)
+    # orientation: m_k . (c - q) has the sign of (c - q) . N (N the polygon's winding normal); the bound
+    # -alpha / beta does not depend on it, only whether it is a lower or an upper bound
+    side = np.matmul(q, wind.transpose(0, 2, 1)) - np.sum(cen * wind, axis=-1)[:, None, :]  # (q - c) . N
+    flip = (side > 0) != negative  # True where the oriented normals are -m_k
     with np.errstate(divide="ignore", invalid="ignore"):
         bound = -alpha / beta
-    lo = np.max(np.where(~flat & (beta > 0), bound, -np.inf), axis=-1)
-    hi = np.min(np.where(~flat & (beta < 0), bound, np.inf), axis=-1)
-    empty = np.any(flat & (alpha < 0), axis=-1)
+    lower = (beta > 0) != flip[..., None]
+    lo = np.max(np.where(lower & (beta != 0), bound, -np.inf), axis=-1)
+    hi = np.min(np.where(~lower & (beta != 0), bound, np.inf), axis=-1)
+    empty = np.any((beta == 0) & ((alpha < 0) != flip[..., None]) & (alpha != 0), axis=-1)
     return np.where(empty, np.inf, lo), np.where(empty, -np.inf, hi)
 
 
@@ -458,16 +454,20 @@ def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, came
         return np.where(live, lo, np.inf), np.where(live, hi, -np.inf)
 
     def shortlist(idx: NDArray[np.int64], a_: NDArray, e_: NDArray, negative: bool) -> NDArray[np.int64]:
-        """Mirrors whose interval meets the window for some facet corner (cheap first pass), -1 padded."""
-        pts = corners.reshape(B, -1, 3)  # the facets' corners bound what their samples see
-        nrm = np.repeat(pose.facet_normals[h], 4, axis=1)
+        """Mirrors whose interval meets the window, widened, for some facet centre (cheap first pass), -1 padded.
+
+        A mirror's image on the HUA is larger than a facet, so where a sample point shows it a facet centre
+        nearby does from a camera a little along the line; the window is widened by ``3 step_m``.
+        """
+        pts = pose.facet_centres[h]
+        nrm = pose.facet_normals[h]
         if negative:
             a_c = a[:, None, :] - 2.0 * dot(a[:, None, :] - pts, nrm)[..., None] * nrm
             e_c = e3[:, None, :] - 2.0 * dot(e3[:, None, :], nrm)[..., None] * nrm
         else:
             a_c, e_c = np.broadcast_to(a[:, None, :], pts.shape), np.broadcast_to(e3[:, None, :], pts.shape)
         lo, hi = intervals(idx, pts, a_c, e_c, negative)
-        margin = 2.0 * st.step_m
+        margin = max(3.0 * st.step_m, 3.0)
         meets = ((lo - margin <= s[:, -1:, None]) & (hi + margin >= s[:, :1, None])).any(axis=1)  # (B, J)
         keep = np.flatnonzero(meets.any(axis=0))
         return np.where(meets[:, keep], idx[:, keep], -1)

@@ -123,10 +123,11 @@ class _Costs:
     """
 
     def __init__(self, passes: Sequence[ScanPass], home: Waypoint, keepout: Any) -> None:
-        self.pts = _ends(passes)
         self.home = np.array([home.x_m, home.y_m, home.z_m])
+        self.pts = np.vstack([_ends(passes), self.home, self.home])
+        self.home_pass = len(passes)  # a pseudo-pass at home (both ends), to pin the ends of a flight
         self.keepout = keepout
-        self.inner = np.array([_path_length(p.waypoints) for p in passes])
+        self.inner = np.array([_path_length(p.waypoints) for p in passes] + [0.0])
         self._cache: dict[tuple[int, int], float] = {}
         self._home: dict[int, float] = {}
 
@@ -196,15 +197,17 @@ def orient_passes(order: Sequence[int], costs: _Costs, *, home_z: float | None =
     return total, dirs
 
 
-def _improve(order: list[int], costs: _Costs, st: RouteSettings) -> list[int]:
+def _improve(order: list[int], costs: _Costs, st: RouteSettings, *, pinned: bool = False) -> list[int]:
     """2-opt (segment reversal) and Or-opt (move a run of 1-3 passes, either way) within a window.
 
     Moves are scored by the change of the transits at the segment ends with
     the directions fixed (a reversed segment flips its passes); the
-    directions are re-optimised exactly after every sweep.
+    directions are re-optimised exactly after every sweep. With ``pinned``
+    the first and last entries stay in place (home).
     """
     n = len(order)
-    if n < 3 or st.sweeps == 0 or st.window == 0:
+    lo_i, hi_i = (1, n - 2) if pinned else (0, n - 1)  # positions that may move
+    if hi_i - lo_i < 1 or st.sweeps == 0 or st.window == 0:
         return order
     _, dirs = orient_passes(order, costs)
     d = costs.d
@@ -218,8 +221,8 @@ def _improve(order: list[int], costs: _Costs, st: RouteSettings) -> list[int]:
     for _ in range(st.sweeps):
         improved = False
         # 2-opt: reverse positions i..j
-        for i in range(n - 1):
-            for j in range(i + 1, min(n, i + st.window + 1)):
+        for i in range(lo_i, hi_i):
+            for j in range(i + 1, min(hi_i + 1, i + st.window + 1)):
                 old = (d(e_(i - 1), s_(i)) if i > 0 else 0.0) + (d(e_(j), s_(j + 1)) if j < n - 1 else 0.0)
                 new = (d(e_(i - 1), e_(j)) if i > 0 else 0.0) + (d(s_(i), s_(j + 1)) if j < n - 1 else 0.0)
                 if new < old - 1e-6:
@@ -228,14 +231,14 @@ def _improve(order: list[int], costs: _Costs, st: RouteSettings) -> list[int]:
                     improved = True
         # Or-opt: move positions i..i+L-1 between positions p-1 and p (p outside the run), maybe reversed
         for length in (1, 2, 3):
-            i = 0
-            while i + length <= n:
+            i = lo_i
+            while i + length - 1 <= hi_i:
                 j = i + length - 1
                 a, b = s_(i), e_(j)
                 gain = ((d(e_(i - 1), a) if i > 0 else 0.0) + (d(b, s_(j + 1)) if j < n - 1 else 0.0)
                         - (d(e_(i - 1), s_(j + 1)) if 0 < i and j < n - 1 else 0.0))
                 best = (1e-6, -1, False)
-                for p in range(max(0, i - st.window), min(n, j + 1 + st.window) + 1):
+                for p in range(max(lo_i, i - st.window), min(hi_i + 1, j + 1 + st.window) + 1):
                     if i <= p <= j + 1:
                         continue
                     left = e_(p - 1) if p > 0 else None
@@ -434,7 +437,8 @@ def plan_flights(
         groups = []
         item_err, time_err, bad = 0, 0.0, False
         for i, j in blocks:
-            block = order[i:j]
+            hp = costs.home_pass  # each flight's order improved as a tour from home and back
+            block = _improve([hp, *order[i:j], hp], costs, settings, pinned=True)[1:-1]
             _, dirs = orient_passes(block, costs, home_z=float(costs.home[2]))
             group = [reverse_pass(fly[k]) if o else fly[k] for k, o in zip(block, dirs, strict=True)]
             groups.append(group)
