@@ -300,12 +300,16 @@ def _heading(a: Sequence[float], b: Sequence[float], default: float) -> float:
 
 def _transit(a: tuple[float, float, float], b: tuple[float, float, float], z: float, keepout: Any,
              model: DroneEndurance, kind: str = "transit", *, start_heading: float = 0.0,
-             heading: float | None = None, pitch: float = 0.0) -> list[_Leg]:
+             heading: float | None = None, pitch: float = 0.0, direct: bool = False) -> list[_Leg]:
     """Transit legs from a to above b at altitude z (b itself is not included), around the tower if needed.
 
     A climb or descent in place keeps ``start_heading``; the horizontal legs
     face ``heading`` (the next pass's, so that the drone turns on the way) or,
-    if None, their direction of travel. The gimbal is set to ``pitch``.
+    if None, their direction of travel. The gimbal is set to ``pitch``. With
+    ``direct`` the last leg is left to the caller, who flies it straight to
+    ``b`` (a pass's first waypoint, at or below ``z``): no waypoint above
+    ``b``, whose vertical step would be too short to finish a turn on (PX4
+    moves on to the next waypoint within its acceptance radius).
     """
     legs: list[_Leg] = []
     pa = np.array(a, float)
@@ -320,7 +324,7 @@ def _transit(a: tuple[float, float, float], b: tuple[float, float, float], z: fl
                          model.transit_speed_m_s, kind))
         cur = nxt
     end = (b[0], b[1], z)
-    if math.dist(end, cur) > 1e-9 and math.dist(end, b) > 1e-9:
+    if not direct and math.dist(end, cur) > 1e-9 and math.dist(end, b) > 1e-9:
         legs.append(_Leg(end, _heading(cur, end, 0.0) if heading is None else heading, pitch,
                          model.transit_speed_m_s, kind))
     return legs
@@ -337,7 +341,7 @@ def _build(passes: Sequence[ScanPass], home: Waypoint, keepout: Any, model: Dron
         first = p.waypoints[0]
         z = z_c if k == 0 else max(cur[2], first.z_m)
         legs += _transit(cur, _xyz(first), z, keepout, model, start_heading=legs[-1].heading_deg,
-                         heading=first.heading_deg, pitch=first.gimbal_pitch_deg)
+                         heading=first.heading_deg, pitch=first.gimbal_pitch_deg, direct=True)
         for i, w in enumerate(p.waypoints):
             if i == 0:  # the pass is reached at the transit speed
                 w = replace(w, speed_m_s=model.transit_speed_m_s)
