@@ -12,6 +12,7 @@ from pihim.cli import main
 
 PLAN_SCHEMA = json.loads(resources.files("pihim").joinpath("schemas/plan.schema.json").read_text())
 QGC_SCHEMA = json.loads(resources.files("pihim").joinpath("schemas/qgc-plan.schema.json").read_text())
+SUMMARY_SCHEMA = json.loads(resources.files("pihim").joinpath("schemas/plan-summary.schema.json").read_text())
 TIME = "2021-05-13T13:00-06:00"
 
 
@@ -20,6 +21,11 @@ def test_plan_writes_one_flyable_mission_per_flight(tmp_path, capsys):
     rc = main(["plan", "--time", TIME, "--aim", "60,8.8,28.9", "--max-altitude", "25", "--out", str(out), "--json"])
     assert rc == 0
     summary = json.loads(capsys.readouterr().out)
+    jsonschema.validate(summary, SUMMARY_SCHEMA)
+    assert SUMMARY_SCHEMA["$defs"]["facet_coverage"] == PLAN_SCHEMA["$defs"]["facet_coverage"]  # one definition
+    fc = summary["facet_coverage"]
+    assert fc["fraction"] >= 0.95 and summary["coverage"]["planned"] >= 0.9  # every facet imaged (issue 11)
+    assert summary["distance_m"] == pytest.approx(sum(m["distance_m"] for m in summary["missions"]), abs=1.0)
     written = {p.name for p in out.iterdir()}
     assert {"plan.json", "plan.kml", "plan.png"} <= written
     n = summary["flights"]
@@ -30,6 +36,7 @@ def test_plan_writes_one_flyable_mission_per_flight(tmp_path, capsys):
         <= written
     plan = json.loads((out / "plan.json").read_text())
     jsonschema.validate(plan, PLAN_SCHEMA)
+    assert plan["summary"]["facet_coverage"] == fc
     home = plan["home"]
     for k, f in enumerate(plan["flights"], start=1):
         doc = json.loads((out / f"flight_{k:02d}.plan").read_text())
@@ -78,6 +85,7 @@ def test_plan_files_read_by_third_party_readers(tmp_path, capsys):
         (["--time", "2021-05-13T13:00"], "utc offset"),
         (["--time", TIME, "--aim", "0,0,-1"], "above the ground"),
         (["--time", TIME, "--heliostats", "8E3,99W1"], "unknown heliostat"),
+        (["--time", TIME, "--facet-target", "1.5"], "--facet-target"),
         (["--time", TIME, "--max-altitude", "8"], "no feasible pass"),
         (["--time", TIME, "--heliostats", "5W1,5E2"], "no scan pass to fly: 5e2: no target heliostat in front"),
         (["--time", TIME, "--battery-min", "-5"], "--battery-min must be a positive number of minutes"),

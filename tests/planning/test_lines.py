@@ -149,3 +149,28 @@ def test_pass_alignment_of_a_hand_made_pass() -> None:
     assert a.max_off_line_m == pytest.approx(0.0, abs=1e-9)
     s = alignment_summary([p], FIELD, POSE)
     assert s["median_deviation_deg"] == pytest.approx(4.0) and s["max_camera_offset_m"] == pytest.approx(1.5)
+
+
+def test_chains_straying_from_their_line_are_halved() -> None:
+    from pihim.planning.lines import chain_lines, link_chains
+
+    # one chain of 40 links along an arc of radius 300 m (every heliostat links to the next one inward)
+    ang = np.radians(np.linspace(0.0, 120.0, 40))
+    xy = np.stack([300.0 * np.sin(ang), 300.0 * np.cos(ang)], axis=1)
+    centres = np.c_[xy, np.zeros(40)]
+    link = np.r_[-1, np.arange(39)]  # k -> k - 1
+    tangent = np.stack([np.cos(ang), -np.sin(ang)], axis=1)  # the "normals" follow the arc
+    whole = link_chains(link, centres)
+    assert len(np.unique(whole)) == 1
+    for limit in (40.0, 10.0, 3.0):
+        chain = link_chains(link, centres, limit, tangent)
+        lines = chain_lines(chain, tangent, xy)
+        assert np.abs(lines.lateral(chain, xy)).max() <= limit + 1e-9  # every piece within the limit of its line
+        for c in np.unique(chain):  # pieces are runs of consecutive heliostats
+            k = np.flatnonzero(chain == c)
+            assert np.all(np.diff(k) == 1)
+    assert len(np.unique(link_chains(link, centres, 3.0, tangent))) > len(np.unique(link_chains(link, centres, 40.0,
+                                                                                               tangent))) > 1
+    # a straight chain is never cut
+    straight = np.c_[np.zeros(40), np.arange(40) * 12.0, np.zeros(40)]
+    assert len(np.unique(link_chains(link, straight, 1.0, np.tile([0.0, 1.0], (40, 1))))) == 1

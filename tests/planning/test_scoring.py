@@ -443,3 +443,25 @@ def test_planner_passes_are_scored(field, pose):
         if sp.shift is not None:
             assert sp.shift.usable_fraction_after > sp.shift.usable_fraction_before
     assert sum(len(sp.predictions) for sp in out) > 100
+
+
+def test_beam_index_keeps_every_clearance_that_matters():
+    """The k-d tree over beam directions gives the exact clearance of every beam within its reach (the shift
+    test compares clearances with min(nominal, beam_clearance_m) only) and +inf beyond it."""
+    from pihim.planning.scoring import _beam_margin, _BeamIndex
+
+    rng = np.random.default_rng(11)
+    r = rng.uniform(100.0, 900.0, 3000)
+    a = rng.uniform(0.0, 2 * np.pi, 3000)
+    centres = np.c_[r * np.sin(a), r * np.cos(a), np.full(3000, 5.0)]
+    aim = np.array([0.0, 0.0, 195.0])
+    radius, clearance = 3.4, 2.0
+    idx = _BeamIndex(centres, aim, radius, clearance + radius)
+    pts = np.c_[rng.uniform(-900, 900, (400, 2)), rng.uniform(10.0, 40.0, 400)]
+    pts[:50] = centres[:50] + np.array([0.5, -0.3, 2.0])  # right on top of some beams
+    exact = _beam_margin(pts, centres, aim, radius)
+    fast = idx.margin(pts)
+    close = exact < clearance + 1e-9
+    assert close.sum() >= 50 and (~close).sum() > 100
+    assert np.allclose(fast[close], exact[close])
+    assert np.array_equal(np.minimum(fast, clearance), np.minimum(exact, clearance))

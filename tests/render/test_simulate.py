@@ -101,7 +101,8 @@ def test_pair_pose_shows_the_hua_with_the_target_in_its_reflection(pair, field):
 def test_pair_pose_is_the_planned_capture_waypoint(pair, field):
     from pihim.planning.pipeline import build_plan
 
-    plan = build_plan(field, parse_time(TIME), NSTTF, aim_point=UFACET_AIM_POINT, heliostats=["8E3"], shift=False)
+    plan = build_plan(field, parse_time(TIME), NSTTF, aim_point=UFACET_AIM_POINT, heliostats=["8E3"], shift=False,
+                      facet_captures=False, route=False, facet_report=False)
     wps = [p.waypoints[q.waypoint_index] for p in plan.passes for q in p.predictions
            if (q.hua, q.target) == ("8E3", "7E3")]
     assert CameraPose.from_waypoint(wps[0]) == pair.camera_pose

@@ -37,12 +37,17 @@ def plan(
     autopilot: Annotated[str, typer.Option(help="Mission files for ardupilot (default) or px4.")] = "ardupilot",
     fleet_hours: Annotated[float, typer.Option(help="Working hours per day for the fleet estimate.")] = 8.0,
     no_shift: Annotated[bool, typer.Option("--no-shift", help="Do not shift passes to raise contrast.")] = False,
+    facet_target: Annotated[float, typer.Option(
+        "--facet-target", help="Share of the imaged HUAs' facets to show a heliostat's back, [0, 1].")] = 0.96,
+    single_capture: Annotated[bool, typer.Option(
+        "--single-capture", help="One capture per HUA aimed at its centre (no facet captures).")] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
 ) -> int:
     """Plan UFACET scan passes scored for polarimetric contrast and export missions."""
     t0 = _time.perf_counter()
     # the planner and its dependencies (scipy, numba, pandas) load only when the command runs, not for --help
     from pihim.planning.endurance import DroneEndurance
+    from pihim.planning.facet_captures import FacetCaptureSettings
     from pihim.planning.export import export_all
     from pihim.planning.pipeline import build_plan
     from pihim.planning.scoring import ScoringModel
@@ -60,13 +65,16 @@ def plan(
         raise PihimInputError(f"--max-mission-items must be at least 4, got {max_mission_items}")
     if autopilot not in ("ardupilot", "px4"):
         raise PihimInputError(f"--autopilot must be ardupilot or px4, got {autopilot!r}")
+    if not (math.isfinite(facet_target) and 0.0 <= facet_target <= 1.0):
+        raise PihimInputError(f"--facet-target must be a fraction in [0, 1], got {facet_target:g}")
     fld = load_field_option(field, facets, nsttf_tower=site.strip().lower() == "nsttf")
     names = None if heliostats is None else [h for h in heliostats.split(",") if h.strip()]
     scoring = ScoringModel(sky=SkyModel(kind=sky_model, dmax=dmax), mirror=mirror_model(mirror))  # type: ignore[arg-type]
     options = {"autopilot": autopilot}
     the_plan = build_plan(fld, when, site_obj, aim_point=aim_point, max_altitude_m=max_altitude, heliostats=names,
                           scoring=scoring, shift=not no_shift, endurance=DroneEndurance(battery_min=battery_min),
-                          fleet_hours=fleet_hours, max_mission_items=max_mission_items, mission_options=options)
+                          fleet_hours=fleet_hours, max_mission_items=max_mission_items, mission_options=options,
+                          facet_captures=False if single_capture else FacetCaptureSettings(target_fraction=facet_target))
     files = export_all(the_plan, make_out_dir(out), field=fld, max_mission_items=max_mission_items, **options)
     summary = the_plan.summary
     summary["seconds"]["total_with_export"] = round(_time.perf_counter() - t0, 4)
@@ -88,8 +96,8 @@ def _human_summary(summary: dict, files: dict[str, Path], out: Path) -> str:
     return (
         f"pihim plan: {summary['passes']} passes, {summary['usable_images']}/{summary['images']} images predicted "
         f"usable; coverage {100 * cov['either']:.0f} % (heliostats of the field with at least one usable image; "
-        f"{100 * cov['planned']:.0f} % imaged){_facet_text(summary)}; {summary['flights']} flights, longest "
-        f"{longest:.1f} min\n"
+        f"{100 * cov['planned']:.0f} % imaged){_facet_text(summary)}; {summary['flights']} flights, "
+        f"{summary['distance_m'] / 1000:.2f} km, {summary['turns']} turns, longest {longest:.1f} min\n"
         f"wrote {len(files)} files to {out}: plan.json, plan.kml, plan.png and {n_flight_files} flight missions "
         f"(flight_NN.plan / .waypoints / _litchi*.csv)"
     )
@@ -99,5 +107,5 @@ def _facet_text(summary: dict) -> str:
     fc = summary.get("facet_coverage")
     if not fc:
         return ""
-    return (f"; {100 * fc['fraction']:.0f} % of the imaged HUAs' facets show the target's reflection "
+    return (f"; {100 * fc['fraction']:.1f} % of the imaged HUAs' facets show a heliostat's back "
             f"({fc['huas_complete']} of {fc['huas']} HUAs complete)")

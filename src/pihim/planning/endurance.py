@@ -283,6 +283,7 @@ class _Leg:
     capture: bool = False
     hua: str | None = None
     waypoint: Waypoint | None = None  # already geodetic (pass waypoints)
+    pass_start: bool = False  # first waypoint of a scan pass (a turn: model.turn_s)
 
 
 def _xyz(w: Waypoint) -> tuple[float, float, float]:
@@ -299,12 +300,16 @@ def _heading(a: Sequence[float], b: Sequence[float], default: float) -> float:
 
 def _transit(a: tuple[float, float, float], b: tuple[float, float, float], z: float, keepout: Any,
              model: DroneEndurance, kind: str = "transit", *, start_heading: float = 0.0,
-             heading: float | None = None, pitch: float = 0.0) -> list[_Leg]:
+             heading: float | None = None, pitch: float = 0.0, direct: bool = False) -> list[_Leg]:
     """Transit legs from a to above b at altitude z (b itself is not included), around the tower if needed.
 
     A climb or descent in place keeps ``start_heading``; the horizontal legs
     face ``heading`` (the next pass's, so that the drone turns on the way) or,
-    if None, their direction of travel. The gimbal is set to ``pitch``.
+    if None, their direction of travel. The gimbal is set to ``pitch``. With
+    ``direct`` the last leg is left to the caller, who flies it straight to
+    ``b`` (a pass's first waypoint, at or below ``z``): no waypoint above
+    ``b``, whose vertical step would be too short to finish a turn on (PX4
+    moves on to the next waypoint within its acceptance radius).
     """
     legs: list[_Leg] = []
     pa = np.array(a, float)
@@ -319,7 +324,7 @@ def _transit(a: tuple[float, float, float], b: tuple[float, float, float], z: fl
                          model.transit_speed_m_s, kind))
         cur = nxt
     end = (b[0], b[1], z)
-    if math.dist(end, cur) > 1e-9 and math.dist(end, b) > 1e-9:
+    if not direct and math.dist(end, cur) > 1e-9 and math.dist(end, b) > 1e-9:
         legs.append(_Leg(end, _heading(cur, end, 0.0) if heading is None else heading, pitch,
                          model.transit_speed_m_s, kind))
     return legs
@@ -336,11 +341,12 @@ def _build(passes: Sequence[ScanPass], home: Waypoint, keepout: Any, model: Dron
         first = p.waypoints[0]
         z = z_c if k == 0 else max(cur[2], first.z_m)
         legs += _transit(cur, _xyz(first), z, keepout, model, start_heading=legs[-1].heading_deg,
-                         heading=first.heading_deg, pitch=first.gimbal_pitch_deg)
+                         heading=first.heading_deg, pitch=first.gimbal_pitch_deg, direct=True)
         for i, w in enumerate(p.waypoints):
             if i == 0:  # the pass is reached at the transit speed
                 w = replace(w, speed_m_s=model.transit_speed_m_s)
-            legs.append(_Leg(_xyz(w), w.heading_deg, w.gimbal_pitch_deg, w.speed_m_s, w.kind, w.capture, w.hua, w))
+            legs.append(_Leg(_xyz(w), w.heading_deg, w.gimbal_pitch_deg, w.speed_m_s, w.kind, w.capture, w.hua, w,
+                             pass_start=i == 0))
         cur = _xyz(p.waypoints[-1])
     back = _transit(cur, h, z_c, keepout, model, start_heading=legs[-1].heading_deg)
     if back:
@@ -379,7 +385,7 @@ def _time_and_distance(legs: Sequence[_Leg], model: DroneEndurance) -> tuple[flo
     speed = np.array([leg.speed_m_s if leg.speed_m_s > 0 else model.transit_speed_m_s for leg in legs[1:]])
     t = horiz / speed + np.where(dz > 0, dz / model.climb_rate_m_s, -dz / model.descent_rate_m_s)
     captures = sum(leg.capture for leg in legs)
-    turns = sum(leg.kind == "lead_in" for leg in legs)
+    turns = sum(leg.pass_start for leg in legs)
     total = float(t.sum()) + captures * model.capture_s + turns * model.turn_s + model.takeoff_landing_s
     return total, float(np.linalg.norm(d, axis=1).sum())
 
@@ -388,13 +394,16 @@ def flight_time_s(waypoints: Sequence[Waypoint], model: DroneEndurance = DroneEn
     """Estimated duration of a flight through ``waypoints``, seconds (see the module notes).
 
     Legs are flown at the destination waypoint's ``speed_m_s`` (the transit
-    speed where it is 0); captures, pass starts (``lead_in`` waypoints) and
-    the take-off/landing overhead add fixed times.
+    speed where it is 0); captures, pass starts (``lead_in`` waypoints, and
+    ``scan`` waypoints that follow neither a ``lead_in`` nor a ``scan``
+    waypoint) and the take-off/landing overhead add fixed times.
     """
     if len(waypoints) < 2:
         raise PihimInputError("a flight needs at least two waypoints")
-    legs = [_Leg(_xyz(w), w.heading_deg, w.gimbal_pitch_deg, w.speed_m_s, w.kind, w.capture, w.hua, w)
-            for w in waypoints]
+    legs = [_Leg(_xyz(w), w.heading_deg, w.gimbal_pitch_deg, w.speed_m_s, w.kind, w.capture, w.hua, w,
+                 pass_start=w.kind == "lead_in" or (w.kind == "scan" and (k == 0 or waypoints[k - 1].kind
+                                                                        not in ("lead_in", "scan"))))
+            for k, w in enumerate(waypoints)]
     return _time_and_distance(legs, model)[0]
 
 

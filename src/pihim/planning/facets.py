@@ -1,27 +1,33 @@
-"""Which facets of each assessed HUA show the target's reflection in at least one planned capture.
+"""Which facets of each assessed HUA show a heliostat's back in at least one planned capture.
 
-A facet's canting can be measured only where the target heliostat's
-reflection appears in it. For every capture (a ``scan`` waypoint imaging a
-HUA-target pair, :attr:`pihim.planning.model.PairPrediction.waypoint_index`)
-and every facet of its HUA, :func:`facet_coverage` samples the facet on a
-``samples x samples`` grid of points inside its four corners
+A facet's canting can be measured only where the back of a heliostat (the
+target) appears reflected in it (:mod:`pihim.inspection.canting`). For every
+capture (a ``scan`` waypoint with ``capture=True`` naming its HUA) and every
+facet of its HUA, :func:`facet_targets` samples the facet on a
+``samples x samples`` grid of points ``q`` inside its four corners
 (:meth:`pihim.field.kinematics.FieldPose.facet_corners`, design canting) and
-counts the facet as showing the target when, for at least one sample point
-``q``:
+traces, for each point:
 
-* ``q`` is in the camera's field of view at the waypoint's heading and gimbal
+* ``q`` in the camera's field of view at the waypoint's heading and gimbal
   pitch (:func:`pihim.planning.sightlines.in_fov`), seen from the front of
-  the facet; and
+  the facet;
+* the sight line camera -> ``q`` crossing no other tracked mirror rectangle
+  and not the tower box;
 * the camera ray reflected at ``q`` about the facet normal,
   ``r = d - 2 (d . n) n`` with ``d`` the unit vector from the camera to
-  ``q`` (law of reflection), meets the target's mirror rectangle
-  (:meth:`~pihim.field.kinematics.FieldPose.mirror_outline`): its back
-  structure lies right behind that rectangle.
+  ``q`` (law of reflection), meeting first (nearest along ``r``, within
+  200 m) the mirror rectangle of another heliostat
+  (:meth:`~pihim.field.kinematics.FieldPose.mirror_outline`), *from behind*
+  (``r . n_T > 0``), with the tower box not in between: the facet shows that
+  heliostat's back, whose structure lies right behind its rectangle.
 
-Occlusion by other heliostats is not tested here (the planner already checks
-the HUA's corners and the reflected ray at the HUA centre). The union over a
-HUA's captures gives the facets covered; :func:`coverage_summary` gives the
-totals reported by ``pihim plan`` (``facet_coverage`` in the summary).
+A facet shows the heliostat that most of its qualifying points show. The
+union over a HUA's captures gives the facets covered, each with the first
+capture that shows it and the heliostat seen (``shown_by``: the pair to
+give :func:`pihim.inspection.pipeline` for that facet);
+:func:`coverage_summary` gives the totals reported by ``pihim plan``
+(``facet_coverage`` in the summary). :func:`facets_showing_target` is the
+single-target test without occlusion (one capture, one named target).
 """
 
 from __future__ import annotations
@@ -31,19 +37,21 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
+from pihim.field.kinematics import facet_corners
 from pihim.planning.model import ScanPass
-from pihim.planning.sightlines import in_fov
+from pihim.planning.sightlines import in_fov, segments_hit_box, tower_box
 
-__all__ = ["FacetCoverage", "coverage_summary", "facet_coverage", "facets_showing_target"]
+__all__ = ["FacetCoverage", "coverage_summary", "facet_coverage", "facet_targets", "facets_showing_target"]
 
 
 @dataclass(frozen=True)
 class FacetCoverage:
-    """Facets of one HUA that show the target's reflection in at least one capture.
+    """Facets of one HUA that show a heliostat's back in at least one capture.
 
     Attributes
     ----------
@@ -53,12 +61,16 @@ class FacetCoverage:
         Facet indices (row-major, as ``HeliostatSpec.facet_centroids``).
     captures : int
         Captures of this HUA.
+    shown_by : tuple of (int, (int, int, str))
+        Per covered facet: (pass index, waypoint index, heliostat whose back
+        it shows), the first capture that shows it.
     """
 
     hua: str
     n_facets: int
     covered: tuple[int, ...]
     captures: int
+    shown_by: tuple[tuple[int, tuple[int, int, str]], ...] = ()
 
     @property
     def fraction(self) -> float:
@@ -136,40 +148,228 @@ def facets_showing_target(pose: Any, hua: int, target: int, camera_xyz: Sequence
     return np.any(front & hit & seen, axis=1)
 
 
+def _first_hits_among(p0: NDArray[np.float64], d: NDArray[np.float64], table: NDArray[np.int64],
+                      row: NDArray[np.int64], skip: NDArray[np.int64], pose: Any, t_max: NDArray[np.float64] | float,
+                      chunk: int = 1024) -> NDArray[np.int64]:
+    """First mirror rectangle met by each ray ``p0 + t d``, ``0 < t < t_max``, skipping ``skip``; -1 for none.
+
+    Ray ``i`` must be tested against the mirrors ``table[row[i]]`` (-1
+    padded); each chunk of ``chunk`` consecutive rays is tested against the
+    union of its rows (a superset), so group the rays by row.
+    """
+    spec = pose.field.spec
+    hw, hh = float(spec.mirror_half_width_m), float(spec.mirror_half_height_m)
+    n_r = len(p0)
+    out = np.full(n_r, -1, dtype=np.int64)
+    t_lim = np.broadcast_to(np.asarray(t_max, float), (n_r,))
+    for a in range(0, n_r, chunk):
+        sl = slice(a, a + chunk)
+        u = np.unique(table[np.unique(row[sl])])
+        u = u[u >= 0]
+        if len(u) == 0:
+            continue
+        nrm, cen = pose.normals[u], pose.mirror_centres[u]
+        xa, ya = pose.rotations[u][:, :, 0], pose.rotations[u][:, :, 1]
+        den = d[sl] @ nrm.T  # (n, U)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (np.sum(cen * nrm, axis=1)[None, :] - p0[sl] @ nrm.T) / den
+            px = p0[sl] @ xa.T + t * (d[sl] @ xa.T) - np.sum(cen * xa, axis=1)[None, :]
+            py = p0[sl] @ ya.T + t * (d[sl] @ ya.T) - np.sum(cen * ya, axis=1)[None, :]
+        hit = (np.abs(px) <= hw) & (np.abs(py) <= hh) & (t > 1e-9) & (t < t_lim[sl, None])
+        hit &= u[None, :] != skip[sl, None]
+        t = np.where(hit, t, np.inf)
+        k = np.argmin(t, axis=1)
+        rows = np.arange(len(k))
+        out[sl] = np.where(hit[rows, k], u[k], -1)
+    return out
+
+
+def _near(tree: cKDTree, xy: NDArray[np.float64], radius: NDArray[np.float64], skip: NDArray[np.int64]
+          ) -> NDArray[np.int64]:
+    """Heliostats within ``radius`` (horizontal) of each point, except ``skip``: (N, J) -1 padded."""
+    lists = tree.query_ball_point(xy, radius, return_sorted=False)
+    width = max((len(x) for x in lists), default=0)
+    out = np.full((len(xy), max(width, 1)), -1, dtype=np.int64)
+    for k, (lst, sk) in enumerate(zip(lists, skip.tolist(), strict=True)):
+        lst = [j for j in lst if j != sk]
+        out[k, :len(lst)] = lst
+    return out
+
+
+def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_deg: ArrayLike,
+                  pitch_deg: ArrayLike, *, camera: CameraModel | None = None, samples: int = 3,
+                  tower: Any = None, reach_m: float = 60.0) -> NDArray[np.int64]:
+    """The heliostat whose back each facet shows, per capture, traced ray by ray (module docstring).
+
+    Parameters
+    ----------
+    pose : FieldPose
+    hua : sequence of int, length C
+        The HUA of each capture.
+    camera_xyz : array_like, shape (C, 3)
+        Camera positions, ENU metres.
+    heading_deg, pitch_deg : array_like, shape (C,)
+        Camera heading (clockwise from North) and pitch (negative down).
+    camera : CameraModel, optional
+        Field of view; default Triton + 35 mm.
+    samples : int
+        Sample points per facet side.
+    tower : Tower, optional
+        Its box blocks sight lines and reflected rays.
+    reach_m : float
+        Reflected rays are followed this far, metres.
+
+    Returns
+    -------
+    ndarray of int, shape (C, F)
+        Heliostat index per facet, -1 where none shows a heliostat back: the
+        one the facet's middle sample point shows (odd ``samples``), else
+        the one most of its qualifying points show.
+
+    Notes
+    -----
+    A mirror can hide a sight line only where the line is below the
+    highest mirror point of the field, so the blockers tested for a capture
+    are the mirrors within that stretch (plus a mirror half-diagonal) of the
+    HUA: no blocker is missed. The other points of a facet are traced only
+    where its middle point shows no heliostat back.
+    """
+    camera = camera or CameraModel()
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+        raise PihimInputError(f"samples must be a positive integer, got {samples!r}")
+    h = np.asarray(hua, dtype=np.int64).reshape(-1)
+    cam = np.asarray(camera_xyz, dtype=float).reshape(-1, 3)
+    head = np.broadcast_to(np.asarray(heading_deg, float), h.shape)
+    pitch = np.broadcast_to(np.asarray(pitch_deg, float), h.shape)
+    n_f = pose.facet_centres.shape[1]
+    out = np.full((len(h), n_f), -1, dtype=np.int64)
+    if len(h) == 0:
+        return out
+    spec = pose.field.spec
+    radius = float(np.hypot(spec.mirror_half_width_m, spec.mirror_half_height_m))
+    box = tower_box(tower)
+    outline = pose.mirror_outline()
+    top = float(outline[..., 2].max())
+    tree = cKDTree(pose.mirror_centres[:, :2])
+    corners = facet_corners(pose.rotations[h], pose.mirror_centres[h], spec.facet_centroids,
+                            pose.facet_normals_local[h], spec.facet_width_m, spec.facet_height_m)  # (C, F, 4, 3)
+    q = _grid(corners, samples)  # (C, F, S, 3)
+    n_s = q.shape[2]
+    d = q - cam[:, None, None, :]
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    n = np.broadcast_to(pose.facet_normals[h][:, :, None, :], q.shape)
+    dn = np.sum(d * n, axis=-1)
+    seen = in_fov(q.reshape(len(h), -1, 3), cam, head, pitch, camera).reshape(dn.shape)
+    cand = (dn < 0.0) & seen  # (C, F, S)
+    z0 = q[..., 2].min(axis=(1, 2))
+    horiz = np.linalg.norm(cam[:, :2] - pose.mirror_centres[h, :2], axis=1) + radius
+    frac = np.where(cam[:, 2] > top, np.clip((top - z0) / np.maximum(cam[:, 2] - z0, 1e-9), 0.0, 1.0), 1.0)
+    blk = _near(tree, pose.mirror_centres[h, :2], horiz * frac + 2.0 * radius, h)
+    h_xy = pose.mirror_centres[h, :2]
+    fwd = pose.normals[h]
+    tg = _near(tree, h_xy, np.full(len(h), float(reach_m) + radius), h)
+    behind = np.einsum("cjd,cd->cj", pose.mirror_centres[np.maximum(tg, 0)] - pose.mirror_centres[h][:, None, :],
+                       fwd) < -radius  # wholly behind the HUA's mirror plane: a reflected ray cannot reach it
+    tg = np.where(behind, -1, tg)
+
+    def trace(live: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Heliostat whose back the sample ``live`` (flat index into (C, F, S)) shows; -1 none."""
+        out_ = np.full(len(live), -1, dtype=np.int64)
+        if len(live) == 0:
+            return out_
+        order = np.argsort(h[live // (n_f * n_s)], kind="stable")  # grouped by HUA (see _first_hits_among)
+        live = live[order]
+        ci = live // (n_f * n_s)
+        qq, dd, nn = q.reshape(-1, 3)[live], d.reshape(-1, 3)[live], n.reshape(-1, 3)[live]
+        dist = np.linalg.norm(cam[ci] - qq, axis=1)
+        blocked = _first_hits_among(qq - 1e-6 * dd, -dd, blk, ci, h[ci], pose, dist - 1e-6) >= 0
+        if box is not None:
+            blocked |= segments_hit_box(cam[ci], qq - 1e-6 * dd, *box)
+        r = dd - 2.0 * np.sum(dd * nn, axis=-1, keepdims=True) * nn
+        hit = np.full(len(live), -1, dtype=np.int64)
+        k = np.flatnonzero(~blocked)
+        hit[k] = _first_hits_among(qq[k] + 1e-6 * r[k], r[k], tg, ci[k], h[ci[k]], pose, float(reach_m))
+        ok = hit >= 0
+        ok[ok] &= np.sum(r[ok] * pose.normals[hit[ok]], axis=-1) > 0.0
+        if box is not None and np.any(ok):
+            k = np.flatnonzero(ok)
+            hc, hn = pose.mirror_centres[hit[k]], pose.normals[hit[k]]
+            t = np.sum((hc - qq[k]) * hn, axis=-1) / np.sum(r[k] * hn, axis=-1)
+            ok[k] &= ~segments_hit_box(qq[k] + 1e-6 * r[k], qq[k] + t[:, None] * r[k], *box)
+        out_[order] = np.where(ok, hit, -1)
+        return out_
+
+    # the middle sample of each facet first; the others only where it shows nothing
+    which = np.full(cand.shape, -1, dtype=np.int64)
+    mid = (n_s - 1) // 2 if samples % 2 else None
+    if mid is not None:
+        first = cand.copy()
+        first[..., [j for j in range(n_s) if j != mid]] = False
+        sel = np.flatnonzero(first.ravel())
+        which.reshape(-1)[sel] = trace(sel)
+        rest = cand & ~first & ~(which[..., mid] >= 0)[..., None]
+    else:
+        rest = cand
+    sel = np.flatnonzero(rest.ravel())
+    which.reshape(-1)[sel] = trace(sel)
+    out = np.where(which[..., mid] >= 0, which[..., mid], -1) if mid is not None else out
+    todo = np.flatnonzero(((out < 0) & (which >= 0).any(axis=-1)).ravel())
+    for k in todo.tolist():  # the heliostat most of the facet's other points show
+        row = which.reshape(-1, n_s)[k]
+        vals, counts = np.unique(row[row >= 0], return_counts=True)
+        out.reshape(-1)[k] = vals[np.argmax(counts)]
+    return out
+
+
 def facet_coverage(passes: Sequence[ScanPass], pose: Any, *, camera: CameraModel | None = None,
-                   samples: int = 3) -> dict[str, FacetCoverage]:
-    """Facets of every imaged HUA that show its target in at least one capture.
+                   samples: int = 3, tower: Any = None) -> dict[str, FacetCoverage]:
+    """Facets of every imaged HUA that show a heliostat back in at least one capture (traced).
 
     Parameters
     ----------
     passes : sequence of ScanPass
-        Scored passes (their predictions name each capture's HUA, target and
-        waypoint).
+        Passes whose capture waypoints name their HUA (``hua``).
     pose : FieldPose
         The tracked field the passes were planned for.
     camera : CameraModel, optional
     samples : int
         Sample points per facet side.
+    tower : Tower, optional
+        Blocks sight lines and reflected rays.
 
     Returns
     -------
     dict of str to FacetCoverage
-        One entry per HUA with at least one capture, in first-capture order.
+        One entry per HUA with at least one capture, in first-capture order;
+        ``shown_by`` says, per covered facet, which capture (pass index,
+        waypoint index) and which heliostat's back (the first capture that
+        shows it).
     """
     names = {nm: k for k, nm in enumerate(pose.field.names)}
     n_facets = pose.facet_centres.shape[1]
-    covered: dict[str, NDArray[np.bool_]] = {}
-    count: dict[str, int] = {}
+    refs: list[tuple[int, int, str]] = []
     for p in passes:
-        for pr in p.predictions:
-            w = p.waypoints[pr.waypoint_index]
-            if pr.hua not in names or pr.target not in names:
-                raise PihimInputError(f"pass {p.index}: unknown heliostat {pr.hua!r} or {pr.target!r}")
-            seen = facets_showing_target(pose, names[pr.hua], names[pr.target], (w.x_m, w.y_m, w.z_m),
-                                         w.heading_deg, w.gimbal_pitch_deg, camera=camera, samples=samples)
-            covered[pr.hua] = covered.get(pr.hua, np.zeros(n_facets, dtype=bool)) | seen
-            count[pr.hua] = count.get(pr.hua, 0) + 1
-    return {h: FacetCoverage(h, n_facets, tuple(np.flatnonzero(m).tolist()), count[h]) for h, m in covered.items()}
+        for j, w in enumerate(p.waypoints):
+            if not w.capture or w.hua is None:
+                continue
+            if w.hua not in names:
+                raise PihimInputError(f"pass {p.index}: unknown heliostat {w.hua!r}")
+            refs.append((p.index, j, w.hua))
+    wps = {(p.index, j): w for p in passes for j, w in enumerate(p.waypoints)}
+    cams = np.array([(wps[r[:2]].x_m, wps[r[:2]].y_m, wps[r[:2]].z_m) for r in refs]).reshape(-1, 3)
+    shows = facet_targets(pose, [names[r[2]] for r in refs], cams, [wps[r[:2]].heading_deg for r in refs],
+                          [wps[r[:2]].gimbal_pitch_deg for r in refs], camera=camera, samples=samples,
+                          tower=tower)
+    by: dict[str, dict[int, tuple[int, int, str]]] = {}
+    count: dict[str, int] = {}
+    field_names = pose.field.names
+    for (pi, j, hua), row in zip(refs, shows, strict=True):
+        got = by.setdefault(hua, {})
+        count[hua] = count.get(hua, 0) + 1
+        for f in np.flatnonzero(row >= 0).tolist():
+            got.setdefault(f, (pi, j, field_names[int(row[f])]))
+    return {h: FacetCoverage(h, n_facets, tuple(sorted(m)), count[h], tuple(sorted(m.items())))
+            for h, m in by.items()}
 
 
 def coverage_summary(coverage: dict[str, FacetCoverage]) -> dict[str, Any]:
@@ -182,7 +382,8 @@ def coverage_summary(coverage: dict[str, FacetCoverage]) -> dict[str, Any]:
         "facets_covered": got,
         "fraction": got / facets if facets else 0.0,
         "huas_complete": sum(len(c.covered) == c.n_facets for c in coverage.values()),
-        "definition": "facets of the imaged HUAs in which the target's reflection appears in at least one capture "
-                      "(facet sampled 3x3, in the field of view, reflected camera ray meets the target's mirror "
-                      "rectangle; occlusion not tested)",
+        "definition": "facets of the imaged HUAs that show a heliostat's back in at least one capture (facet "
+                      "sampled 3x3: a point in the field of view, seen from the front with the sight line clear, "
+                      "whose reflected camera ray meets another heliostat's mirror rectangle first and from behind; "
+                      "mirrors are flat tracked rectangles, the tower a box)",
     }

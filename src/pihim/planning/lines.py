@@ -22,7 +22,11 @@ Lines
    5W5 ... 12W14 steps one column over per row).
 3. **Chains** (:func:`link_chains`). Where several heliostats link to the
    same one, the link continuing the target's own link most straightly is
-   kept; the kept links form disjoint chains, every heliostat in one.
+   kept; the kept links form disjoint chains, every heliostat in one. A
+   chain whose heliostats stray too far from its line is halved until they
+   do not: in a large field a chain runs over the whole radius, along
+   normals' planes that curve, and one straight line through it would image
+   fewer and fewer of its heliostats as the field grows.
 4. **Lines** (:func:`chain_lines`). Each chain gives a straight line whose
    direction is the mean horizontal direction of its heliostats' normals
    (the normals' plane) through the centroid of their mirror centres. The
@@ -300,8 +304,17 @@ def plane_links(cand: Candidates, n_heliostats: int, abreast_m: float) -> NDArra
     return link
 
 
-def link_chains(link: NDArray[np.int64], centres: NDArray[np.float64]) -> NDArray[np.int64]:
-    """Chain id of every heliostat (step 3): where several link to one, the straightest link is kept."""
+def link_chains(link: NDArray[np.int64], centres: NDArray[np.float64], max_deviation_m: float = math.inf,
+                normals_xy: NDArray[np.float64] | None = None) -> NDArray[np.int64]:
+    """Chain id of every heliostat (step 3): where several link to one, the straightest link is kept.
+
+    With ``max_deviation_m`` (and ``normals_xy``, the horizontal normal
+    directions), a chain whose members lie farther than that from its line
+    (:func:`chain_lines`: mean normal direction through their centroid) is
+    cut in two halves, and so on: in a large field a chain spans the whole
+    radius along curving normals' planes, which one straight line cannot
+    follow.
+    """
     n_h = len(link)
     src = np.flatnonzero(link >= 0)
     dst = link[src]
@@ -321,15 +334,39 @@ def link_chains(link: NDArray[np.int64], centres: NDArray[np.float64]) -> NDArra
     succ[pred[pred >= 0]] = np.flatnonzero(pred >= 0)
     chain = np.full(n_h, -1, dtype=np.int64)
     cid = 0
-    for start in np.flatnonzero(succ < 0):  # the innermost heliostat of every chain
-        k = int(start)
+    split = math.isfinite(max_deviation_m) and normals_xy is not None
+    for start in np.flatnonzero(succ < 0).tolist():  # the innermost heliostat of every chain
+        members = []
+        k = start
         while k >= 0 and chain[k] < 0:
             chain[k] = cid
+            members.append(k)
             k = int(pred[k])
-        cid += 1
+        if split and len(members) > 2:
+            for piece in _straight_pieces(np.asarray(members), centres[:, :2], normals_xy, max_deviation_m):
+                chain[piece] = cid
+                cid += 1
+        else:
+            cid += 1
     rest = np.flatnonzero(chain < 0)  # cycles cannot occur (links go forward along each normal); be safe
     chain[rest] = cid + np.arange(len(rest))
     return chain
+
+
+def _straight_pieces(members: NDArray[np.int64], xy: NDArray[np.float64], normals_xy: NDArray[np.float64],
+                     max_deviation_m: float) -> list[NDArray[np.int64]]:
+    """Halve a chain (members in order) until every piece's members lie within ``max_deviation_m`` of its line."""
+    d = normals_xy[members].sum(axis=0)
+    norm = float(np.hypot(*d))
+    if len(members) <= 2 or norm < 1e-9:
+        return [members]
+    d = d / norm
+    rel = xy[members] - xy[members].mean(axis=0)
+    if float(np.max(np.abs(rel[:, 0] * d[1] - rel[:, 1] * d[0]))) <= max_deviation_m:
+        return [members]
+    half = len(members) // 2
+    return (_straight_pieces(members[:half], xy, normals_xy, max_deviation_m)
+            + _straight_pieces(members[half:], xy, normals_xy, max_deviation_m))
 
 
 def chain_lines(chain: NDArray[np.int64], normals_xy: NDArray[np.float64],

@@ -29,7 +29,9 @@ from pihim.planning.endurance import (
 from pihim.planning.attitude import steady_headings
 from pihim.planning.lines import alignment_summary
 from pihim.planning.model import Plan
-from pihim.planning.scoring import ScoringModel, ShiftSearch, coverage, score_passes
+from pihim.planning.facet_captures import FacetCaptureSettings, plan_facet_captures
+from pihim.planning.route import RouteSettings, plan_flights, turns
+from pihim.planning.scoring import ScoringModel, ShiftSearch, build_scene, coverage, score_passes
 from pihim.planning.ufacet import home_waypoint, plan_ufacet, track_at
 from pihim.sky.sun import Site
 
@@ -60,6 +62,8 @@ def build_plan(
     mission_options: dict[str, Any] | None = None,
     steady_heading: bool = True,
     facet_report: bool = True,
+    facet_captures: bool | FacetCaptureSettings = True,
+    route: bool | RouteSettings = True,
 ) -> Plan:
     """Plan, score and split an inspection of ``field`` at ``time``.
 
@@ -95,11 +99,22 @@ def build_plan(
         ``mount_control``, ...; see :func:`pihim.planning.export.mission_items`).
     steady_heading : bool
         Fly runs of captures at one heading where the field of view allows
-        (:func:`pihim.planning.attitude.steady_headings`).
+        (:func:`pihim.planning.attitude.steady_headings`); only without
+        ``facet_captures`` (facet captures aim at chosen points of the HUA).
     facet_report : bool
-        Report which facets of each imaged HUA show the target's reflection
-        in at least one capture (``summary["facet_coverage"]``,
+        Report which facets of each imaged HUA show a heliostat's back in at
+        least one capture, and which (``summary["facet_coverage"]``,
         :func:`pihim.planning.facets.facet_coverage`).
+    facet_captures : bool or FacetCaptureSettings
+        Replace each HUA's single capture by the few captures along its pass
+        that show every facet a heliostat's back
+        (:func:`pihim.planning.facet_captures.plan_facet_captures`), and try
+        requested HUAs left without a target from nearby passes.
+    route : bool or RouteSettings
+        Order and orient the passes and cut the flights for the shortest
+        path (:func:`pihim.planning.route.plan_flights`); False flies them in
+        the planner's order, cutting greedily
+        (:func:`pihim.planning.endurance.split_flights`).
 
     Returns
     -------
@@ -128,11 +143,19 @@ def build_plan(
         more = f" (and {len(planned.unassessed) - 3} more)" if len(planned.unassessed) > 3 else ""
         raise PihimInputError(f"no scan pass to fly: {first}{more}")
     t_plan = _time.perf_counter()
-    scored = score_passes(passes, pose, sun.vector, model=scoring, camera=camera, aim_point=aim, origin=site,
+    scene = build_scene(pose, sun.vector, scoring)
+    scored = score_passes(passes, pose, sun.vector, scene=scene, camera=camera, aim_point=aim, origin=site,
                           search=ShiftSearch(max_altitude_m=max_altitude_m) if shift else None)
     t_score = _time.perf_counter()
-    if steady_heading:
+    rescued: tuple[str, ...] = ()
+    if facet_captures is not False:
+        fc_settings = facet_captures if isinstance(facet_captures, FacetCaptureSettings) else None
+        fplan = plan_facet_captures(scored, pose, origin=site, camera=camera, settings=fc_settings, tower=field.tower,
+                                    aim_point=aim, unassessed=[n for n, _ in planned.unassessed])
+        scored, rescued = fplan.passes, fplan.rescued
+    elif steady_heading:
         scored = steady_headings(scored, pose, camera=camera)
+    t_facets = _time.perf_counter()
     home = home_waypoint(field, origin=site)
     counter = None
     if max_mission_items is not None:
@@ -141,8 +164,17 @@ def build_plan(
         opts = dict(mission_options or {})
         counter = functools.partial(count_mission_items, **opts)
         count_mission_items([home, home], **opts)  # bad options -> one-line error before the split
-    flights = split_flights(scored, home, origin=site, model=endurance, tower=field.tower,
-                            max_mission_items=max_mission_items, count_items=counter)
+    if route is not False:
+        scored, flights = plan_flights(scored, home, origin=site, model=endurance, tower=field.tower,
+                                       max_mission_items=max_mission_items, count_items=counter,
+                                       settings=route if isinstance(route, RouteSettings) else RouteSettings())
+    else:
+        flights = split_flights(scored, home, origin=site, model=endurance, tower=field.tower,
+                                max_mission_items=max_mission_items, count_items=counter)
+    if facet_captures is not False or route is not False:  # new or reversed captures: predict them
+        scored = score_passes(scored, pose, sun.vector, scene=scene, camera=camera, aim_point=aim, origin=site,
+                              search=None)
+    t_route = _time.perf_counter()
     rate = throughput(flights, endurance)
     fleet = fleet_estimate(len(field.names), max(rate.heliostats_per_hour, 1e-9), fleet_hours)
     summary: dict[str, Any] = {
@@ -156,22 +188,32 @@ def build_plan(
         "alignment": {"planned": alignment_summary(passes, field, pose),
                       "flown": alignment_summary(scored, field, pose)},
         "flights": len(flights),
+        "distance_m": round(sum(f.distance_m for f in flights), 1),
+        "turns": sum(turns(f.waypoints) for f in flights),
+        "rescued_huas": list(rescued),
         "max_mission_items": max_mission_items,
         "missions": [{"flight": f.index, "mission_items": counter(f.waypoints) if counter else None,
-                      "waypoints": len(f.waypoints), "duration_s": round(f.duration_s, 1),
-                      "distance_m": round(f.distance_m, 1)} for f in flights],
+                      "waypoints": len(f.waypoints), "passes": len(f.pass_indices),
+                      "captures": sum(w.capture for w in f.waypoints), "duration_s": round(f.duration_s, 1),
+                      "distance_m": round(f.distance_m, 1), "turns": turns(f.waypoints)} for f in flights],
         "heliostats_per_hour": rate.heliostats_per_hour,
         "heliostats_per_flight_hour": rate.heliostats_per_flight_hour,
         "fleet": {"working_hours": fleet_hours, **_record(fleet)},
-        "seconds": {"track_and_plan": round(t_plan - t0, 4), "scoring": round(t_score - t_plan, 4)},
+        "seconds": {"track_and_plan": round(t_plan - t0, 4), "scoring": round(t_score - t_plan, 4),
+                    "facet_captures": round(t_facets - t_score, 4), "route_and_predictions": round(t_route - t_facets, 4)},
     }
     if facet_report:
         from pihim.planning.facets import coverage_summary, facet_coverage
 
-        per_hua = facet_coverage(scored, pose, camera=camera)
-        summary["facet_coverage"] = {**coverage_summary(per_hua),
-                                     "per_hua": {h: {"covered": list(c.covered), "captures": c.captures}
-                                                 for h, c in per_hua.items()}}
+        t_rep = _time.perf_counter()
+        per_hua = facet_coverage(scored, pose, camera=camera, tower=field.tower)
+        summary["facet_coverage"] = {
+            **coverage_summary(per_hua),
+            "per_hua": {h: {"covered": list(c.covered), "missing": list(c.missing), "captures": c.captures,
+                            "shown_by": {str(f): {"pass": pi, "waypoint": wi, "target": tg}
+                                         for f, (pi, wi, tg) in c.shown_by}}
+                        for h, c in per_hua.items()}}
+        summary["seconds"]["facet_report"] = round(_time.perf_counter() - t_rep, 4)
     return Plan(
         time_iso=time.isoformat(),
         site=site.as_dict(),

@@ -964,13 +964,59 @@ def _tower_ok(points: NDArray, tower: Any, clearance: float) -> NDArray[np.bool_
     return (np.hypot(dx, dy) >= clearance) | (points[..., 2] >= tower.height_m + clearance)
 
 
-def _beam_margin(points: NDArray, centres: NDArray, aim: NDArray, radius: float) -> NDArray[np.float64]:
-    """Smallest clearance of each point (W, 3) from the reflected beams (cones from the mirrors to ``aim``)."""
+def _beam_margin(points: NDArray, centres: NDArray, aim: NDArray, radius: float,
+                 beams: _BeamIndex | None = None) -> NDArray[np.float64]:
+    """Smallest clearance of each point (W, 3) from the reflected beams (cones from the mirrors to ``aim``).
+
+    With ``beams`` only the beams within its reach of a point are measured;
+    a point farther than the reach from every beam gets +inf.
+    """
+    if beams is not None:
+        return beams.margin(points)
     ab = aim[None, :] - centres  # (N, 3)
     q = points[:, None, :] - centres[None]  # (W, N, 3)
     t = np.clip(np.sum(q * ab[None], axis=-1) / np.sum(ab * ab, axis=-1)[None], 0.0, 1.0)
     dist = np.linalg.norm(q - t[..., None] * ab[None], axis=-1)
     return np.min(dist - (1.0 - t) * radius, axis=1)
+
+
+class _BeamIndex:
+    """The reflected beams (segments mirror centre -> aim point, cones of base ``radius``) indexed by direction.
+
+    A point ``P`` within ``reach`` of the segment from ``c`` to the aim point
+    ``a`` sees it within ``asin(reach / |P - a|)`` of the direction ``c - a``
+    from ``a`` (law of sines in the triangle a, P, nearest point), so a k-d
+    tree over the unit directions from the aim point to the mirrors finds
+    every beam that can come that close: the clearance of a shifted pass is
+    checked against the beams near it, not against the whole field.
+    """
+
+    def __init__(self, centres: NDArray, aim: NDArray, radius: float, reach: float) -> None:
+        from scipy.spatial import cKDTree
+
+        self.centres, self.aim, self.radius, self.reach = centres, aim, float(radius), float(reach)
+        d = centres - aim[None]
+        self.tree = cKDTree(d / np.linalg.norm(d, axis=1, keepdims=True))
+
+    def margin(self, points: NDArray) -> NDArray[np.float64]:
+        p = np.atleast_2d(np.asarray(points, float))
+        v = p - self.aim[None]
+        dist = np.linalg.norm(v, axis=1)
+        out = np.full(len(p), np.inf)
+        near_aim = dist <= self.reach
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.where(near_aim[:, None], 0.0, v / dist[:, None])
+            ang = np.where(near_aim, np.pi, np.arcsin(np.minimum(1.0, self.reach / dist)))
+        chord = np.where(ang >= np.pi / 2, 2.0, 2.0 * np.sin(0.5 * ang)) + 1e-9
+        lists = self.tree.query_ball_point(u, chord, return_sorted=False)
+        for k, lst in enumerate(lists):
+            if near_aim[k]:
+                lst = range(len(self.centres))
+            if len(lst) == 0:
+                continue
+            out[k] = _beam_margin(p[k:k + 1], self.centres[np.fromiter(lst, dtype=np.int64)], self.aim,
+                                  self.radius)[0]
+        return out
 
 
 def _blocked(scene: ScoringScene, cams: NDArray, hua: NDArray, target: NDArray) -> NDArray[np.bool_]:
@@ -1239,6 +1285,7 @@ def _search_shifts(
     lookup[gi, mi] = np.arange(len(gi))
     chosen: dict[int, tuple[NDArray, NDArray, NDArray, NDArray, ImagePredictions]] = {}
     nominal_blocked: NDArray[np.bool_] | None = None
+    beams = None if aim is None else _BeamIndex(scene.centres, aim, radius, search.beam_clearance_m + radius)
     for p in range(n_pass):
         gains = frac[:, p] - nominal[p]
         ranked = [g for g in np.lexsort((cost, -frac[:, p])) if gains[g] > 1e-12]
@@ -1247,8 +1294,8 @@ def _search_shifts(
             if aim is not None:
                 xyz = wp_xyz[p] + cands[g, 1] * right_p[p] + cands[g, 0] * _UP
                 xyz[imgs.waypoint_index[sel]] = cams[g, sel]
-                nom_margin = _beam_margin(wp_xyz[p], scene.centres, aim, radius)
-                new_margin = _beam_margin(xyz, scene.centres, aim, radius)
+                nom_margin = _beam_margin(wp_xyz[p], scene.centres, aim, radius, beams)
+                new_margin = _beam_margin(xyz, scene.centres, aim, radius, beams)
                 if np.any(new_margin < np.minimum(nom_margin, search.beam_clearance_m) - 1e-9):
                     continue
             if nominal_blocked is None:

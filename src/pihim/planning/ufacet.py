@@ -102,6 +102,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
@@ -214,6 +215,13 @@ class UfacetSettings:
     max_plane_deviation_deg : float
         Largest angle between a line and the normals' plane of a HUA moved
         to it, degrees.
+    max_line_deviation_m : float
+        A chain of links whose heliostats lie farther than this from its
+        straight line is halved until they do not, one line per piece
+        (:func:`pihim.planning.lines.link_chains`): in a large field a chain
+        spans the whole radius along curving normals' planes. NSTTF chains
+        stay within 20 m of their lines at every hour of 2021-05-13 and are
+        kept whole.
     extra_passes : bool
         HUAs imaged from no line get extra lines, built the same way among
         them only (a HUA alone gets its own normals' plane), when those
@@ -257,6 +265,7 @@ class UfacetSettings:
     merge_max_huas: int = 2
     merge_lateral_m: float | None = None
     max_plane_deviation_deg: float = 10.0
+    max_line_deviation_m: float = 30.0
     extra_passes: bool = True
     max_camera_offset_m: float | None = None
     altitude_step_m: float = 1.0
@@ -280,6 +289,9 @@ class UfacetSettings:
             v = getattr(self, label)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise PihimInputError(f"UfacetSettings.{label} must be a positive number, got {v!r}")
+        v = self.max_line_deviation_m
+        if isinstance(v, bool) or not (isinstance(v, (int, float)) and v > 0):  # math.inf: chains kept whole
+            raise PihimInputError(f"UfacetSettings.max_line_deviation_m must be a positive number, got {v!r}")
         if not (isinstance(self.line_offset_max_m, (int, float)) and math.isfinite(self.line_offset_max_m)
                 and self.line_offset_max_m >= 0 and isinstance(self.line_offset_step_m, (int, float))
                 and math.isfinite(self.line_offset_step_m) and self.line_offset_step_m > 0):
@@ -638,9 +650,24 @@ def _move_huas(ctx: _Context, cand: Candidates, line_of: NDArray[np.int64], line
     hi = np.full(n_lines, -np.inf)
     np.minimum.at(lo, line_of[mem], s_mem)
     np.maximum.at(hi, line_of[mem], s_mem)
-    # (mover, host) combinations passing the plane, lateral and extent limits
-    mv = np.repeat(movers, len(hosts))
-    hs = np.tile(hosts, len(movers))
+    # (mover, host) combinations passing the plane, lateral and extent limits; candidates from a k-d tree
+    # over points along each host line (every lateral_limit metres over its reach): linear in the field size
+    reach_lo = lo[hosts] - st.max_target_distance_m
+    reach_hi = hi[hosts] + st.max_target_distance_m
+    step = max(lateral_limit, 1.0)
+    counts = np.maximum(1, np.ceil((reach_hi - reach_lo) / step).astype(np.int64) + 1)
+    owner = np.repeat(np.arange(len(hosts)), counts)
+    s_pts = np.repeat(reach_lo, counts) + step * (np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts,
+                                                                                          counts))
+    hk = hosts[owner]
+    pts = (ctx.lines.origin[hk] + line_off[hk, None] * ctx.lines.across[hk]
+           + np.minimum(s_pts, reach_hi[owner])[:, None] * ctx.lines.direction[hk])
+    near = cKDTree(pts).query_ball_point(c_xy[movers], math.hypot(lateral_limit, 0.5 * step) + 1e-6,
+                                         return_sorted=False)
+    pairs = {(int(m_), int(hosts[owner[j]])) for m_, lst in zip(movers.tolist(), near, strict=True) for j in lst}
+    if not pairs:
+        return line_of
+    mv, hs = (np.array(v, dtype=np.int64) for v in zip(*sorted(pairs), strict=True))
     keep = hs != line_of[mv]
     keep &= dot(normals_xy[mv], ctx.lines.direction[hs]) >= math.cos(math.radians(st.max_plane_deviation_deg))
     lat = np.abs(ctx.lines.lateral(hs, c_xy[mv]) - line_off[hs])
@@ -717,7 +744,8 @@ def _assign_lines(ctx: _Context, all_cand: Candidates, chain: NDArray[np.int64],
             is_left = np.zeros(n_h, dtype=bool)
             is_left[left] = True
             among = all_cand.take(is_left[all_cand.hua] & is_left[all_cand.target])
-            _, sub_id = np.unique(link_chains(plane_links(among, n_h, abreast), c)[left], return_inverse=True)
+            _, sub_id = np.unique(link_chains(plane_links(among, n_h, abreast), c, st.max_line_deviation_m, b)[left],
+                                  return_inverse=True)
         extra = chain_lines(sub_id, b[left], c[left, :2])
         n0 = len(ctx.lines)
         ctx = dataclasses.replace(ctx, lines=ScanLines(np.r_[ctx.lines.origin, extra.origin],
@@ -906,7 +934,7 @@ def plan_ufacet(
     all_cand = candidate_targets(pose, max_distance_m=st.max_target_distance_m,
                                  max_off_axis_deg=st.max_off_axis_deg, max_lateral_m=max_lateral)
     b, _ = horizontal_normals(pose)
-    chain = link_chains(plane_links(all_cand, n_h, abreast), c)
+    chain = link_chains(plane_links(all_cand, n_h, abreast), c, st.max_line_deviation_m, b)
     cand = all_cand.take(wanted[all_cand.hua])
     has_cand = np.zeros(n_h, dtype=bool)
     has_cand[all_cand.hua] = True

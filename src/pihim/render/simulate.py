@@ -107,9 +107,10 @@ class PairPose:
     """The planned capture of a HUA-target pair: the target seen reflected in the HUA.
 
     The camera goes where :func:`pihim.planning.pipeline.build_plan` (with
-    this HUA only, no contrast shift and the planner's default camera, the
-    Triton with a 35 mm lens) places the imaging waypoint of the pair, in a
-    feasible pass. The planner chooses targets for that camera's framing, so
+    this HUA only, no contrast shift, one capture per HUA -- no facet
+    captures -- and the planner's default camera, the Triton with a 35 mm
+    lens) places the imaging waypoint of the pair, in a feasible pass: the
+    point of the pass line from which the HUA's centre shows the target. The planner chooses targets for that camera's framing, so
     the pose does not depend on the simulated image size.
     """
 
@@ -308,7 +309,8 @@ def _pair_pose(fld: Any, ts: Any, site: Site, aim: NDArray, req: PairPose) -> tu
         raise PihimInputError(f"the target must differ from the HUA (both {hua})")
     refusal = f"target {target} is not visible in HUA {hua} from any feasible pose"
     try:
-        plan = build_plan(fld, ts, site, aim_point=aim, heliostats=[hua], shift=False)
+        plan = build_plan(fld, ts, site, aim_point=aim, heliostats=[hua], shift=False, facet_captures=False,
+                          route=False, facet_report=False)
     except PihimInputError as exc:
         raise PihimInputError(f"{refusal} ({exc})") from None
     for p in plan.passes:

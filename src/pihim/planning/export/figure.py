@@ -169,7 +169,7 @@ def _place_pass_labels(fig: Any, ax: Any, starts: list[tuple[int, NDArray[np.flo
         w, h = (0.62 * px * len(text) + 4) * per_px[0], (px + 4) * per_px[1]
         start = xy[0]
         d = xy[1] - xy[0] if len(xy) > 1 else np.array([0.0, 1.0])
-        d = d / (np.linalg.norm(d) or 1.0)
+        d = d / np.linalg.norm(d) if np.linalg.norm(d) > 1e-9 else np.array([0.0, 1.0])
         side = np.array([-d[1], d[0]])
         spot = None
         for r in np.arange(1.0, 12.0, 1.0) * max(w, h):

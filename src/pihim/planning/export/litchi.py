@@ -142,8 +142,9 @@ def litchi_missions(plan: Plan, max_waypoints: int = LITCHI_MAX_WAYPOINTS,
     """The plan's flights cut into Litchi missions of at most ``max_waypoints`` waypoints.
 
     Missions follow the flights in order and never span two flights (two
-    batteries). Within a flight a mission ends just before a pass's lead-in
-    or a transit waypoint, taking as many whole passes as fit; only a pass
+    batteries). Within a flight a mission ends just before a pass's first
+    waypoint (its lead-in, if any) or a transit waypoint, taking as many
+    whole passes as fit; only a pass
     longer than ``max_waypoints`` by itself is cut inside (between two of
     its waypoints). Take-off and landing are Litchi's own and left out.
 
@@ -169,7 +170,12 @@ def litchi_missions(plan: Plan, max_waypoints: int = LITCHI_MAX_WAYPOINTS,
         if flight is not None and f.index != flight:
             continue
         wps = litchi_waypoints(plan, f.index)
-        cuts = [k for k, w in enumerate(wps) if k == 0 or w.kind in ("lead_in", "transit")] + [len(wps)]
+        by_index = {p.index: p for p in plan.passes}
+        starts = {(w.x_m, w.y_m, w.z_m, w.kind, w.hua) for w in
+                  (by_index[i].waypoints[0] for i in f.pass_indices if i in by_index and by_index[i].waypoints)}
+        cuts = [k for k, w in enumerate(wps) if k == 0 or w.kind in ("lead_in", "transit")
+                or (w.x_m, w.y_m, w.z_m, w.kind, w.hua) in starts]  # passes without a lead-in start with a capture
+        cuts = sorted(set(cuts)) + [len(wps)]
         current: list[Waypoint] = []
         for a, b in itertools.pairwise(cuts):
             segment = list(wps[a:b])

@@ -1,0 +1,213 @@
+"""The planner at scale: radial fields of 1,000 to 100,000 heliostats planned, scored and split into flights.
+
+For each size N a fresh process (so that its peak memory is its own):
+
+1. builds a radial-staggered field of N heliostats around a 200 m tower
+   aiming at 195 m (:func:`pihim.field.layout.radial_staggered_field`;
+   untimed);
+2. tracks it for the NSTTF sun of 2021-05-13 13:00 -06:00
+   (:func:`pihim.field.kinematics.track_field`);
+3. plans the UFACET passes (:func:`pihim.planning.ufacet.plan_ufacet`);
+4. scores them with the default contrast-raising shift search
+   (:func:`pihim.planning.scoring.score_passes`);
+5. splits them into flights (:func:`pihim.planning.endurance.split_flights`),
+
+the pipeline of ``bench_plan``'s ``radial N full plan + scoring`` rows and
+of the issue's figures (1k 1.6-2.9 s, 10k 20-25 s, 20k 57 s, 30k 145-178 s
+and 2.1 GB, 100k killed after 300 s at >= 5.4 GB). Each stage's wall and
+CPU time (``time.process_time``; numpy may use several threads) and the
+process's peak resident memory (``VmHWM``) are recorded with the load
+average of the machine, and the passes per heliostat.
+
+Targets: 100,000 heliostats planned and scored in < 5 min and < 8 GB; the
+growth from 1k to 100k is fitted on a log-log scale (slope 1 = linear).
+
+``--figure PATH`` (default ``docs/figures/plan_scale.png``) draws the
+log-log figure. Run ``python benchmarks/run.py --only bench_plan_scale`` or
+this file directly (``--sizes 1000 10000``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as harness
+
+RESULTS_PATH = Path(__file__).resolve().parent / "results" / "plan_scale.json"
+FIGURE_PATH = Path(__file__).resolve().parents[1] / "docs" / "figures" / "plan_scale.png"
+SIZES = (1_000, 3_000, 10_000, 30_000, 100_000)
+COUNTS = harness.Counts(repeat=1, warmup=0, quick_repeat=1, quick_warmup=0, cap_quick=True)
+CASE_TIME = "2021-05-13T13:00:00-06:00"
+STAGES = ("track", "plan", "score", "flights")
+
+
+def _peak_rss_mb() -> float:
+    with open("/proc/self/status", encoding="utf-8") as fh:
+        for line in fh:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")  # pragma: no cover - not Linux
+
+
+def child(n: int) -> dict[str, Any]:
+    """One size, in this process (see the module docstring)."""
+    from bench_plan import BIG_TOWER
+
+    from pihim.field.kinematics import track_field
+    from pihim.field.layout import radial_staggered_field
+    from pihim.planning.endurance import split_flights
+    from pihim.planning.scoring import score_passes
+    from pihim.planning.ufacet import home_waypoint, plan_ufacet
+    from pihim.sky.sun import NSTTF, sun_position
+
+    sun = sun_position(NSTTF, CASE_TIME).vector
+    field = radial_staggered_field(n, tower=BIG_TOWER)
+    aim = field.default_aim_point
+    rss0 = _peak_rss_mb()
+    load0 = os.getloadavg()[0]
+    wall: dict[str, float] = {}
+    cpu: dict[str, float] = {}
+
+    def timed(name: str, fn: Any) -> Any:
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = fn()
+        wall[name], cpu[name] = time.perf_counter() - t0, time.process_time() - c0
+        return out
+
+    pose = timed("track", lambda: track_field(field, sun, aim))
+    res = timed("plan", lambda: plan_ufacet(field, pose, aim_point=aim, origin=NSTTF))
+    scored = timed("score", lambda: score_passes(res.passes, pose, sun, aim_point=aim, origin=NSTTF))
+    home = home_waypoint(field, origin=NSTTF)
+    flights = timed("flights", lambda: split_flights(scored, home, origin=NSTTF, tower=field.tower))
+    return {"heliostats": n, "passes": len(res.passes), "passes_per_heliostat": len(res.passes) / n,
+            "assessed": len(res.assessed), "captures": res.n_captures, "flights": len(flights),
+            "wall_s": wall, "cpu_s": cpu, "total_wall_s": sum(wall.values()), "total_cpu_s": sum(cpu.values()),
+            "peak_rss_mb": _peak_rss_mb(), "rss_before_mb": rss0,
+            "load_avg": round((load0 + os.getloadavg()[0]) / 2.0, 2)}
+
+
+def run_benchmark(sizes: Sequence[int]) -> dict[str, Any]:
+    rows = []
+    for n in sizes:
+        env = dict(os.environ)
+        out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", str(n)], capture_output=True,
+                             text=True, env=env, check=False)
+        if out.returncode != 0:
+            rows.append({"heliostats": n, "error": out.stderr.strip().splitlines()[-1:] or ["failed"]})
+            continue
+        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        print(f"  {n:,}: {rows[-1]['total_wall_s']:.1f} s wall, {rows[-1]['total_cpu_s']:.1f} s CPU, "
+              f"{rows[-1]['peak_rss_mb']:.0f} MB", flush=True)
+    ok = [r for r in rows if "error" not in r]
+    fit = {}
+    if len(ok) >= 2:
+        x = np.log([r["heliostats"] for r in ok])
+        for key in ("total_wall_s", "total_cpu_s"):
+            fit[key] = float(np.polyfit(x, np.log([r[key] for r in ok]), 1)[0])
+        fit["passes"] = float(np.polyfit(x, np.log([r["passes"] for r in ok]), 1)[0])
+    big = next((r for r in ok if r["heliostats"] == 100_000), None)
+    targets = [harness.target("100,000 heliostats planned and scored, wall", big and big["total_wall_s"], 300.0, "s"),
+               harness.target("100,000 heliostats, peak memory", big and big["peak_rss_mb"] / 1024.0, 8.0, "GB")]
+    return {"benchmark": "bench_plan_scale", "sizes": list(sizes), "rows": rows, "loglog_slope": fit,
+            "targets": targets, "machine": harness.machine_info()}
+
+
+def markdown_report(report: dict[str, Any]) -> str:
+    lines = ["| heliostats | passes | passes per heliostat | captures | flights | track s | plan s | score s | "
+             "flights s | total wall s | total CPU s | peak RSS MB | load |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in report["rows"]:
+        if "error" in r:
+            lines.append(f"| {r['heliostats']:,} | failed: {r['error']} |")
+            continue
+        w = r["wall_s"]
+        lines.append(f"| {r['heliostats']:,} | {r['passes']:,} | {r['passes_per_heliostat']:.3f} | "
+                     f"{r['captures']:,} | {r['flights']:,} | " + " | ".join(f"{w[s]:.2f}" for s in STAGES)
+                     + f" | {r['total_wall_s']:.1f} | {r['total_cpu_s']:.1f} | {r['peak_rss_mb']:.0f} | "
+                     f"{r['load_avg']:.1f} |")
+    f = report["loglog_slope"]
+    if f:
+        lines += ["", f"Log-log slopes from {min(report['sizes']):,} to {max(report['sizes']):,}: total wall time "
+                  f"{f['total_wall_s']:.2f}, total CPU time {f['total_cpu_s']:.2f}, passes {f['passes']:.2f} "
+                  "(1 = linear)."]
+    lines += harness.target_table(report["targets"], spec=".1f")
+    return "\n".join(lines)
+
+
+def figure(report: dict[str, Any], path: Path) -> None:
+    """Log-log figure: time per stage and in total, and passes, against the field size."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ok = [r for r in report["rows"] if "error" not in r]
+    n = np.array([r["heliostats"] for r in ok], float)
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4.2), dpi=110)
+    for s, mk in zip(STAGES, "os^v", strict=True):
+        ax.loglog(n, [max(r["wall_s"][s], 1e-3) for r in ok], mk + "-", lw=1, ms=4, label=f"{s} (wall)")
+    ax.loglog(n, [r["total_wall_s"] for r in ok], "k-", lw=2, label="total wall")
+    ax.loglog(n, [r["total_cpu_s"] for r in ok], "k--", lw=1.5, label="total CPU")
+    ref = ok[0]["total_wall_s"] * n / n[0]
+    ax.loglog(n, ref, ":", color="0.5", label="slope 1 (linear)")
+    ax.axhline(300, color="r", lw=0.8)
+    ax.text(n[0], 320, "5 min", color="r", fontsize=8)
+    ax.set_xlabel("heliostats")
+    ax.set_ylabel("seconds")
+    ax.set_title("Plan + score + flights, radial fields")
+    ax.legend(fontsize=7, loc="upper left")
+    ax.grid(True, which="both", lw=0.3)
+    ax2.loglog(n, [r["passes"] for r in ok], "o-", label="passes")
+    ax2.loglog(n, [r["peak_rss_mb"] for r in ok], "s-", label="peak RSS, MB")
+    ax2.loglog(n, n * ok[0]["passes"] / n[0], ":", color="0.5", label="slope 1")
+    ax2.axhline(8192, color="r", lw=0.8)
+    ax2.text(n[0], 8800, "8 GB", color="r", fontsize=8)
+    ax2.set_xlabel("heliostats")
+    ax2.set_title("Passes and memory")
+    ax2.legend(fontsize=7, loc="upper left")
+    ax2.grid(True, which="both", lw=0.3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main(argv: Sequence[str] | None = None, *, quick: bool = False, json_path: Path | None = RESULTS_PATH,
+         echo: bool = True) -> dict[str, Any]:
+    """Run every size (``--sizes``; ``--quick``: 1k and 10k), print the table, write the JSON and the figure."""
+    def configure(parser: Any) -> None:
+        parser.add_argument("--sizes", type=int, nargs="*", metavar="N")
+        parser.add_argument("--figure", type=Path, default=FIGURE_PATH, metavar="PNG")
+
+    o = harness.options(argv, description="The planner at scale (radial fields).", counts=COUNTS, repeat=None,
+                        warmup=None, quick=quick, json_path=json_path, configure=configure)
+    sizes: Sequence[int] = (1_000, 10_000) if o.quick else SIZES
+    fig_path: Path | None = None if o.quick else FIGURE_PATH
+    if o.args is not None:
+        sizes = tuple(o.args.sizes) if o.args.sizes else sizes
+        fig_path = o.args.figure
+    report = run_benchmark(sizes)
+    if echo:
+        print(markdown_report(report))
+    if fig_path is not None and sum("error" not in r for r in report["rows"]) >= 2:
+        figure(report, fig_path)
+        report["figure"] = str(fig_path)
+    harness.write_json(report, o.json_path)
+    return report
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 3 and sys.argv[1] == "--child":
+        print(json.dumps(child(int(sys.argv[2]))))
+    else:
+        main(sys.argv[1:] or None)

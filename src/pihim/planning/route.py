@@ -1,0 +1,473 @@
+"""Order, orient and group scan passes into flights: less flown distance, fewer turns.
+
+:func:`pihim.planning.endurance.split_flights` flies the passes in the
+planner's order (by azimuth around the tower, boustrophedon) and closes a
+flight when the next pass would not fit. :func:`plan_flights` chooses the
+order, the direction of every pass and where each flight starts and ends in
+the sequence, to shorten the whole path (take-off to landing, every flight):
+
+1. **Order.** The passes start in the planner's sweep order. Each pass can
+   be flown either way (it is a straight run of stop-and-shoot captures);
+   for a given order, the directions minimising the transits are found
+   exactly by dynamic programming over the two directions of each pass
+   (:func:`orient_passes`). The order is then improved by 2-opt and Or-opt
+   moves on the open path (a move is kept when the transits, directions
+   re-optimised, get shorter), within a window of positions so that the
+   cost stays linear in the number of passes.
+2. **Flights.** The ordered passes are cut into flights by dynamic
+   programming (:func:`_split`): among all cuts whose flights fit the
+   battery (time estimated from the passes' own legs, the transits at the
+   transit speed, the climbs and the fixed overheads, with a small margin)
+   and the mission-item limit, the one with the shortest total distance
+   (climb, transit from home, passes and transits, return, descent), each
+   flight's pass directions re-optimised with home at both ends.
+3. **Each flight** is built exactly as
+   :func:`~pihim.planning.endurance.split_flights` builds it (climb,
+   transits around the tower, turn-limited leg speeds, return, landing) and
+   checked against the limits; a flight the estimate let through that does
+   not fit is split again greedily.
+
+Distances are 3-D path lengths; transits between passes run straight at the
+higher of the two pass altitudes, and around the tower where they would
+cross it below its top. :func:`turns` counts the changes of horizontal
+direction of more than 30 deg along a flight.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pihim.errors import PihimInputError
+from pihim.field.geodesy import as_origin
+from pihim.planning.endurance import (
+    DroneEndurance,
+    _build,
+    _detour,
+    _finish,
+    _keepout,
+    _leg_waypoints,
+    _time_and_distance,
+    split_flights,
+)
+from pihim.planning.model import Flight, ScanPass, Waypoint
+
+__all__ = ["RouteSettings", "orient_passes", "plan_flights", "reverse_pass", "turns"]
+
+
+@dataclass(frozen=True)
+class RouteSettings:
+    """Tuning of :func:`plan_flights`.
+
+    Attributes
+    ----------
+    window : int
+        2-opt and Or-opt moves reach this many positions along the order.
+    sweeps : int
+        Improvement sweeps at most (each pass over the order).
+    time_margin : float
+        Fraction of the battery kept free by the flight-split estimate (the
+        exact check follows).
+    """
+
+    window: int = 24
+    sweeps: int = 6
+    time_margin: float = 0.02
+
+    def __post_init__(self) -> None:
+        for label in ("window", "sweeps"):
+            v = getattr(self, label)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise PihimInputError(f"RouteSettings.{label} must be an integer >= 0, got {v!r}")
+        if not (isinstance(self.time_margin, (int, float)) and 0.0 <= self.time_margin < 0.5):
+            raise PihimInputError(f"RouteSettings.time_margin must be in [0, 0.5), got {self.time_margin!r}")
+
+
+# --------------------------------------------------------------------------- passes
+
+
+def reverse_pass(p: ScanPass) -> ScanPass:
+    """The same pass flown the other way: waypoints and pairs reversed, lead-in and run-past swapped.
+
+    Captures keep their position, heading and gimbal pitch (a stop-and-shoot
+    capture does not depend on the direction of travel); predictions are
+    dropped (their waypoint indices change: score the pass again).
+    """
+    swap = {"lead_in": "run_past", "run_past": "lead_in"}
+    wps = tuple(dataclasses.replace(w, kind=swap.get(w.kind, w.kind)) for w in reversed(p.waypoints))  # type: ignore[arg-type]
+    return dataclasses.replace(p, waypoints=wps, pairs=tuple(reversed(p.pairs)), predictions=(),
+                               azimuth_deg=(p.azimuth_deg + 180.0) % 360.0)
+
+
+def _ends(passes: Sequence[ScanPass]) -> NDArray[np.float64]:
+    """End points of every pass: row ``2k`` its first waypoint, ``2k + 1`` its last, shape (2n, 3)."""
+    out = np.zeros((2 * len(passes), 3))
+    for k, p in enumerate(passes):
+        a, b = p.waypoints[0], p.waypoints[-1]
+        out[2 * k] = (a.x_m, a.y_m, a.z_m)
+        out[2 * k + 1] = (b.x_m, b.y_m, b.z_m)
+    return out
+
+
+class _Costs:
+    """Transit distances between pass ends and from home (internal, cached), around the tower keep-out.
+
+    Pass ``k`` flown in direction ``o`` (0 as planned, 1 reversed) starts at
+    end point ``2k + o`` and finishes at ``2k + 1 - o``.
+    """
+
+    def __init__(self, passes: Sequence[ScanPass], home: Waypoint, keepout: Any) -> None:
+        self.home = np.array([home.x_m, home.y_m, home.z_m])
+        self.pts = np.vstack([_ends(passes), self.home, self.home])
+        self.home_pass = len(passes)  # a pseudo-pass at home (both ends), to pin the ends of a flight
+        self.keepout = keepout
+        self.inner = np.array([_path_length(p.waypoints) for p in passes] + [0.0])
+        self._cache: dict[tuple[int, int], float] = {}
+        self._home: dict[int, float] = {}
+
+    def _straight(self, a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
+        d = float(math.hypot(b[0] - a[0], b[1] - a[1]))
+        if self.keepout is not None and max(a[2], b[2]) < self.keepout[2]:
+            route = _detour(a, b, self.keepout)
+            if route:
+                pts = [a[:2], *route, b[:2]]
+                d = sum(float(np.linalg.norm(q - p)) for p, q in zip(pts[:-1], pts[1:], strict=True))
+        return d + abs(float(b[2] - a[2]))
+
+    def d(self, e1: int, e2: int) -> float:
+        """Transit from end point e1 to end point e2, metres."""
+        key = (e1, e2) if e1 <= e2 else (e2, e1)
+        v = self._cache.get(key)
+        if v is None:
+            v = self._cache[key] = self._straight(self.pts[e1], self.pts[e2])
+        return v
+
+    def h(self, e: int, z: float) -> float:
+        """Home -> end point e (or back): vertical to altitude z at home, then across, metres."""
+        v = self._home.get(e)
+        if v is None:
+            p = self.pts[e]
+            v = self._home[e] = self._straight(np.array([self.home[0], self.home[1], p[2]]), p)
+        return v + abs(z - self.home[2])
+
+
+def _path_length(wps: Sequence[Waypoint]) -> float:
+    xyz = np.array([(w.x_m, w.y_m, w.z_m) for w in wps])
+    return float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()) if len(xyz) > 1 else 0.0
+
+
+def orient_passes(order: Sequence[int], costs: _Costs, *, home_z: float | None = None
+                  ) -> tuple[float, list[int]]:
+    """Directions of passes flown in ``order`` minimising the transits (exact, dynamic programming).
+
+    With ``home_z`` the path starts and ends at home (climb and descent to
+    that altitude included). Returns the transit length (without the passes'
+    own lengths) and the direction of each pass (0 as planned, 1 reversed).
+    """
+    n = len(order)
+    if n == 0:
+        return 0.0, []
+    k0 = order[0]
+    cost = [costs.h(2 * k0 + o, home_z) if home_z is not None else 0.0 for o in (0, 1)]
+    back: list[tuple[int, int]] = [(0, 0)]
+    for i in range(1, n):
+        kp, k = order[i - 1], order[i]
+        new, arg = [0.0, 0.0], [0, 0]
+        for o in (0, 1):
+            c0 = cost[0] + costs.d(2 * kp + 1, 2 * k + o)
+            c1 = cost[1] + costs.d(2 * kp, 2 * k + o)
+            new[o], arg[o] = (c0, 0) if c0 <= c1 else (c1, 1)
+        cost = new
+        back.append((arg[0], arg[1]))
+    if home_z is not None:
+        kl = order[-1]
+        cost = [cost[0] + costs.h(2 * kl + 1, home_z), cost[1] + costs.h(2 * kl, home_z)]
+    o = 0 if cost[0] <= cost[1] else 1
+    total = cost[o]
+    dirs = [0] * n
+    for i in range(n - 1, -1, -1):
+        dirs[i] = o
+        o = back[i][o]
+    return total, dirs
+
+
+def _improve(order: list[int], costs: _Costs, st: RouteSettings, *, pinned: bool = False) -> list[int]:
+    """2-opt (segment reversal) and Or-opt (move a run of 1-3 passes, either way) within a window.
+
+    Moves are scored by the change of the transits at the segment ends with
+    the directions fixed (a reversed segment flips its passes); the
+    directions are re-optimised exactly after every sweep. With ``pinned``
+    the first and last entries stay in place (home).
+    """
+    n = len(order)
+    lo_i, hi_i = (1, n - 2) if pinned else (0, n - 1)  # positions that may move
+    if hi_i - lo_i < 1 or st.sweeps == 0 or st.window == 0:
+        return order
+    _, dirs = orient_passes(order, costs)
+    d = costs.d
+
+    def s_(i: int) -> int:  # start end point of position i
+        return 2 * order[i] + dirs[i]
+
+    def e_(i: int) -> int:  # finish end point of position i
+        return 2 * order[i] + 1 - dirs[i]
+
+    for _ in range(st.sweeps):
+        improved = False
+        # 2-opt: reverse positions i..j
+        for i in range(lo_i, hi_i):
+            for j in range(i + 1, min(hi_i + 1, i + st.window + 1)):
+                old = (d(e_(i - 1), s_(i)) if i > 0 else 0.0) + (d(e_(j), s_(j + 1)) if j < n - 1 else 0.0)
+                new = (d(e_(i - 1), e_(j)) if i > 0 else 0.0) + (d(s_(i), s_(j + 1)) if j < n - 1 else 0.0)
+                if new < old - 1e-6:
+                    order[i:j + 1] = order[i:j + 1][::-1]
+                    dirs[i:j + 1] = [1 - x for x in dirs[i:j + 1][::-1]]
+                    improved = True
+        # Or-opt: move positions i..i+L-1 between positions p-1 and p (p outside the run), maybe reversed
+        for length in (1, 2, 3):
+            i = lo_i
+            while i + length - 1 <= hi_i:
+                j = i + length - 1
+                a, b = s_(i), e_(j)
+                gain = ((d(e_(i - 1), a) if i > 0 else 0.0) + (d(b, s_(j + 1)) if j < n - 1 else 0.0)
+                        - (d(e_(i - 1), s_(j + 1)) if 0 < i and j < n - 1 else 0.0))
+                best = (1e-6, -1, False)
+                for p in range(max(lo_i, i - st.window), min(hi_i + 1, j + 1 + st.window) + 1):
+                    if i <= p <= j + 1:
+                        continue
+                    left = e_(p - 1) if p > 0 else None
+                    right = s_(p) if p < n else None
+                    base = d(left, right) if left is not None and right is not None else 0.0
+                    for rev in (False, True):
+                        x, y = (b, a) if rev else (a, b)
+                        add = (d(left, x) if left is not None else 0.0) + (d(y, right) if right is not None else 0.0)
+                        delta = gain - (add - base)
+                        if delta > best[0]:
+                            best = (delta, p, rev)
+                if best[1] >= 0:
+                    p, rev = best[1], best[2]
+                    seg_o, seg_d = order[i:j + 1], dirs[i:j + 1]
+                    if rev:
+                        seg_o, seg_d = seg_o[::-1], [1 - x for x in seg_d[::-1]]
+                    rest_o, rest_d = order[:i] + order[j + 1:], dirs[:i] + dirs[j + 1:]
+                    q = p if p < i else p - length
+                    order[:] = rest_o[:q] + seg_o + rest_o[q:]
+                    dirs[:] = rest_d[:q] + seg_d + rest_d[q:]
+                    improved = True
+                i += 1
+        _, dirs = orient_passes(order, costs)
+        if not improved:
+            break
+    return order
+
+
+# --------------------------------------------------------------------------- flights
+
+
+@dataclass(frozen=True)
+class _PassCost:
+    """Stand-alone figures of one pass (internal): flying time of its own legs and its mission items."""
+
+    time_s: float
+    items: int
+
+
+def _pass_costs(passes: Sequence[ScanPass], home: Waypoint, model: DroneEndurance,
+                count_items: Callable[[Sequence[Waypoint]], int] | None) -> tuple[list[_PassCost], int]:
+    """Time and items of every pass on its own, and the items of an empty flight (take-off, return, home)."""
+    out = []
+    base = 0
+    land = dataclasses.replace(home, kind="land")  # type: ignore[arg-type]
+    if count_items is not None:
+        lift = dataclasses.replace(home, z_m=1.0, kind="transit")  # type: ignore[arg-type]
+        base = count_items([home, lift, land])
+    for p in passes:
+        legs = _build([p], home, None, model, None)
+        own = [k for k, leg in enumerate(legs) if leg.waypoint is not None]
+        inner = legs[own[0]:own[-1] + 1]
+        t = model.turn_s + sum(leg.capture for leg in inner) * model.capture_s
+        if len(inner) > 1:
+            t, _ = _time_and_distance(inner, model)
+            t -= model.takeoff_landing_s  # counted once per flight
+        items = count_items([home, *p.waypoints, land]) - count_items([home, land]) if count_items is not None else 0
+        out.append(_PassCost(max(t, 0.0), items))
+    return out, base
+
+
+def _split(order: list[int], costs: _Costs, pc: list[_PassCost], base_items: int, model: DroneEndurance,
+           z_of: NDArray[np.float64], item_cap: float, st: RouteSettings) -> list[tuple[int, int]]:
+    """Cut ``order`` into flights (position ranges) with the least total distance that fit the estimates.
+
+    Dynamic programming over the cut points; for a flight starting at
+    position ``i`` the directions are optimised incrementally as it grows
+    (forward costs per direction of its last pass, home appended at the end).
+    The flight's altitude for the climb is the highest pass altitude so far.
+    """
+    n = len(order)
+    limit = model.usable_s * (1.0 - st.time_margin)
+    best = [math.inf] * (n + 1)
+    cut = [0] * (n + 1)
+    best[0] = 0.0
+    hz = float(costs.home[2])
+    for i in range(n):
+        if not math.isfinite(best[i]):
+            continue
+        t_passes = inner = 0.0
+        items = base_items
+        k0 = order[i]
+        fwd = [costs.h(2 * k0, hz), costs.h(2 * k0 + 1, hz)]  # horizontal part from home (climb added below)
+        z = -math.inf
+        for j in range(i, n):
+            k = order[j]
+            if j > i:
+                kp = order[j - 1]
+                fwd = [min(fwd[0] + costs.d(2 * kp + 1, 2 * k + o), fwd[1] + costs.d(2 * kp, 2 * k + o))
+                       for o in (0, 1)]
+            t_passes += pc[k].time_s
+            items += pc[k].items
+            inner += float(costs.inner[k])
+            z = max(z, float(z_of[k]))
+            transit = min(fwd[0] + costs.h(2 * k + 1, hz), fwd[1] + costs.h(2 * k, hz))
+            climb = max(z - hz, 0.0)
+            t = (t_passes + transit / model.transit_speed_m_s + climb / model.climb_rate_m_s
+                 + climb / model.descent_rate_m_s + model.takeoff_landing_s)
+            if (t > limit or items > item_cap) and j > i:
+                break
+            c = best[i] + transit + 2.0 * climb + inner
+            if c < best[j + 1]:
+                best[j + 1], cut[j + 1] = c, i
+    out = []
+    j = n
+    while j > 0:
+        i = cut[j]
+        out.append((i, j))
+        j = i
+    return out[::-1]
+
+
+def turns(waypoints: Sequence[Waypoint], min_angle_deg: float = 30.0, min_leg_m: float = 0.5) -> int:
+    """Changes of horizontal direction of more than ``min_angle_deg`` along a path (vertical legs ignored)."""
+    xy = np.array([(w.x_m, w.y_m) for w in waypoints]).reshape(-1, 2)
+    d = np.diff(xy, axis=0)
+    d = d[np.linalg.norm(d, axis=1) >= min_leg_m]
+    if len(d) < 2:
+        return 0
+    u = d / np.linalg.norm(d, axis=1, keepdims=True)
+    cos = np.sum(u[1:] * u[:-1], axis=1)
+    return int(np.sum(cos < math.cos(math.radians(min_angle_deg))))
+
+
+def plan_flights(
+    passes: Sequence[ScanPass],
+    home: Waypoint,
+    *,
+    origin: Any,
+    model: DroneEndurance = DroneEndurance(),
+    tower: Any = None,
+    max_mission_items: int | None = None,
+    count_items: Callable[[Sequence[Waypoint]], int] | None = None,
+    include_infeasible: bool = False,
+    settings: RouteSettings = RouteSettings(),
+) -> tuple[tuple[ScanPass, ...], tuple[Flight, ...]]:
+    """Passes ordered and oriented, and flights cut, for the shortest path (module docstring).
+
+    Parameters
+    ----------
+    passes : sequence of ScanPass
+        Planned passes (any order).
+    home : Waypoint
+        Take-off and landing point.
+    origin : GeodeticOrigin or Site
+        Field origin on WGS84 (transit waypoints).
+    model : DroneEndurance
+    tower : Tower, optional
+        Transits below its top go around it.
+    max_mission_items : int, optional
+        Most mission items per flight, counted by ``count_items``.
+    count_items : callable, optional
+        ``count_items(waypoints) -> int`` (required with ``max_mission_items``).
+    include_infeasible : bool
+        Also fly passes marked infeasible.
+    settings : RouteSettings
+
+    Returns
+    -------
+    passes : tuple of ScanPass
+        Flown passes in flight order, renumbered 0, 1, ... (``index``), some
+        reversed (:func:`reverse_pass`, predictions dropped), then the passes
+        not flown.
+    flights : tuple of Flight
+        As :func:`~pihim.planning.endurance.split_flights` returns them.
+
+    Raises
+    ------
+    PihimInputError
+        A single pass does not fit one battery or the item limit, or bad input.
+    """
+    if not isinstance(home, Waypoint):
+        raise PihimInputError(f"home must be a Waypoint (see home_waypoint), got {type(home).__name__}")
+    if max_mission_items is not None and count_items is None:
+        raise PihimInputError("max_mission_items needs count_items (see pihim.planning.export.count_mission_items)")
+    org = as_origin(origin)
+    fly = [p for p in passes if (p.feasible or include_infeasible) and p.waypoints]
+    rest = [p for p in passes if not ((p.feasible or include_infeasible) and p.waypoints)]
+    keepout = _keepout(tower, model.tower_clearance_m)
+    if not fly:
+        return tuple(_renumber(rest, 0)), ()
+    costs = _Costs(fly, home, keepout)
+    order = _improve(list(range(len(fly))), costs, settings)
+    pc, base = _pass_costs(fly, home, model, count_items if max_mission_items is not None else None)
+    for k, c in enumerate(pc):
+        if max_mission_items is not None and c.items + base > max_mission_items:
+            raise PihimInputError(f"pass {fly[k].index} alone needs {c.items + base} mission items, more than "
+                                  f"{max_mission_items}")
+    z_of = np.array([max(w.z_m for w in p.waypoints) for p in fly])
+    item_cap = math.inf if max_mission_items is None else float(max_mission_items)
+    time_margin = settings.time_margin
+    cap = item_cap
+    for _ in range(6):  # the estimates are a little optimistic: tighten them by the error seen and cut again
+        blocks = _split(order, costs, pc, base, model, z_of, cap,
+                        dataclasses.replace(settings, time_margin=time_margin))
+        groups = []
+        item_err, time_err, bad = 0, 0.0, False
+        for i, j in blocks:
+            hp = costs.home_pass  # each flight's order improved as a tour from home and back
+            block = _improve([hp, *order[i:j], hp], costs, settings, pinned=True)[1:-1]
+            _, dirs = orient_passes(block, costs, home_z=float(costs.home[2]))
+            group = [reverse_pass(fly[k]) if o else fly[k] for k, o in zip(block, dirs, strict=True)]
+            groups.append(group)
+            legs = _build(group, home, keepout, model, None)
+            t, _ = _time_and_distance(legs, model)
+            bad |= t > model.usable_s
+            time_err = max(time_err, t / model.usable_s - (1.0 - time_margin))
+            if max_mission_items is not None and count_items is not None:
+                n_items = count_items(_leg_waypoints(legs))
+                bad |= n_items > max_mission_items
+                item_err = max(item_err, n_items - (base + sum(pc[k].items for k in block)))
+        if not bad:
+            break
+        if max_mission_items is not None:
+            cap = min(cap - 1, float(max_mission_items - max(item_err, 0)))
+        time_margin = min(0.45, max(time_margin + 0.005, time_margin + time_err))
+    flown: list[ScanPass] = []
+    flights: list[Flight] = []
+    n0 = 0
+    for group in groups:  # exact: a group still too long is cut greedily
+        renum = _renumber(group, n0)
+        sub = split_flights(renum, home, origin=org, model=model, tower=tower, max_mission_items=max_mission_items,
+                            count_items=count_items, include_infeasible=True)
+        for f in sub:
+            flights.append(dataclasses.replace(f, index=len(flights)))
+        flown += renum
+        n0 += len(renum)
+    return tuple(flown) + tuple(_renumber(rest, n0)), tuple(flights)
+
+
+def _renumber(passes: Sequence[ScanPass], start: int) -> list[ScanPass]:
+    return [dataclasses.replace(p, index=start + k) for k, p in enumerate(passes)]
