@@ -16,7 +16,7 @@ def plan_json(tmp_path_factory) -> Path:
     from pihim.cli import main
 
     out = tmp_path_factory.mktemp("plan")
-    assert main(["plan", "--time", PLAN_TIME, "--out", str(out)]) == 0
+    assert main(["plan", "--time", PLAN_TIME, "--single-capture", "--out", str(out)]) == 0  # one capture per HUA
     return out / "plan.json"
 
 
