@@ -164,3 +164,18 @@ def test_throughput_of_a_plan(passes, home) -> None:
 def test_bad_models_are_refused(kwargs) -> None:
     with pytest.raises(PihimInputError):
         DroneEndurance(**kwargs)
+
+
+def test_passes_beyond_the_battery_can_be_left_out() -> None:
+    passes = plan_passes(FIELD, POSE, aim_point=UFACET_AIM_POINT, origin=ORIGIN)
+    home = home_waypoint(FIELD, origin=ORIGIN)
+    alone = sorted(split_flights([p], home, origin=ORIGIN)[0].duration_s for p in passes if p.feasible)
+    model = DroneEndurance(battery_min=float(np.median(alone)) / 60.0 / 0.8)  # half the passes fit on their own
+    with pytest.raises(PihimInputError, match="alone needs"):
+        split_flights(passes, home, origin=ORIGIN, model=model)
+    far: list[int] = []
+    flights = split_flights(passes, home, origin=ORIGIN, model=model, unflyable=far)
+    flown = [i for f in flights for i in f.pass_indices]
+    assert far and flown and not set(far) & set(flown)
+    assert sorted(far + flown) == sorted(p.index for p in passes if p.feasible)
+    assert all(f.duration_s <= model.usable_s for f in flights)

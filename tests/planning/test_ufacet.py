@@ -407,3 +407,36 @@ def test_bench_plan_runs(capsys: pytest.CaptureFixture[str]) -> None:
     assert "| Scan passes |" in out and "| # | HUAs (first ... last)" in out
     assert {"nsttf_track", "nsttf_plan", "nsttf_full", "radial_300_full"} <= set(report["results"])
     assert report["nsttf_case"]["passes"] >= 20
+
+
+def test_beam_concentration_matches_a_plain_sum_over_every_beam() -> None:
+    # the k-d tree search (narrowed for points low above the field) misses no beam: a plain loop over every
+    # heliostat's cone agrees at points right above mirrors, at the flights' heights and up to the focus
+    import math
+
+    from pihim.field.layout import radial_staggered_field
+
+    fld = radial_staggered_field(1500)
+    aim = np.asarray(fld.default_aim_point)
+    pose = track_field(fld, np.array([0.2, -0.5, 0.84]) / np.linalg.norm([0.2, -0.5, 0.84]), aim)
+    rng = np.random.default_rng(4)
+    c = pose.mirror_centres
+    r_max = float(np.hypot(c[:, 0], c[:, 1]).max())
+    pts = np.r_[c[:300] + [0.0, 0.0, 2.0], np.c_[rng.uniform(-r_max, r_max, (700, 2)), rng.uniform(5, 80, 700)],
+                aim + rng.normal(size=(100, 3)) * 3.0]
+    got = beam_concentration(pts, pose, aim)
+    spec = fld.spec
+    r0 = math.sqrt(4.0 * spec.mirror_half_width_m * spec.mirror_half_height_m / math.pi)
+    axis = aim - c
+    length = np.linalg.norm(axis, axis=1)
+    e = axis / length[:, None]
+    want = np.zeros(len(pts))
+    for k, p in enumerate(pts):
+        w = p - c
+        along = np.sum(w * e, axis=1)
+        f = along / length
+        radius = (1 - f) * r0 + f * length * 7e-3
+        inside = (f > 0) & (f <= 1) & (np.linalg.norm(w - along[:, None] * e, axis=1) <= radius)
+        want[k] = np.sum((r0 / radius[inside]) ** 2)
+    assert np.allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert (want > 0).sum() > 300 and want.max() > 50  # inside beams, near the mirrors and near the focus

@@ -74,7 +74,8 @@ def plan(
     the_plan = build_plan(fld, when, site_obj, aim_point=aim_point, max_altitude_m=max_altitude, heliostats=names,
                           scoring=scoring, shift=not no_shift, endurance=DroneEndurance(battery_min=battery_min),
                           fleet_hours=fleet_hours, max_mission_items=max_mission_items, mission_options=options,
-                          facet_captures=False if single_capture else FacetCaptureSettings(target_fraction=facet_target))
+                          facet_captures=(False if single_capture
+                                          else FacetCaptureSettings(target_fraction=facet_target)))
     files = export_all(the_plan, make_out_dir(out), field=fld, max_mission_items=max_mission_items, **options)
     summary = the_plan.summary
     summary["seconds"]["total_with_export"] = round(_time.perf_counter() - t0, 4)

@@ -447,6 +447,7 @@ def split_flights(
     max_waypoints: int | None = None,
     max_mission_items: int | None = None,
     count_items: Callable[[Sequence[Waypoint]], int] | None = None,
+    unflyable: list[int] | None = None,
 ) -> tuple[Flight, ...]:
     """Split scan passes, in order, into flights that each fit one battery.
 
@@ -477,6 +478,10 @@ def split_flights(
     count_items : callable, optional
         ``count_items(waypoints) -> int``: mission items of a flight's
         waypoints (take-off ... landing). Required with ``max_mission_items``.
+    unflyable : list, optional
+        Given, a pass that alone does not fit (too far from home for the
+        battery, say, in a field kilometres wide) is left out and its index
+        appended here instead of raising.
 
     Returns
     -------
@@ -537,7 +542,10 @@ def split_flights(
             current, best_legs = trial, legs
             continue
         if not current:
-            raise PihimInputError(f"pass {p.index} alone needs {why}")
+            if unflyable is None:
+                raise PihimInputError(f"pass {p.index} alone needs {why}")
+            unflyable.append(p.index)
+            continue
         assert best_legs is not None
         flights.append(_finish(len(flights), tuple(q.index for q in current), best_legs, current, org, model))
         current = [p]
@@ -545,9 +553,11 @@ def split_flights(
         t, _ = _time_and_distance(best_legs, model)
         why = over(best_legs, t)
         if why is not None:
-            raise PihimInputError(f"pass {p.index} alone needs {why}")
-    if current:
-        assert best_legs is not None
+            if unflyable is None:
+                raise PihimInputError(f"pass {p.index} alone needs {why}")
+            unflyable.append(p.index)
+            current, best_legs = [], None
+    if current and best_legs is not None:
         flights.append(_finish(len(flights), tuple(q.index for q in current), best_legs, current, org, model))
     return tuple(flights)
 

@@ -442,9 +442,6 @@ def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, came
     a_i = np.broadcast_to(a[:, None, :], q.shape)
     e_i = np.broadcast_to(e3[:, None, :], q.shape)
     f_lo, f_hi = _half_line(q, fn, a_i, e_i)  # camera in front of each facet
-    # reflected: the camera line mirrored in each facet plane, in the opposite nappe over each target rectangle
-    a_r = a_i - 2.0 * dot(a_i - q, fn)[..., None] * fn
-    e_r = e_i - 2.0 * dot(e_i, fn)[..., None] * fn
     outline = ctx["outline"]
 
     def intervals(idx: NDArray[np.int64], pts: NDArray[np.float64], a_: NDArray, e_: NDArray,
@@ -483,11 +480,9 @@ def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, came
     # blockers of the sight line camera -> sample
     blk = shortlist(ctx["blockers"](h), a_i, e_i, False)
     b_lo, b_hi = intervals(blk, q, a_i, e_i, False)
-    jt = np.arange(tgt.shape[1])
-    jb = np.arange(blk.shape[1])
     # on the grid: the nearest containing target, seen from behind, sight line clear, camera in front
     vis = np.full((B, G, q.shape[1]), -1, dtype=np.int64)
-    if len(jt):
+    if tgt.shape[1]:
         for gs in range(0, G, 8):  # chunks of grid positions bound the (B, g, I, J) temporaries
             sl = slice(gs, gs + 8)
             sgc = s[:, sl, None, None]
@@ -495,7 +490,7 @@ def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, came
             first = np.argmax(inside, axis=-1)[..., None]
             ok = np.take_along_axis(inside, first, axis=-1)[..., 0]
             ok &= np.take_along_axis(np.broadcast_to(back[:, None], inside.shape), first, axis=-1)[..., 0]
-            if len(jb):
+            if blk.shape[1]:
                 ok &= ~((b_lo[:, None] <= sgc) & (sgc <= b_hi[:, None])).any(axis=-1)
             ok &= (f_lo[:, None] < s[:, sl, None]) & (s[:, sl, None] < f_hi[:, None]) & valid[:, sl, None]
             shown = np.take_along_axis(np.broadcast_to(tgt[:, None, None, :], inside.shape), first, axis=-1)[..., 0]
@@ -633,7 +628,6 @@ def plan_facet_captures(
     c = pose.mirror_centres
     cxy = c[:, :2]
     tree = cKDTree(cxy)
-    bxy = pose.normals[:, :2]
     n_f = pose.facet_centres.shape[1]
 
     def front_of(hh: int, cand: NDArray[np.int64]) -> NDArray[np.bool_]:
@@ -658,7 +652,6 @@ def plan_facet_captures(
 
         aim = np.asarray(aim_point, float)
         ctx["flux"] = lambda pts: beam_concentration(pts, pose, aim)
-    del bxy
     # instances: every HUA captured in a pass, at its first capture
     inst: list[_Instance] = []
     seen_hua: set[int] = set()
@@ -810,7 +803,8 @@ def _own_line(hh: int, pose: Any, passes: list[ScanPass], lines: list[_Line | No
     cand = []
     for j, p0 in enumerate(cam):
         lines.append(_Line(np.array([p0[0], p0[1], z]), b, z))
-        passes.append(ScanPass(index=max(q.index for q in passes) + 1, azimuth_deg=float(azimuth_deg(b[0], b[1])), altitude_m=z,
+        passes.append(ScanPass(index=max(q.index for q in passes) + 1, azimuth_deg=float(azimuth_deg(b[0], b[1])),
+                               altitude_m=z,
                                gimbal_pitch_deg=-90.0, pairs=(), waypoints=(), feasible=True,
                                issues=(f"{pose.field.names[hh]}: imaged from a short pass of its own (no planned "
                                        "line shows its facets a heliostat's back)",)))

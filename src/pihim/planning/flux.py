@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -56,21 +57,31 @@ def beam_concentration(points: ArrayLike, pose: FieldPose, aim_point: ArrayLike,
     tree = cKDTree(dirs)
     out = np.zeros(len(pts))
     rmax = max(r0, float(length.max()) * theta)  # no beam is wider between its mirror and its focus
+    lmax = float(length.max())
+    z_lo, z_hi = float(c[:, 2].min()), float(c[:, 2].max())
     for s0 in range(0, len(pts), 20_000):
         p = pts[s0:s0 + 20_000]
         v = p - a
         dist = np.linalg.norm(v, axis=1)
+        # a beam holding a point at height z is at most f_max of its way to the aim point there (its axis is
+        # within the beam radius r of z), and r <= r0 + f_max L theta there: a narrower cone to search than rmax
+        # for points low above the field (the flights). Fixed point of the two bounds, from rmax down.
+        rad = np.full(len(p), rmax)
+        if a[2] > z_hi:
+            for _ in range(3):
+                f_max = np.clip((p[:, 2] + rad - z_lo) / (a[2] - z_hi), 0.0, 1.0)
+                rad = np.minimum(rmax, np.maximum(r0, r0 + f_max * lmax * theta))
         with np.errstate(divide="ignore", invalid="ignore"):
             q = v / dist[:, None]
-            half = np.where(dist > rmax, np.arcsin(np.minimum(1.0, rmax / dist)), np.pi)
+            half = np.where(dist > rad, np.arcsin(np.minimum(1.0, rad / dist)), np.pi)
         q = np.where(np.isfinite(q), q, 0.0)
         lists = tree.query_ball_point(q, np.minimum(2.0, 2.0 * np.sin(np.minimum(half, np.pi / 2)) + 1e-12),
                                       return_sorted=False)
-        lens = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(p))
+        lens = np.fromiter(map(len, lists), dtype=np.int64, count=len(p))
         if lens.sum() == 0:
             continue
         pi = np.repeat(np.arange(len(p)), lens)
-        hi = np.fromiter((k for x in lists for k in x), dtype=np.int64, count=int(lens.sum()))
+        hi = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lens.sum()))
         w = p[pi] - c[hi]
         e = axis[hi] / length[hi, None]
         along = dot(w, e)

@@ -200,7 +200,8 @@ def build_plan(
         "heliostats_per_flight_hour": rate.heliostats_per_flight_hour,
         "fleet": {"working_hours": fleet_hours, **_record(fleet)},
         "seconds": {"track_and_plan": round(t_plan - t0, 4), "scoring": round(t_score - t_plan, 4),
-                    "facet_captures": round(t_facets - t_score, 4), "route_and_predictions": round(t_route - t_facets, 4)},
+                    "facet_captures": round(t_facets - t_score, 4),
+                    "route_and_predictions": round(t_route - t_facets, 4)},
     }
     if facet_report:
         from pihim.planning.facets import coverage_summary, facet_coverage

@@ -50,7 +50,6 @@ from pihim.planning.endurance import (
     DroneEndurance,
     _build,
     _detour,
-    _finish,
     _keepout,
     _leg_waypoints,
     _time_and_distance,
@@ -100,7 +99,8 @@ def reverse_pass(p: ScanPass) -> ScanPass:
     dropped (their waypoint indices change: score the pass again).
     """
     swap = {"lead_in": "run_past", "run_past": "lead_in"}
-    wps = tuple(dataclasses.replace(w, kind=swap.get(w.kind, w.kind)) for w in reversed(p.waypoints))  # type: ignore[arg-type]
+    wps = tuple(dataclasses.replace(w, kind=swap.get(w.kind, w.kind))  # type: ignore[arg-type]
+                for w in reversed(p.waypoints))
     return dataclasses.replace(p, waypoints=wps, pairs=tuple(reversed(p.pairs)), predictions=(),
                                azimuth_deg=(p.azimuth_deg + 180.0) % 360.0)
 

@@ -12,7 +12,9 @@ Headings are degrees clockwise from North, pitch negative below the horizon
 
 from __future__ import annotations
 
+import itertools
 import math
+import weakref
 from typing import Any
 
 import numpy as np
@@ -30,6 +32,7 @@ __all__ = [
     "camera_frame",
     "first_mirror_hits",
     "gaze_angles",
+    "mirror_index",
     "in_fov",
     "optical_axis",
     "segments_hit_box",
@@ -163,11 +166,11 @@ class MirrorIndex:
         mid = 0.5 * (p0 + p1)
         r = 0.5 * np.linalg.norm(p1 - p0, axis=1) + self.radius
         lists = self.tree.query_ball_point(mid, r, return_sorted=False)
-        lens = np.fromiter((len(x) for x in lists), dtype=np.int64, count=n)
+        lens = np.fromiter(map(len, lists), dtype=np.int64, count=n)
         if lens.sum() == 0:
             return out
         ray = np.repeat(np.arange(n), lens)
-        rect = np.fromiter((k for x in lists for k in x), dtype=np.int64, count=int(lens.sum()))
+        rect = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lens.sum()))
         keep = np.all(rect[:, None] != exclude[ray], axis=1)
         ray, rect = ray[keep], rect[keep]
         d = p1[ray] - p0[ray]
@@ -216,4 +219,25 @@ def first_mirror_hits(pose: FieldPose, p0: ArrayLike, p1: ArrayLike, *,
     ex = np.full((len(a), 1), -1, dtype=np.int64) if exclude is None else np.asarray(exclude, dtype=np.int64)
     if ex.ndim == 1:
         ex = ex[:, None]
-    return MirrorIndex(pose).first_hits(a, b, ex)
+    return mirror_index(pose).first_hits(a, b, ex)
+
+
+_INDEXES: weakref.WeakKeyDictionary[Any, MirrorIndex] = weakref.WeakKeyDictionary()
+
+
+def mirror_index(pose: FieldPose) -> MirrorIndex:
+    """The :class:`MirrorIndex` of a pose, built once per pose and kept while the pose lives.
+
+    (Scoring tests sight lines pass by pass; building the k-d tree over the
+    whole field each time made it quadratic in the field size.)
+    """
+    try:
+        return _INDEXES[pose]
+    except (KeyError, TypeError):
+        pass
+    index = MirrorIndex(pose)
+    try:
+        _INDEXES[pose] = index
+    except TypeError:  # pragma: no cover - a pose that cannot be weakly referenced
+        pass
+    return index

@@ -139,6 +139,7 @@ from pihim.planning.sightlines import (
     first_mirror_hits,
     gaze_angles,
     in_fov,
+    mirror_index,
     optical_axis,
     segments_hit_box,
     tower_box,
@@ -942,7 +943,7 @@ def plan_ufacet(
                         st.gimbal_pitch_max_deg, tower_box(tower), tower_box(tower, st.tower_clearance_m),
                         spec.mirror_width_m if st.max_camera_offset_m is None else st.max_camera_offset_m)
     merge_lat = 1.5 * spec.mirror_width_m if st.merge_lateral_m is None else st.merge_lateral_m
-    ctx = _Context(pose, MirrorIndex(pose), limits, camera, cand, pair_geometry(pose, cand.hua, cand.target),
+    ctx = _Context(pose, mirror_index(pose), limits, camera, cand, pair_geometry(pose, cand.hua, cand.target),
                    chain_lines(chain, b, c[:, :2]), line_offsets(st.line_offset_max_m, st.line_offset_step_m),
                    _altitude_grid(min_alt, max_altitude_m, st.altitude_step_m))
 
