@@ -18,6 +18,7 @@ import sys
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 import typer
 
@@ -47,6 +48,18 @@ app.command("demo")(demo.demo)
 app.command("simulate")(simulate.simulate)
 app.command("edges")(edges.edges)
 app.command("canting")(canting.canting)
+
+
+_COMMAND: dict[int, Any] = {}
+
+
+def _command() -> Any:
+    """The click command behind ``app``, built once (building it costs more than many a command's run)."""
+    key = len(app.registered_commands)
+    if key not in _COMMAND:
+        _COMMAND.clear()
+        _COMMAND[key] = typer.main.get_command(app)
+    return _COMMAND[key]
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
@@ -98,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
 def _run(argv: list[str] | None) -> int:
     """The command, with every failure turned into one stderr line and an exit status."""
     try:
-        rv = app(args=argv, standalone_mode=False, prog_name="pihim")
+        rv = _command()(args=argv, standalone_mode=False, prog_name="pihim")
     except PihimInputError as exc:
         print(f"pihim: error: {exc}", file=sys.stderr)
         return 2
@@ -122,8 +135,10 @@ def _run(argv: list[str] | None) -> int:
         print("pihim: error: input nested too deeply", file=sys.stderr)
         return 2
     except OSError as exc:
+        from pihim._atomic import describe_os_error
+
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-        print(f"pihim: error: {where}{exc.strerror or _one_line(exc)}", file=sys.stderr)
+        print(f"pihim: error: {where}{describe_os_error(exc)}", file=sys.stderr)
         return 1
     except Exception as exc:  # noqa: BLE001 - the promise is one line, never a traceback
         if os.environ.get("PIHIM_TRACEBACK"):

@@ -43,10 +43,12 @@ from pihim.surfaces.mirror import mirror_model
 from pihim.visualize import polar_map_png
 
 SCHEMA_ID = "pihim.ground/1"
-#: Peak bytes per map direction of :func:`_maps` (measured about 0.8-1.1 kB; rounded up).
-MAP_BYTES_PER_DIRECTION = 1500
-#: Peak bytes per Monte Carlo microfacet (measured about 0.67 kB; rounded up).
-MC_BYTES_PER_FACET = 1000
+#: Peak bytes per map direction, maps and polar plots: the peak resident size of a whole ``pihim ground`` run
+#: grows by 877 B per direction (0.5 and 0.25 deg grids, ``benchmarks/memory_estimates_quality.py``);
+#: with a 15 % margin.
+MAP_BYTES_PER_DIRECTION = 1000
+#: Peak bytes per Monte Carlo microfacet: 634 B measured the same way (1e6 and 3e6 facets), with a 15 % margin.
+MC_BYTES_PER_FACET = 730
 AOP_REFERENCE = (
     "image AoP in [0, 180) deg: counter-clockwise from image right as displayed, for a zero-roll camera "
     "at the map direction looking at the observed point"

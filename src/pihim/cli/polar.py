@@ -48,13 +48,15 @@ from pihim.visualize import aop_to_rgb, dolp_to_rgb, polar_figure_png, s0_to_gra
 SCHEMA_ID = "pihim.polar-frame/1"
 #: Suffix of the per-frame record, written after the frame's images: its completion mark.
 RECORD_SUFFIX = ".polar.json"
-#: Peak bytes per output pixel while a frame is read, processed and written (PolarImage 21 B, statistics,
-#: TIFF writing; tracemalloc on a 1024x1024 frame: 56-62 B, and 184-190 B with PNG previews; rounded up).
-BYTES_PER_OUTPUT_PIXEL = 96
-BYTES_PER_OUTPUT_PIXEL_PNG = 256
-#: With --png, the captioned figure on top (decimated to <= 900 px a side, so about constant: tracemalloc peak
-#: 17-18 MB on 64x64 to 1024x1224 frames, plus the Agg canvas; rounded up).
-FIGURE_BYTES = 32_000_000
+#: Peak bytes per output pixel while a frame is processed and written, on top of the raw frame already read:
+#: the peak resident size (``VmHWM``, so numpy's, OpenCV's, libtiff's and matplotlib's C allocations
+#: included) grows by 54-59 B per output pixel (1-16 Mpx outputs, super-pixel and full), and by 179-186 B
+#: with the PNG previews and the captioned figure (``benchmarks/memory_estimates_quality.py``); with a
+#: 10-20 % margin.
+BYTES_PER_OUTPUT_PIXEL = 64
+BYTES_PER_OUTPUT_PIXEL_PNG = 200
+#: With --png, the captioned figure's about constant part (it is decimated to <= 900 px a side).
+FIGURE_BYTES = 8_000_000
 
 _IMAGE_KEYS = ("S0", "DoLP", "AoP")
 

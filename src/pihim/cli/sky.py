@@ -51,8 +51,10 @@ AOP_REFERENCE = (
     "AoP in [0, 180) deg from the local meridian (0 = E-field toward the zenith), counter-clockwise "
     "looking into the beam, i.e. as an observer on the ground looking up at that sky point sees it"
 )
-#: Peak bytes per sky direction: the maps (measured 130-180 B) and their polar plots, rounded up.
-SKY_BYTES_PER_DIRECTION = 1500
+#: Peak bytes per sky direction, maps and polar plots: the peak resident size of a whole ``pihim sky`` run
+#: grows by 246 B per direction (0.5 and 0.25 deg grids, ``benchmarks/memory_estimates_quality.py``);
+#: with a 15 % margin.
+SKY_BYTES_PER_DIRECTION = 280
 FILES = {"dolp_png": "sky-dolp.png", "aop_png": "sky-aop.png", "npz": "sky-maps.npz"}
 
 
