@@ -290,3 +290,31 @@ def test_demo_too_large_for_the_memory_is_refused_with_the_figure(tmp_path, caps
     line = _one_error_line(capsys.readouterr().err)
     assert "--size 2448x2048 needs about 1.7 GB of memory; 100 MB is available" in line  # 300 B/px + 200 MB
     assert not (tmp_path / "o").exists()
+
+
+# -- sky and ground: their files appear together or not at all -------------------------------------------------
+
+
+@pytest.mark.parametrize("command, args", [
+    ("sky", ["--resolution", "10"]),
+    ("ground", ["--resolution", "10", "--monte-carlo", "--facets", "200"]),
+])
+def test_a_full_disk_leaves_none_of_the_maps(tmp_path, capsys, monkeypatch, command, args):
+    import importlib
+
+    module = importlib.import_module(f"pihim.cli.{command}")
+    calls = []
+
+    def plot(values, path, **kwargs):  # the second plot finds the disk full
+        calls.append(Path(path))
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device")
+        Path(path).write_bytes(b"png")
+        return Path(path)
+
+    monkeypatch.setattr(module, "polar_map_png", plot)
+    out = tmp_path / "o"
+    assert main([command, "--sun-zenith", "30", "--sun-azimuth", "0", *args, "--out", str(out)]) == 1
+    assert _one_error_line(capsys.readouterr().err) == "pihim: error: no space left on the device"
+    assert list(out.iterdir()) == []  # not the first plot alone, and no temporary
+    assert len(calls) == 2 and all(".part" in p.name for p in calls)
