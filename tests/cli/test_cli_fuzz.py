@@ -15,9 +15,10 @@ Bounds, so that the whole module runs in well under a minute:
   stub that writes a few bytes (matplotlib's drawing is not under test);
 * ``simulate`` computes the renderer's light tables once (the same sky and
   ground in every example);
-* ``windows`` (a full-day sweep) and ``canting`` (pose and facet fits) are
-  stopped with exit 0 where their computation would start: for them the
-  fuzz covers option parsing and validation, not the computation itself.
+* ``windows`` (a full-day sweep), ``canting`` (pose and facet fits) and
+  ``demo`` (plan, renders, inspections) are stopped with exit 0 where their
+  computation would start: for them the fuzz covers option parsing and
+  validation, not the computation itself.
 """
 
 from __future__ import annotations
@@ -371,6 +372,25 @@ def test_canting_options(root, simulated, capsys, budget, data):
         "--field": st.sampled_from(["nsttf-like", "/nonexistent.csv"]),
     }
     argv = mutated(data, ["canting", str(simulated), "--out", str(fresh(root))], opts)
+    check(main(argv), capsys.readouterr().err)
+
+
+@FUZZ
+@given(data=st.data())
+def test_demo_options(root, capsys, budget, data):
+    import pihim.demo as demo_mod
+
+    def stop(*args, **kwargs):
+        raise typer.Exit(0)  # planning, rendering and inspecting would start here: validation passed
+
+    budget.setattr(demo_mod, "run_demo", stop)
+    budget.setattr(resources, "available_memory", lambda: 2_000_000_000)  # 2 GB: 1224x1024 fits, 4896x4096 not
+    opts = {
+        "--pairs": values(["1", "2", "50", "51"]),
+        "--seed": values(["0", "2025", "4294967295", "4294967296"]),
+        "--size": texts(["64x64", "1224x1024", "4896x4096", "100000x100000", "63x64"]),
+    }
+    argv = mutated(data, ["demo", "--size", "64x64", "--out", str(fresh(root))], opts)
     check(main(argv), capsys.readouterr().err)
 
 

@@ -379,7 +379,7 @@ def test_killed_batches_resume_without_loss(tmp_path, capsys):
     random.seed(10)
     rng = np.random.default_rng(10)
     frames = []
-    for k in range(6):
+    for k in range(5):
         p = tmp_path / "in" / f"f{k:02d}.tiff"
         p.parent.mkdir(exist_ok=True)
         tifffile.imwrite(p, rng.integers(0, 4000, (64, 64), dtype=np.uint16))
