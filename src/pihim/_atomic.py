@@ -100,6 +100,47 @@ def is_stale_temporary(entry: os.DirEntry[str] | Path, *, now: float | None = No
     return False
 
 
+def clean_stale_temporaries_tree(directory: str | os.PathLike[str], *, depth: int = 2) -> list[Path]:
+    """:func:`clean_stale_temporaries` in ``directory`` and its sub-folders down to ``depth`` levels.
+
+    For commands that write a tree of outputs (``pihim demo``: ``DIR``,
+    ``DIR/plan``, ``DIR/pairs/NN_*``). Symbolic links to folders are not followed.
+    """
+    removed = clean_stale_temporaries(directory)
+    if depth <= 0:
+        return removed
+    try:
+        subdirs = [e.path for e in os.scandir(directory) if e.is_dir(follow_symlinks=False)]
+    except OSError:
+        return removed
+    for sub in sorted(subdirs):
+        removed += clean_stale_temporaries_tree(sub, depth=depth - 1)
+    return removed
+
+
+#: numpy's ``tofile`` (behind tifffile) reports a full disk without an errno, as "N requested and M written".
+_SHORT_WRITE_RE = re.compile(r"(\d+) requested and (\d+) written")
+
+
+def describe_os_error(exc: OSError) -> str:
+    """One line for an operating-system error while writing, naming a full disk as such.
+
+    >>> describe_os_error(OSError("1253376 requested and 749500 written"))
+    'no space left on the device (1253376 bytes requested, 749500 written)'
+    >>> describe_os_error(OSError(13, "Permission denied"))
+    'Permission denied'
+    """
+    import errno
+
+    text = " ".join(str(exc).split())
+    m = _SHORT_WRITE_RE.search(text)
+    if m is not None:
+        return f"no space left on the device ({m[1]} bytes requested, {m[2]} written)"
+    if exc.errno == errno.ENOSPC:
+        return "no space left on the device"
+    return " ".join((exc.strerror or text or type(exc).__name__).split())
+
+
 def clean_stale_temporaries(directory: str | os.PathLike[str]) -> list[Path]:
     """Remove the temporaries that killed runs left in ``directory`` (not recursive).
 

@@ -206,8 +206,9 @@ def polar_map_png(
     label: str,
     title: str,
     markers: tuple[tuple[float, float, str, str], ...] = (),
+    atomic: bool = True,
 ) -> Path:
-    """Write a hemisphere map as a polar plot PNG (atomically).
+    """Write a hemisphere map as a polar plot PNG (atomically unless ``atomic`` is false).
 
     North up, azimuth clockwise (a map seen from above), radius = zenith
     angle 0-90 deg, as the paper's Fig. 2c-d and 5c-d.
@@ -221,6 +222,10 @@ def polar_map_png(
         Colour map and range (:data:`POLAR_MAP_STYLES`); AoP uses a cyclic map.
     markers : tuple of (azimuth_deg, zenith_deg, matplotlib marker, name)
         Points to mark (e.g. the sun as ``"*"``).
+    atomic : bool
+        Write through a temporary sibling and rename (default); false writes
+        ``path`` directly, for a caller that writes a group of files
+        (:func:`pihim._atomic.write_group`).
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -255,7 +260,7 @@ def polar_map_png(
     cb.set_label(label)
     if style == "aop":
         cb.set_ticks([0, 45, 90, 135, 180])
-    with atomic_path(path) as tmp:
+    with atomic_path(path) if atomic else contextlib.nullcontext(Path(path)) as tmp:
         fig.savefig(tmp, format="png")
     return Path(path)
 

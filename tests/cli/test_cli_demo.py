@@ -67,7 +67,8 @@ def test_demo_scores_against_the_truth_it_never_gave_the_estimator(demo_run):
 
 
 @pytest.mark.parametrize("args, words", [
-    (["--size", "10x10"], "width_px"),
+    (["--size", "10x10"], "--size"),
+    (["--size", "100000x100000"], "--size"),
     (["--size", "big"], "--size"),
     (["--pairs", "0"], "pairs"),
     (["--seed", "-1"], "seed"),

@@ -11,11 +11,14 @@ Bounds, so that the whole module runs in well under a minute:
 * the memory the commands may plan on is set to 20-200 MB
   (``pihim._resources.available_memory``), so that huge requests are
   refused through the real estimate instead of being computed;
-* hemisphere plots are replaced by a stub that writes a few bytes (the
-  plotting of finite maps is not under test);
-* ``windows`` (a full-day sweep) and ``canting`` (pose and facet fits) are
-  stopped with exit 0 where their computation would start: for them the
-  fuzz covers option parsing and validation, not the computation itself.
+* hemisphere plots and ``polar --png``'s captioned figure are replaced by a
+  stub that writes a few bytes (matplotlib's drawing is not under test);
+* ``simulate`` computes the renderer's light tables once (the same sky and
+  ground in every example);
+* ``windows`` (a full-day sweep), ``canting`` (pose and facet fits) and
+  ``demo`` (plan, renders, inspections) are stopped with exit 0 where their
+  computation would start: for them the fuzz covers option parsing and
+  validation, not the computation itself.
 """
 
 from __future__ import annotations
@@ -144,9 +147,22 @@ def _frame(path: Path, angle_deg: float | None = None, shape: tuple[int, int] = 
 LAYOUTS = ["imx250mzr", "90,45,135,0", "0,45,90,135", "inf,45,90,135", "0.7,45.9,90.2,135.1", "1e400,45,90,135"]
 
 
+@pytest.fixture
+def no_figure(monkeypatch):
+    """``--png``'s captioned figure writes a stub (matplotlib takes 1-5 s a figure; its drawing has its own tests)."""
+    import pihim.cli.polar as polar_cli
+
+    def stub(s0, dolp, aop_deg, path, **kwargs):
+        assert np.shape(s0) == np.shape(dolp) == np.shape(aop_deg)
+        Path(path).write_bytes(b"figure")
+        return Path(path)
+
+    monkeypatch.setattr(polar_cli, "polar_figure_png", stub)
+
+
 @FUZZ
 @given(data=st.data())
-def test_polar(root, capsys, budget, data):
+def test_polar(root, capsys, budget, no_figure, data):
     frame = _frame(root / "polar" / "f.tiff", 30.0)
     opts = {
         "--layout": st.sampled_from(LAYOUTS),
@@ -158,7 +174,8 @@ def test_polar(root, capsys, budget, data):
         "--height": values(["8"]),
         "--pixel-format": st.sampled_from(["PolarizeMono12p", "mono16", "Mono13", ""]),
     }
-    argv = mutated(data, ["polar", str(frame), "--out", str(fresh(root)), "--png"], opts)
+    png = ["--png"] if data.draw(st.booleans(), label="--png") else []
+    argv = mutated(data, ["polar", str(frame), "--out", str(fresh(root)), *png], opts)
     rc = main(argv)
     check(rc, capsys.readouterr().err)
 
@@ -277,10 +294,29 @@ def test_windows_options(root, capsys, budget, data):
 
 LOOK = ["--camera", "24,75,20", "--look-at", "24,95,5"]
 
+_TABLES: dict[bytes, tuple] = {}
 
-@FUZZ_SLOW
+
+@pytest.fixture
+def same_light(monkeypatch):
+    """The renderer's light tables computed once per sun direction (every example renders the same sky and
+    ground at the same time; they are what cost seconds, not what is fuzzed)."""
+    import pihim.render.frame as frame_mod
+
+    real = frame_mod.environment_tables
+
+    def memo(env, scene, sky_table_size=513):
+        key = np.asarray(env.sun_dir, float).tobytes() + bytes([scene.ground is None]) + str(sky_table_size).encode()
+        if key not in _TABLES:
+            _TABLES[key] = real(env, scene, sky_table_size)
+        return _TABLES[key]
+
+    monkeypatch.setattr(frame_mod, "environment_tables", memo)
+
+
+@FUZZ
 @given(data=st.data())
-def test_simulate(root, capsys, budget, data):
+def test_simulate(root, capsys, budget, same_light, data):
     opts = {
         "--size": texts(["16x16", "100000x100000", "15x16"]),
         "--supersample": values(["1", "16", "17"]),
@@ -336,6 +372,25 @@ def test_canting_options(root, simulated, capsys, budget, data):
         "--field": st.sampled_from(["nsttf-like", "/nonexistent.csv"]),
     }
     argv = mutated(data, ["canting", str(simulated), "--out", str(fresh(root))], opts)
+    check(main(argv), capsys.readouterr().err)
+
+
+@FUZZ
+@given(data=st.data())
+def test_demo_options(root, capsys, budget, data):
+    import pihim.demo as demo_mod
+
+    def stop(*args, **kwargs):
+        raise typer.Exit(0)  # planning, rendering and inspecting would start here: validation passed
+
+    budget.setattr(demo_mod, "run_demo", stop)
+    budget.setattr(resources, "available_memory", lambda: 2_000_000_000)  # 2 GB: 1224x1024 fits, 4896x4096 not
+    opts = {
+        "--pairs": values(["1", "2", "50", "51"]),
+        "--seed": values(["0", "2025", "4294967295", "4294967296"]),
+        "--size": texts(["64x64", "1224x1024", "4896x4096", "100000x100000", "63x64"]),
+    }
+    argv = mutated(data, ["demo", "--size", "64x64", "--out", str(fresh(root))], opts)
     check(main(argv), capsys.readouterr().err)
 
 

@@ -37,9 +37,9 @@ def test_ground_maps_written(tmp_path, capsys):
         # issue 10: validated before anything is computed or written (--seed -1 used to fail after four PNGs)
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--monte-carlo", "--seed", "-1"], "--seed"),
         # requests too large for the machine are refused with the estimate (used to be MemoryError)
-        (["--sun-zenith", "30", "--sun-azimuth", "0", "--resolution", "0.001"], "needs about 48.6 tb of memory"),
+        (["--sun-zenith", "30", "--sun-azimuth", "0", "--resolution", "0.001"], "needs about 32.4 tb of memory"),
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--monte-carlo", "--facets", "1000000000000"],
-         "needs about 1 pb of memory"),
+         "needs about 730 tb of memory"),
     ],
 )
 def test_bad_input_one_line_exit_2(tmp_path, capsys, args, needle):

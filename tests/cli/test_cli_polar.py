@@ -1,5 +1,6 @@
 """End-to-end tests of ``pihim polar`` and the atomic-output guarantee."""
 
+import contextlib
 import json
 import os
 from importlib import resources
@@ -205,8 +206,8 @@ def test_frame_too_large_for_memory_refused_with_the_figure(frame, tmp_path, cap
     assert main(["polar", str(frame), "--out", str(out), "--demosaic", "full"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
-    # 32 x 40 pixels x 96 B = 123 kB needed, 10 kB available
-    assert "frame_a.tiff: a 40x32 frame with --demosaic full needs about 123 kB of memory; 10 kB is available" in err[0]
+    # 32 x 40 pixels x 64 B = 81.9 kB needed, 10 kB available
+    assert "frame_a.tiff: a 40x32 frame with --demosaic full needs about 81.9 kB of memory; 10 kB is available" in err[0]
     assert not list(out.glob("frame_a.*"))
 
 
@@ -332,71 +333,118 @@ def test_stale_temporaries_are_removed(frame, tmp_path, capsys):
     assert stale.name not in names and alive.name in names and elsewhere.name in names
 
 
-def _kill_when(proc, out, n_done, timeout_s):
-    """Wait until ``n_done`` records exist in ``out`` (or the process ends), then a random short delay."""
-    import random
-    import time
+#: A process that imports the CLI once, then forks one child per request running ``main(argv)``: each child is
+#: a real ``pihim polar`` process (own pid, own signal handlers) without the seconds of interpreter start-up.
+_ZYGOTE = r"""
+import json, os, sys
+from pihim.cli import main
+for line in sys.stdin:
+    argv, err_path = json.loads(line)
+    pid = os.fork()
+    if pid == 0:
+        fd = os.open(err_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        os.dup2(fd, 2)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
+        rc = main(argv)
+        sys.stderr.flush()
+        os._exit(rc)
+    print(pid, flush=True)
+    print(os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1]), flush=True)
+"""
 
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end and proc.poll() is None:
-        if out.is_dir() and len(list(out.glob("*.polar.json"))) >= n_done:
-            break
-        time.sleep(0.005)
-    time.sleep(random.uniform(0.0, 0.12))
+
+def _alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
 
 
 def test_killed_batches_resume_without_loss(tmp_path, capsys):
-    """Kill a real ``pihim polar`` batch at random moments (SIGKILL twice, SIGTERM once), then rerun.
+    """Kill a real ``pihim polar`` batch at random moments (SIGKILL twice, then SIGTERM), then rerun.
 
-    After each kill: every frame with a record has all its outputs, readable and of the right shape.
-    After the rerun: no temporary file, every frame complete, and the frames complete before the rerun
-    were not redone (their files are untouched).
+    Each kill lands at a random moment of the frame after a random number of completed frames (delay drawn
+    over the measured duration of a frame). After each: every frame with a record has all its outputs,
+    readable and of the right shape; after SIGTERM (exit 143) no temporary is left. After the rerun: no
+    temporary, no output without its record, every frame complete and done exactly once (frames complete
+    before the rerun are skipped, their files untouched; the others are processed once).
     """
     import random
     import signal
     import subprocess
     import sys
+    import time
 
     random.seed(10)
     rng = np.random.default_rng(10)
     frames = []
-    for k in range(10):
+    for k in range(5):
         p = tmp_path / "in" / f"f{k:02d}.tiff"
         p.parent.mkdir(exist_ok=True)
-        tifffile.imwrite(p, rng.integers(0, 4000, (256, 256), dtype=np.uint16))
+        tifffile.imwrite(p, rng.integers(0, 4000, (64, 64), dtype=np.uint16))
         frames.append(p)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
-    opts = ["--demosaic", "full", "--png"]
+    out = tmp_path / "o"
+    opts = ["--demosaic", "full", "--png"]  # the captioned figure makes a frame last long enough to be hit
     outputs = ("S0.tiff", "DoLP.tiff", "AoP.tiff", "S0.png", "DoLP.png", "AoP.png", "polar.png")
-    for trial, sig in enumerate((signal.SIGKILL, signal.SIGKILL, signal.SIGTERM)):
-        out = tmp_path / f"o{trial}"
-        proc = subprocess.Popen([sys.executable, "-m", "pihim", "polar", *map(str, frames), "--out", str(out), *opts],
-                                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        _kill_when(proc, out, random.randint(1, 6), timeout_s=60.0)
-        proc.send_signal(sig)
-        _, err = proc.communicate(timeout=30)
-        done = {p.name.removesuffix(".polar.json") for p in out.glob("*.polar.json")}
-        if sig == signal.SIGTERM and proc.returncode == 143:
-            assert b"Traceback" not in err and b"pihim: terminated" in err
-            assert not list(out.glob(".*.part*")), "SIGTERM left a temporary file"
-        elif sig == signal.SIGTERM:  # the batch had finished (exit 0) or was exiting (default action)
-            assert proc.returncode in (0, -signal.SIGTERM) and len(done) == len(frames)
-        for stem in done:  # completion is marked last: a marked frame is whole
-            for suffix in outputs:
-                assert (out / f"{stem}.{suffix}").stat().st_size > 0
-            assert tifffile.imread(out / f"{stem}.DoLP.tiff").shape == (256, 256)
-        before = {p.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in out.iterdir()
-                  if p.name.split(".")[0] in done}
-        assert main(["polar", *map(str, frames), "--out", str(out), *opts, "--json"]) == 0
-        recs, _ = _records(capsys)
-        assert {r["file"] for r in recs if r.get("resumed")} == {str(f) for f in frames if f.stem in done}
-        assert not [p.name for p in out.iterdir() if ".part" in p.name]
-        assert len(list(out.glob("*.polar.json"))) == len(frames)
-        for f in frames:
-            for suffix in outputs:
-                assert (out / f"{f.stem}.{suffix}").stat().st_size > 0
-        after = {n: (p.stat().st_ino, p.stat().st_mtime_ns) for n in before if (p := out / n).exists()}
-        assert after == before  # frames completed before the rerun were not written again
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    zygote = subprocess.Popen([sys.executable, "-c", _ZYGOTE], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              env=env, text=True)
+
+    def records():
+        return {p.name.removesuffix(".polar.json") for p in out.glob("*.polar.json")} if out.is_dir() else set()
+
+    try:
+        for trial, sig in enumerate((signal.SIGKILL, signal.SIGKILL, signal.SIGTERM)):
+            err_path = tmp_path / f"err{trial}.txt"
+            zygote.stdin.write(json.dumps([["polar", *map(str, frames), "--out", str(out), *opts],
+                                           str(err_path)]) + "\n")
+            zygote.stdin.flush()
+            pid = int(zygote.stdout.readline())
+            # wait for 1-2 frames more than before, timing them, then kill within the next frame
+            start, want = time.monotonic(), len(records()) + random.randint(1, 2)
+            t_last, n_last, per_frame = start, len(records()), None
+            while _alive(pid) and time.monotonic() - start < 60:
+                n = len(records())
+                if n != n_last:
+                    per_frame, t_last, n_last = time.monotonic() - t_last, time.monotonic(), n
+                if n >= want:
+                    break
+                time.sleep(0.005)
+            time.sleep(random.uniform(0.0, per_frame or 0.1))
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, sig)
+            rc = int(zygote.stdout.readline())
+            err = err_path.read_text()
+            assert "Traceback" not in err
+            done = records()
+            if sig == signal.SIGTERM and rc == 143:
+                assert "pihim: terminated" in err
+                assert not [p.name for p in out.iterdir() if ".part" in p.name], "SIGTERM left a temporary file"
+            elif sig == signal.SIGTERM:  # the batch had just finished
+                assert rc == 0 and len(done) == len(frames)
+            else:
+                assert rc in (-signal.SIGKILL, 0)
+            for stem in done:  # completion is marked last: a frame with a record is whole
+                for suffix in outputs:
+                    assert (out / f"{stem}.{suffix}").stat().st_size > 0
+                assert tifffile.imread(out / f"{stem}.DoLP.tiff").shape == (64, 64)
+    finally:
+        zygote.stdin.close()
+        zygote.wait(timeout=30)
+    before = {p.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in out.iterdir()
+              if p.name.split(".")[0] in done}
+    assert main(["polar", *map(str, frames), "--out", str(out), *opts, "--json"]) == 0
+    recs, _ = _records(capsys)
+    assert sorted(r["file"] for r in recs) == sorted(map(str, frames))  # every frame exactly once
+    assert {r["file"] for r in recs if r.get("resumed")} == {str(f) for f in frames if f.stem in done}
+    assert not [p.name for p in out.iterdir() if ".part" in p.name]  # temporaries of the killed runs removed
+    assert records() == {f.stem for f in frames}
+    assert {p.name for p in out.iterdir()} == {f"{f.stem}.{s}" for f in frames for s in (*outputs, "polar.json")}
+    after = {n: (p.stat().st_ino, p.stat().st_mtime_ns) for n in before if (p := out / n).exists()}
+    assert after == before  # frames completed before the rerun were not written again
+
+
 def test_success_is_reported_and_png_adds_a_captioned_figure(frame, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["polar", str(frame), "--out", str(out), "--png"]) == 0

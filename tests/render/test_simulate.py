@@ -5,6 +5,8 @@ pixels) so that every render takes about a second.
 """
 
 import json
+import os
+from pathlib import Path
 from importlib import resources
 
 import jsonschema
@@ -381,9 +383,27 @@ def test_a_failed_write_leaves_nothing(pair, tmp_path, monkeypatch):
 
     monkeypatch.setattr(sim_mod.tifffile, "imwrite", failing)
     out = tmp_path / "o"
-    with pytest.raises(PihimInputError, match="cannot write"):
+    with pytest.raises(OSError, match="cannot write .*no space left on the device"):
         write_simulated_frame(pair, out / "FRAME.tiff")
     assert list(out.iterdir()) == []
+
+
+def test_temporaries_name_their_writer(pair, tmp_path, monkeypatch):
+    """The frame's temporaries carry the writer's pid, so that a later run removes those a killed run left."""
+    import pihim.render.simulate as sim_mod
+    from pihim._atomic import is_stale_temporary
+
+    seen = []
+    real = tifffile.imwrite
+
+    def spy(path, data, **kw):
+        seen.append(Path(path))
+        assert is_stale_temporary(Path(path)) is False  # this process is alive
+        return real(path, data, **kw)
+
+    monkeypatch.setattr(sim_mod.tifffile, "imwrite", spy)
+    write_simulated_frame(pair, tmp_path / "FRAME.tiff")
+    assert len(seen) == 5 and all(f"-{os.getpid()}-" in p.name for p in seen)
 
 
 def test_output_names():

@@ -113,11 +113,11 @@ def test_out_that_cannot_be_created_is_one_line(tmp_path, capsys):
 def test_resolution_too_fine_for_memory_refused_with_the_figure(tmp_path, capsys, monkeypatch):
     import pihim._resources as resources
 
-    monkeypatch.setattr(resources, "available_memory", lambda: 50_000_000)  # 50 MB left
+    monkeypatch.setattr(resources, "available_memory", lambda: 10_000_000)  # 10 MB left
     rc = main(["sky", "--sun-zenith", "30", "--sun-azimuth", "10", "--resolution", "0.5", "--out", str(tmp_path / "s")])
     err = capsys.readouterr().err.strip().splitlines()
-    # 180 x 720 directions x 1.5 kB = 194 MB
-    assert rc == 2 and len(err) == 1 and "needs about 194 MB of memory; 50 MB is available" in err[0]
+    # 180 x 720 directions x 280 B = 36.3 MB
+    assert rc == 2 and len(err) == 1 and "needs about 36.3 MB of memory; 10 MB is available" in err[0]
     assert not (tmp_path / "s").exists()
 
 

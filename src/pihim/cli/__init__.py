@@ -149,6 +149,22 @@ def command_group() -> typer.core.TyperGroup:
                                  rich_markup_mode=app.rich_markup_mode)
 
 
+_COMMAND: dict[int, Any] = {}
+
+
+def _command() -> Any:
+    """:func:`command_group`, built once per set of commands registered on :data:`app`.
+
+    (In-process callers, the tests above all, run many commands; the lazy
+    commands keep their real typer command once built.)
+    """
+    key = len(app.registered_commands) + 1000 * len(app.registered_groups)
+    if key not in _COMMAND:
+        _COMMAND.clear()
+        _COMMAND[key] = command_group()
+    return _COMMAND[key]
+
+
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
     """Show library warnings as one ``pihim: warning:`` line, without source context."""
     print(f"pihim: warning: {message}", file=sys.stderr)
@@ -198,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
 def _run(argv: list[str] | None) -> int:
     """The command, with every failure turned into one stderr line and an exit status."""
     try:
-        rv = command_group().main(args=argv, standalone_mode=False, prog_name="pihim")
+        rv = _command().main(args=argv, standalone_mode=False, prog_name="pihim")
     except PihimInputError as exc:
         print(f"pihim: error: {exc}", file=sys.stderr)
         return 2
@@ -222,8 +238,10 @@ def _run(argv: list[str] | None) -> int:
         print("pihim: error: input nested too deeply", file=sys.stderr)
         return 2
     except OSError as exc:
+        from pihim._atomic import describe_os_error
+
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-        print(f"pihim: error: {where}{exc.strerror or _one_line(exc)}", file=sys.stderr)
+        print(f"pihim: error: {where}{describe_os_error(exc)}", file=sys.stderr)
         return 1
     except Exception as exc:  # noqa: BLE001 - the promise is one line, never a traceback
         if os.environ.get("PIHIM_TRACEBACK"):

@@ -58,7 +58,8 @@ def progress(items: Sequence[T], description: str, *, min_items: int = 2) -> Ite
         MofNCompleteColumn(),
         TimeRemainingColumn(),
     )
-    with Progress(*columns, console=stderr_console, transient=False) as bar:
+    # only on a terminal: piped into a log, a bar is one more line that says nothing
+    with Progress(*columns, console=stderr_console, transient=False, disable=not stderr_console.is_terminal) as bar:
         task = bar.add_task(description, total=len(items))
         for item in items:
             yield item
@@ -74,19 +75,39 @@ def check_out_dir(out: "Path", *, option: str = "--out") -> None:
     """Refuse an output directory that cannot be one, before any work is done.
 
     ``out`` must be a directory or not exist yet; its nearest existing
-    ancestor must be a directory. Nothing is created (see
-    :func:`make_out_dir`).
+    ancestor must be a writable directory; and a missing ``out`` must be
+    creatable: it is created and removed again at once (so that, say,
+    ``--out /proc/x`` is refused before a long computation, not after it).
+    Nothing is left behind (see :func:`make_out_dir`).
     """
+    import contextlib
+    import os
     from pathlib import Path
 
     p = Path(out)
     if p.exists() and not p.is_dir():
         raise PihimInputError(f"{option} {out}: exists and is not a directory")
-    for parent in p.absolute().parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise PihimInputError(f"{option} {out}: {parent} is not a directory")
+    missing: list[Path] = []
+    existing = None
+    for q in (p.absolute(), *p.absolute().parents):
+        if q.exists():
+            if not q.is_dir():
+                raise PihimInputError(f"{option} {out}: {q} is not a directory")
+            existing = q
             break
+        missing.append(q)
+    if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
+        raise PihimInputError(f"{option} {out}: cannot write in {existing} (permission denied)")
+    if not missing:
+        return
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PihimInputError(f"{option} {out}: cannot create the directory ({exc.strerror or exc})") from None
+    finally:
+        for q in missing:  # deepest first; a folder another process filled meanwhile is not empty and stays
+            with contextlib.suppress(OSError):
+                q.rmdir()
 
 
 def make_out_dir(out: "Path", *, option: str = "--out") -> "Path":

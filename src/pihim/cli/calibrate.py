@@ -20,7 +20,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from pihim._atomic import clean_stale_temporaries, write_json_atomic
+from pihim._atomic import clean_stale_temporaries, describe_os_error, write_json_atomic
 from pihim.camera import calibration
 from pihim.camera.frames import read_frame
 from pihim.camera.layout import MosaicLayout
@@ -192,8 +192,8 @@ def calibrate_polarizer(
         if out.parent.is_dir():
             clean_stale_temporaries(out.parent)  # left by a killed run
         write_json_atomic(out, record)
-    except OSError as exc:
-        raise PihimInputError(f"{out}: cannot write the calibration ({exc.strerror or exc})") from None
+    except OSError as exc:  # an operating-system error: exit status 1 (docs/cli.md)
+        raise OSError(f"{out}: cannot write the calibration ({describe_os_error(exc)})") from None
     Console(file=sys.stderr).print(_summary(cal, out))  # a human summary: stderr, as every command's
     for w in cal.warnings:
         print(f"pihim: warning: {w}", file=sys.stderr)

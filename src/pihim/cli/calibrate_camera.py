@@ -24,10 +24,11 @@ from numpy.typing import NDArray
 from rich.console import Console
 from rich.table import Table
 
-from pihim._atomic import clean_stale_temporaries, write_json_atomic
+from pihim._atomic import clean_stale_temporaries, describe_os_error, write_json_atomic
 from pihim.camera.frames import read_frame
 from pihim.camera.layout import MosaicLayout
 from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
+from pihim.cli._common import check_out_dir
 from pihim.errors import PihimInputError
 from pihim.inspection.calibration import CameraCalibration, calibrate_camera as _calibrate
 
@@ -189,6 +190,7 @@ def calibrate_camera(
         raise PihimInputError(f"--max-view-rms must be a positive number of pixels, got {max_view_rms:g}")
     if out.is_dir():
         raise PihimInputError(f"--out {out}: is a directory; give the JSON file to write")
+    check_out_dir(out.parent, option="--out")
     mosaic_layout = None if grey else MosaicLayout.parse(layout)
 
     arrays: list[NDArray] = []
@@ -224,7 +226,7 @@ def calibrate_camera(
             clean_stale_temporaries(out.parent)  # left by a killed run
         write_json_atomic(out, record)
     except OSError as exc:
-        raise PihimInputError(f"{out}: cannot write the calibration ({exc.strerror or exc})") from None
+        raise OSError(f"{out}: cannot write the calibration ({describe_os_error(exc)})") from None
     console = Console(file=sys.stderr if json_output else sys.stdout, width=160)
     console.print(_summary(cal, out))
     for w in cal.warnings:

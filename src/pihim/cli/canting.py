@@ -15,6 +15,7 @@ from typing import Annotated
 
 import typer
 
+from pihim._atomic import describe_os_error
 from pihim.camera.frames import RAW_SUFFIXES, read_frame
 from pihim.camera.model import CameraModel
 from pihim.cli._common import check_out_dir, emit_json, load_field_option, report_error, stderr_console
@@ -102,7 +103,7 @@ def canting(
     try:
         _write_all(out, writers)
     except OSError as exc:
-        report_error(f"{out}: {exc}")
+        report_error(f"{out}: cannot write the outputs: {describe_os_error(exc)}")
         return 1
     if json_out:
         emit_json(record)

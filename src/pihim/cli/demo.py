@@ -15,8 +15,16 @@ from typing import Annotated
 
 import typer
 
-from pihim.cli._common import emit_json, progress, stderr_console
+from pihim._atomic import clean_stale_temporaries_tree
+from pihim._resources import require_memory
+from pihim.cli._common import emit_json, make_out_dir, progress, stderr_console
 from pihim.errors import PihimInputError
+
+#: Peak bytes of a demo per frame pixel and its about constant part (plan, scene, libraries): the peak resident
+#: size of ``pihim demo --pairs 1`` grows by 249-274 B per pixel plus 150-185 MB (612x512 to 2448x2048,
+#: ``benchmarks/memory_estimates_quality.py``); with a 15-25 % margin. Pairs are processed one after the other.
+DEMO_BYTES_PER_PIXEL = 300
+DEMO_FIXED_BYTES = 200_000_000
 
 
 def demo(
@@ -34,13 +42,12 @@ def demo(
         w, h = (int(v) for v in size.lower().split("x"))
     except ValueError:
         raise PihimInputError(f"--size must look like 2448x2048, got {size!r}") from None
+    if not all(64 <= v <= 2 * 2448 and v % 2 == 0 for v in (w, h)):
+        raise PihimInputError(f"--size must be WxH with even sides in 64..4896, got {size}")
+    require_memory(w * h * DEMO_BYTES_PER_PIXEL + DEMO_FIXED_BYTES, f"pihim demo --size {w}x{h}")
     settings = DemoSettings(time=DEMO_TIME, pairs=pairs, seed=seed, width_px=w, height_px=h)
-    if out.exists() and not out.is_dir():
-        raise PihimInputError(f"--out {out} exists and is not a directory")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise PihimInputError(f"--out {out}: cannot create the directory ({exc.strerror or exc})") from None
+    make_out_dir(out)  # one line if it cannot be made; removes the temporaries killed runs left in DIR
+    clean_stale_temporaries_tree(out, depth=2)  # ... and in DIR/plan, DIR/pairs/NN_HUA-TARGET
     stderr_console.print(f"[bold]pihim demo[/bold]: planning the NSTTF-like field at {DEMO_TIME} ...")
     doc = run_demo(out, settings, steps=lambda items, desc: progress(items, desc, min_items=1))
     if json_out:

@@ -21,7 +21,7 @@ import numpy as np
 import tifffile
 import typer
 
-from pihim._atomic import write_group
+from pihim._atomic import describe_os_error, write_group
 from pihim.camera.frames import RAW_SUFFIXES, read_frame
 from pihim.camera.layout import IMX250MZR, MosaicLayout
 from pihim.camera.model import CameraModel
@@ -199,7 +199,7 @@ def edges(
     try:
         _write_all(out, writers)
     except OSError as exc:
-        report_error(f"{out}: {exc}")
+        report_error(f"{out}: cannot write the outputs: {describe_os_error(exc)}")
         return 1
     if json_out:
         emit_json(record)

@@ -12,7 +12,7 @@ right, as displayed):
 * their axial AoP difference, in [0, 90] deg (usable when > 50 deg), and the
   paper's raw difference ``|AoP_mirror - AoP_ground|`` in [0, 180).
 
-Outputs (atomically) in ``--out``: ``ground-dolp.png``, ``ground-aop.png``,
+Outputs (as one group: all or none) in ``--out``: ``ground-dolp.png``, ``ground-aop.png``,
 ``mirror-aop.png``, ``aop-difference.png`` (polar plots, North up, azimuth
 clockwise, radius = camera zenith) and ``ground-maps.npz`` with the float
 arrays; with ``--monte-carlo`` also the paper's Monte Carlo ground map
@@ -22,13 +22,14 @@ arrays; with ``--monte-carlo`` also the paper's Monte Carlo ground map
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 import typer
 
-from pihim._atomic import atomic_path
+from pihim._atomic import write_group
 from pihim._resources import require_memory
 from pihim.cli._common import check_out_dir, emit_json, make_out_dir, stderr_console
 from pihim.cli.sky import resolve_sun
@@ -45,10 +46,12 @@ from pihim.surfaces.mirror import mirror_model
 from pihim.visualize import polar_map_png
 
 SCHEMA_ID = "pihim.ground/1"
-#: Peak bytes per map direction of :func:`_maps` (measured about 0.8-1.1 kB; rounded up).
-MAP_BYTES_PER_DIRECTION = 1500
-#: Peak bytes per Monte Carlo microfacet (measured about 0.67 kB; rounded up).
-MC_BYTES_PER_FACET = 1000
+#: Peak bytes per map direction, maps and polar plots: the peak resident size of a whole ``pihim ground`` run
+#: grows by 877 B per direction (0.5 and 0.25 deg grids, ``benchmarks/memory_estimates_quality.py``);
+#: with a 15 % margin.
+MAP_BYTES_PER_DIRECTION = 1000
+#: Peak bytes per Monte Carlo microfacet: 634 B measured the same way (1e6 and 3e6 facets), with a 15 % margin.
+MC_BYTES_PER_FACET = 730
 AOP_REFERENCE = (
     "image AoP in [0, 180) deg: counter-clockwise from image right as displayed, for a zero-roll camera "
     "at the map direction looking at the observed point"
@@ -161,30 +164,31 @@ def ground(
     make_out_dir(out)
     title = f"sun zen {float(sun.zenith_deg):.1f} az {float(sun.azimuth_deg):.1f}, sigma {sigma:g}"
     sun_marker = ((float(sun.azimuth_deg), float(sun.zenith_deg), "*", "sun"),)
-    files = {
-        "ground_dolp_png": polar_map_png(maps["ground_dolp"], out / "ground-dolp.png", style="dolp",
-                                         label="ground DoLP", title=f"ground DoLP -- {title}", markers=sun_marker),
-        "ground_aop_png": polar_map_png(maps["ground_aop_deg"], out / "ground-aop.png", style="aop",
-                                        label="ground AoP (deg, image frame)", title=f"ground AoP -- {title}",
-                                        markers=sun_marker),
-        "mirror_aop_png": polar_map_png(maps["mirror_aop_deg"], out / "mirror-aop.png", style="aop",
-                                        label="mirror-reflected ground AoP (deg, image frame)",
-                                        title=f"mirror AoP -- {title}", markers=sun_marker),
-        "aop_difference_png": polar_map_png(maps["aop_difference_deg"], out / "aop-difference.png",
-                                            style="aop_difference", label="axial AoP difference (deg)",
-                                            title=f"AoP difference -- {title}", markers=sun_marker),
+    plots = {  # key: (file, values, style, colour-bar label, title)
+        "ground_dolp_png": ("ground-dolp.png", maps["ground_dolp"], "dolp", "ground DoLP", "ground DoLP"),
+        "ground_aop_png": ("ground-aop.png", maps["ground_aop_deg"], "aop", "ground AoP (deg, image frame)",
+                           "ground AoP"),
+        "mirror_aop_png": ("mirror-aop.png", maps["mirror_aop_deg"], "aop",
+                           "mirror-reflected ground AoP (deg, image frame)", "mirror AoP"),
+        "aop_difference_png": ("aop-difference.png", maps["aop_difference_deg"], "aop_difference",
+                               "axial AoP difference (deg)", "AoP difference"),
     }
     arrays = dict(maps)
     if mc is not None:
         arrays.update(mc_counts=mc.counts, mc_stokes=mc.stokes, mc_stderr=mc.stderr,
                       mc_dolp=mc.dolp, mc_aop_local_meridian_deg=mc.aop_deg)
-        files["mc_dolp_png"] = polar_map_png(mc.dolp, out / "ground-dolp-mc.png", style="dolp",
-                                             label="ground DoLP (Monte Carlo)", title=f"MC ground DoLP -- {title}",
-                                             markers=sun_marker)
-    npz = out / "ground-maps.npz"
-    with atomic_path(npz) as tmp:
-        np.savez_compressed(tmp, **arrays, aop_reference=np.str_(AOP_REFERENCE))
-    files["npz"] = npz
+        plots["mc_dolp_png"] = ("ground-dolp-mc.png", mc.dolp, "dolp", "ground DoLP (Monte Carlo)", "MC ground DoLP")
+    files = {key: out / spec[0] for key, spec in plots.items()}
+    files["npz"] = out / "ground-maps.npz"
+
+    def plot(spec: tuple) -> Callable[[Path], Any]:
+        _, values, style, label, head = spec
+        return lambda p: polar_map_png(values, p, style=style, label=label, title=f"{head} -- {title}",
+                                       markers=sun_marker, atomic=False)
+
+    # all files or none (a full disk used to leave the first plots without the rest)
+    write_group({**{files[key]: plot(spec) for key, spec in plots.items()},
+                 files["npz"]: lambda p: np.savez_compressed(p, **arrays, aop_reference=np.str_(AOP_REFERENCE))})
     if json_out:
         emit_json({
             "schema": SCHEMA_ID,

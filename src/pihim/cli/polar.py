@@ -62,13 +62,15 @@ from pihim.visualize import aop_to_rgb, dolp_to_rgb, polar_figure_png, s0_range,
 SCHEMA_ID = "pihim.polar-frame/1"
 #: Suffix of the per-frame record, written after the frame's images: its completion mark.
 RECORD_SUFFIX = ".polar.json"
-#: Peak bytes per output pixel while a frame is read, processed and written (PolarImage 21 B, statistics,
-#: TIFF writing; tracemalloc on a 1024x1024 frame: 56-62 B, and 184-190 B with PNG previews; rounded up).
-BYTES_PER_OUTPUT_PIXEL = 96
-BYTES_PER_OUTPUT_PIXEL_PNG = 256
-#: With --png, the captioned figure on top (decimated to <= 900 px a side, so about constant: tracemalloc peak
-#: 17-18 MB on 64x64 to 1024x1224 frames, plus the Agg canvas; rounded up).
-FIGURE_BYTES = 32_000_000
+#: Peak bytes per output pixel of a batch run, raw frames read ahead and outputs waiting to be written included:
+#: the peak resident size (``VmHWM``: numpy's, OpenCV's, libtiff's and matplotlib's C allocations counted) of
+#: ``pihim polar`` over six 1500x1500 frames grew by 69 B per output pixel with full demosaicing, and by 124 B
+#: with the PNG previews and the captioned figure (``tests/cli/test_cli_reliability.py`` holds the first
+#: figure; ``benchmarks/memory_estimates_quality.py`` measures single frames); with a 15-20 % margin.
+BYTES_PER_OUTPUT_PIXEL = 80
+BYTES_PER_OUTPUT_PIXEL_PNG = 150
+#: With --png, the captioned figure's about constant part (it is decimated to <= 900 px a side).
+FIGURE_BYTES = 8_000_000
 
 _IMAGE_KEYS = ("S0", "DoLP", "AoP")
 #: Frames read ahead of the one being computed.

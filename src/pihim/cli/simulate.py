@@ -19,7 +19,7 @@ from pihim._atomic import clean_stale_temporaries
 from pihim._inputs import load_json_file
 from pihim._resources import require_memory
 from pihim.camera.model import CameraModel
-from pihim.cli._common import emit_json, load_field_option, parse_point, stderr_console
+from pihim.cli._common import check_out_dir, emit_json, load_field_option, parse_point, stderr_console
 from pihim.errors import PihimInputError
 from pihim.field import UFACET_AIM_POINT
 from pihim.sky.sun import parse_site
@@ -34,9 +34,17 @@ DEFAULT_SUPERSAMPLE = 3
 SUMMARY_SCHEMA_ID = "pihim.simulate-summary/1"
 _TRITON_WIDTH_PX = 2448
 _TRITON_FOCAL_MM = 35.0
-#: Bytes per pixel a render keeps (raw, Stokes and truth images, 7 label planes: about 70 B) with room
-#: for the renderer's working arrays; an upper estimate used to refuse sizes the machine cannot hold.
-RENDER_BYTES_PER_PIXEL = 256
+#: Peak bytes per pixel of a render and its writing (raw, Stokes and truth images, 7 label planes, the
+#: renderer's working arrays) and the about constant part (scene, shading tables): the peak resident size
+#: of a whole ``pihim simulate`` run of the NSTTF-like field grows by 120-131 B per pixel plus 75-87 MB
+#: (512x512 to 2048x2048, ``benchmarks/memory_estimates_quality.py``); with a 15 % margin.
+RENDER_BYTES_PER_PIXEL = 150
+RENDER_FIXED_BYTES = 100_000_000
+
+
+def render_bytes(width: int, height: int) -> int:
+    """Estimated peak bytes of rendering and writing a ``width`` x ``height`` frame (NSTTF-like field)."""
+    return width * height * RENDER_BYTES_PER_PIXEL + RENDER_FIXED_BYTES
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -47,7 +55,7 @@ def parse_size(text: str) -> tuple[int, int]:
         raise PihimInputError(f"--size must look like 2448x2048, got {text!r}") from None
     if w < 16 or h < 16 or w % 2 or h % 2:
         raise PihimInputError(f"--size must be even and at least 16x16, got {text}")
-    require_memory(w * h * RENDER_BYTES_PER_PIXEL, f"--size {w}x{h}")
+    require_memory(render_bytes(w, h), f"--size {w}x{h}")
     return w, h
 
 
@@ -157,6 +165,7 @@ def simulate(
     paths = simulated_frame_paths(out)
     if out.is_dir():
         raise PihimInputError(f"--out {out}: is a directory; give a FRAME.tiff file name")
+    check_out_dir(out.parent, option="--out")
     request = parse_pose_request(hua, target, waypoint, camera, look_at, roll)
     width, height = parse_size(size)
     cam = camera_for_size(width, height)
@@ -175,7 +184,7 @@ def simulate(
             facets_source=None if facets is None else str(facets),
         )
     if out.parent.is_dir():
-        clean_stale_temporaries(out.parent)
+        clean_stale_temporaries(out.parent)  # of killed runs (their process is gone), see pihim._atomic
     write_simulated_frame(sim, out)
     seconds = _time.perf_counter() - t0
     stats = sim.rendered.stats

@@ -1,6 +1,6 @@
 """``pihim sky``: all-sky DoLP and AoP maps for a sun position or a time and site.
 
-Writes, atomically, into ``--out``:
+Writes, as one group (all or none), into ``--out``:
 
 ``sky-dolp.png``, ``sky-aop.png``
     Polar plots like the paper's Fig. 2c-d: North up, azimuth clockwise
@@ -30,7 +30,7 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from pihim._atomic import atomic_path
+from pihim._atomic import write_group
 from pihim._resources import require_memory
 from pihim.cli._common import check_out_dir, emit_json, make_out_dir, stderr_console
 from pihim.errors import PihimInputError
@@ -51,8 +51,10 @@ AOP_REFERENCE = (
     "AoP in [0, 180) deg from the local meridian (0 = E-field toward the zenith), counter-clockwise "
     "looking into the beam, i.e. as an observer on the ground looking up at that sky point sees it"
 )
-#: Peak bytes per sky direction: the maps (measured 130-180 B) and their polar plots, rounded up.
-SKY_BYTES_PER_DIRECTION = 1500
+#: Peak bytes per sky direction, maps and polar plots: the peak resident size of a whole ``pihim sky`` run
+#: grows by 246 B per direction (0.5 and 0.25 deg grids, ``benchmarks/memory_estimates_quality.py``);
+#: with a 15 % margin.
+SKY_BYTES_PER_DIRECTION = 280
 FILES = {"dolp_png": "sky-dolp.png", "aop_png": "sky-aop.png", "npz": "sky-maps.npz"}
 
 
@@ -114,18 +116,21 @@ def _summary(result: SkyMap, resolution: float) -> dict[str, Any]:
 
 
 def plot_polar(
-    result: SkyMap, quantity: str, path: Path, *, title: str, markers: list[tuple[float, float, str, str]]
+    result: SkyMap, quantity: str, path: Path, *, title: str, markers: list[tuple[float, float, str, str]],
+    atomic: bool = True,
 ) -> Path:
     """Write a polar plot (North up, azimuth clockwise, radius = zenith) of ``dolp`` or ``aop_deg``."""
     if quantity == "dolp":
         style, label = "dolp", "DoLP"
     else:
         style, label = "aop", "AoP (deg, from local meridian, seen from the ground)"
-    return polar_map_png(getattr(result, quantity), path, style=style, label=label, title=title, markers=tuple(markers))
+    return polar_map_png(getattr(result, quantity), path, style=style, label=label, title=title,
+                         markers=tuple(markers), atomic=atomic)
 
 
 def write_outputs(result: SkyMap, out: Path, *, sun: SunPosition, title: str) -> dict[str, str]:
-    """Write the two PNGs and the npz atomically; returns the written paths."""
+    """Write the two PNGs and the npz as one group (all or none, :func:`pihim._atomic.write_group`); returns
+    the written paths."""
     make_out_dir(out)
     markers = [(float(sun.azimuth_deg), float(sun.zenith_deg), "*", "sun")]
     if result.model.kind == "berry":
@@ -133,12 +138,9 @@ def write_outputs(result: SkyMap, out: Path, *, sun: SunPosition, title: str) ->
         for name in ("babinet", "brewster", "arago", "fourth"):
             zen, az = angles_from_direction(getattr(pts, name))
             markers.append((float(az), float(zen), "X", name))
-    written = {
-        "dolp_png": plot_polar(result, "dolp", out / FILES["dolp_png"], title=f"DoLP -- {title}", markers=markers),
-        "aop_png": plot_polar(result, "aop_deg", out / FILES["aop_png"], title=f"AoP -- {title}", markers=markers),
-    }
-    npz = out / FILES["npz"]
-    with atomic_path(npz) as tmp:
+    written = {k: out / name for k, name in FILES.items()}
+
+    def npz(tmp: Path) -> None:
         np.savez_compressed(
             tmp,
             zenith_deg=result.zenith_deg,
@@ -150,7 +152,14 @@ def write_outputs(result: SkyMap, out: Path, *, sun: SunPosition, title: str) ->
             sun_azimuth_deg=np.float64(sun.azimuth_deg),
             aop_reference=np.str_(AOP_REFERENCE),
         )
-    written["npz"] = npz
+
+    write_group({
+        written["dolp_png"]: lambda p: plot_polar(result, "dolp", p, title=f"DoLP -- {title}", markers=markers,
+                                                  atomic=False),
+        written["aop_png"]: lambda p: plot_polar(result, "aop_deg", p, title=f"AoP -- {title}", markers=markers,
+                                                 atomic=False),
+        written["npz"]: npz,
+    })
     return {k: str(v) for k, v in written.items()}
 
 

@@ -106,7 +106,7 @@ def _progress_bar(description: str) -> Iterator[Callable[[int, int], None]]:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                  console=stderr_console, transient=True) as bar:
+                  console=stderr_console, transient=True, disable=not stderr_console.is_terminal) as bar:
         task = bar.add_task(description, total=None)
 
         def tick(done: int, total: int) -> None:

@@ -44,11 +44,9 @@ other draws.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
-import tempfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,7 +56,7 @@ import numpy as np
 import tifffile
 from numpy.typing import ArrayLike, NDArray
 
-from pihim._atomic import _UMASK
+from pihim._atomic import atomic_group, describe_os_error
 from pihim.camera.model import CameraModel
 from pihim.camera.pose import CameraPose
 from pihim.errors import PihimInputError
@@ -717,6 +715,12 @@ def write_simulated_frame(sim: SimulatedFrame, out_tiff_path: str | os.PathLike[
     -------
     dict of Path
         As :func:`simulated_frame_paths`.
+
+    Raises
+    ------
+    OSError
+        ``"cannot write FRAME.tiff: <reason>"`` when the files cannot be
+        written (a full disk named as such); nothing of the frame is left.
     """
     paths = simulated_frame_paths(out_tiff_path)
     r = sim.rendered
@@ -727,31 +731,18 @@ def write_simulated_frame(sim: SimulatedFrame, out_tiff_path: str | os.PathLike[
             "AoP": np.asarray(aop_deg(r.s1.astype(np.float64), r.s2), np.float32),
         }
     text = json.dumps(sim.document(), indent=2, allow_nan=False) + "\n"
-    parent = paths["raw"].parent
-    tmps: dict[str, Path] = {}
-    done: list[Path] = []
+    keys = list(paths)
     try:
-        parent.mkdir(parents=True, exist_ok=True)
-        for key, final in paths.items():
-            fd, name = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=f".part{final.suffix}", dir=parent)
-            os.close(fd)
-            tmps[key] = Path(name)
-            os.chmod(name, 0o666 & ~_UMASK)
-        tifffile.imwrite(tmps["raw"], np.ascontiguousarray(sim.raw, dtype=np.uint16))
-        tmps["json"].write_text(text, encoding="utf-8")
-        for key, img in images.items():
-            tifffile.imwrite(tmps[key], np.ascontiguousarray(img))
-        # labels are piecewise constant: deflate shrinks them ~100x (140 MB -> ~1 MB for a full frame)
-        tifffile.imwrite(tmps["labels"], np.ascontiguousarray(r.labels, dtype=np.int32),
-                         photometric="minisblack", planarconfig="contig", compression="zlib")
-        for key, final in paths.items():
-            os.replace(tmps[key], final)
-            done.append(final)
-    except BaseException as exc:
-        for p in list(tmps.values()) + done:
-            with contextlib.suppress(OSError):
-                p.unlink()
-        if isinstance(exc, OSError):
-            raise PihimInputError(f"cannot write {paths['raw']}: {exc.strerror or exc}") from None
-        raise
+        # pid-named temporaries (pihim._atomic): the next run removes those a killed run left
+        with atomic_group([paths[k] for k in keys]) as tmp_list:
+            tmps = dict(zip(keys, tmp_list, strict=True))
+            tifffile.imwrite(tmps["raw"], np.ascontiguousarray(sim.raw, dtype=np.uint16))
+            tmps["json"].write_text(text, encoding="utf-8")
+            for key, img in images.items():
+                tifffile.imwrite(tmps[key], np.ascontiguousarray(img))
+            # labels are piecewise constant: deflate shrinks them ~100x (140 MB -> ~1 MB for a full frame)
+            tifffile.imwrite(tmps["labels"], np.ascontiguousarray(r.labels, dtype=np.int32),
+                             photometric="minisblack", planarconfig="contig", compression="zlib")
+    except OSError as exc:  # an operating-system error, not bad input: the CLI exits 1
+        raise OSError(f"cannot write {paths['raw']}: {describe_os_error(exc)}") from None
     return paths
