@@ -154,7 +154,7 @@ def _reason_key(reason: str, target: str) -> str:
     return r.split(" (")[0].split(":")[0].strip()
 
 
-def estimate_frame(field: Any, sim: Any, refine_kw: dict[str, Any]) -> dict[str, Any]:
+def estimate_frame(field: Any, sim: Any, refine_kw: dict[str, Any], orientation_search: bool = True) -> dict[str, Any]:
     """Run the estimator on ``sim.raw`` and ``sim.log``; score against ``sim.truth``."""
     from pihim.camera import CameraModel, CameraPose, polar_image, project_points
     from pihim.errors import PihimInputError
@@ -199,15 +199,22 @@ def estimate_frame(field: Any, sim: Any, refine_kw: dict[str, Any]) -> dict[str,
     out["corner_error_rms_px"] = float(np.sqrt(np.nanmean(d**2)))
     out["pose_ok"] = bool(np.all(np.isfinite(d)) and out["corner_error_max_px"] <= POSE_FAIL_PX)
     with clock("canting"):
-        res = estimate_canting(camera, fit.pose, fp, hua, target, edges, dolp=pim.dolp, saturated=pim.saturated)
+        res = estimate_canting(camera, fit.pose, fp, hua, target, edges, dolp=pim.dolp, saturated=pim.saturated,
+                               **({} if orientation_search else {"orientation_span_mrad": None}))
     clock.total()
     true_h = next(e for e in truth["heliostats"] if e["name"] == hua)
     tf = {f["id"]: (f["az_mrad"], f["el_mrad"]) for f in true_h["facets"]}
     used = [f for f in res.facets if f.used]
     facets = []
+    out["orientation_search_mrad"] = None if res.search is None else [res.search.az_mrad, res.search.el_mrad]
+    out["tracking_error_deg"] = _tracking_error_deg(log, truth, hua)
     if used:
         ta = np.array([tf[f.id][0] for f in used])
         te = np.array([tf[f.id][1] for f in used])
+        # the best-fit orientation's truth: the mean true canting of the facets used (exact without a tracking
+        # error; with one, the HUA's turn relative to the target and the pose fitted on it comes on top)
+        out["orientation_err_mrad"] = [float(res.orientation_az_mrad - ta.mean()),
+                                       float(res.orientation_el_mrad - te.mean())]
         ta, te = ta - ta.mean(), te - te.mean()
         for f, a, e in zip(used, ta, te, strict=True):
             facets.append({"id": f.id, "true_az_mrad": float(a), "true_el_mrad": float(e),
@@ -222,6 +229,17 @@ def estimate_frame(field: Any, sim: Any, refine_kw: dict[str, Any]) -> dict[str,
     out["cpu_seconds"] = cpu
     out["load_avg_1min"] = os.getloadavg()[0]
     return out
+
+
+def _tracking_error_deg(log: dict[str, Any], truth: dict[str, Any], hua: str) -> list[float] | None:
+    """True minus logged drive angles of the HUA, (az, el) degrees (None if the truth does not say)."""
+    logged = next((h for h in log.get("heliostats", []) if h.get("name") == hua), None)
+    true = next((h for h in truth.get("heliostats", []) if h.get("name") == hua), None)
+    try:
+        d_az = (float(true["az_deg"]) - float(logged["az_deg"]) + 180.0) % 360.0 - 180.0
+        return [d_az, float(true["el_deg"]) - float(logged["el_deg"])]
+    except (TypeError, KeyError, ValueError):
+        return None
 
 
 class _Clock:
@@ -286,6 +304,8 @@ def summarise(frames: list[dict[str, Any]]) -> dict[str, Any]:
         "rms_el_mrad": _rms([x["err_el_mrad"] for x in facets]),
         "grid_rms_az_mrad": _rms([x["grid_err_az_mrad"] for x in facets]),
         "grid_rms_el_mrad": _rms([x["grid_err_el_mrad"] for x in facets]),
+        "orientation_rms_mrad": [_rms([f["orientation_err_mrad"][i] for f in good
+                                        if len(f["facets"]) >= 2 and f.get("orientation_err_mrad")]) for i in (0, 1)],
         "max_abs_err_mrad": max((max(abs(x["err_az_mrad"]), abs(x["err_el_mrad"])) for x in facets), default=None),
         "facets_used_per_good_frame": [f["used"] for f in good],
         "skip_reasons_good_frames": dict(reasons.most_common()),
@@ -305,7 +325,8 @@ def summarise(frames: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def run_benchmark(n_frames: int, priors: str = "both") -> dict[str, Any]:
+def run_benchmark(n_frames: int, priors: str = "both", tracking_sigma_mrad: float = 0.0,
+                  orientation_search: bool = True) -> dict[str, Any]:
     from pihim.camera import CameraModel
     from pihim.errors import PihimInputError
     from pihim.field import nsttf_like_field
@@ -338,7 +359,7 @@ def run_benchmark(n_frames: int, priors: str = "both") -> dict[str, Any]:
                 t1 = time.perf_counter()
                 sim = simulate_frame(field, t, camera=camera, pose_request=PairPose(hua, tgt),
                                      canting_sigma_mrad=CANTING_SIGMA_MRAD, gps_sigma_m=gps,
-                                     attitude_sigma_deg=att, seed=k)
+                                     attitude_sigma_deg=att, tracking_sigma_mrad=tracking_sigma_mrad, seed=k)
                 sims.append((sim, time.perf_counter() - t1))
         except PihimInputError as exc:
             refused.append(f"{t} {hua}/{tgt}: {exc}")
@@ -348,7 +369,7 @@ def run_benchmark(n_frames: int, priors: str = "both") -> dict[str, Any]:
         frames_info.append({"seed": k, "time": t, "hua": hua, "target": tgt,
                             "render_s": [s for _, s in sims]})
         for (key, _label, _gps, _att, kw), (sim, render_s) in zip(settings, sims, strict=True):
-            r = estimate_frame(field, sim, kw)
+            r = estimate_frame(field, sim, kw, orientation_search)
             r["seed"] = k
             r["render_s"] = render_s
             results[key].append(r)
@@ -372,6 +393,7 @@ def run_benchmark(n_frames: int, priors: str = "both") -> dict[str, Any]:
     return {
         "benchmark": "canting",
         "settings": {"frames": n_frames, "times": list(TIMES), "canting_sigma_mrad": CANTING_SIGMA_MRAD,
+                     "tracking_sigma_mrad": tracking_sigma_mrad, "orientation_search": orientation_search,
                      "pose_fail_px": POSE_FAIL_PX,
                      "priors": [{"key": k_, "label": lb, "gps_sigma_m": g, "attitude_sigma_deg": a, **kw}
                                 for k_, lb, g, a, kw in settings]},
@@ -401,7 +423,9 @@ def markdown_report(rep: dict[str, Any]) -> str:
     fr = rep["frames"]
     lines = [
         (f"{len(fr)} rendered UFACET frames (Triton 2448 x 2048, 35 mm; canting N(0, "
-         f"{rep['settings']['canting_sigma_mrad']:g} mrad); sensor 39 dB, 12 bit): "
+         f"{rep['settings']['canting_sigma_mrad']:g} mrad); drive-angle (tracking) error N(0, "
+         f"{rep['settings'].get('tracking_sigma_mrad', 0.0):g} mrad); orientation search "
+         f"{'on' if rep['settings'].get('orientation_search', True) else 'off'}; sensor 39 dB, 12 bit): "
          + ", ".join(f"{f['hua']}/{f['target']} {f['time'][11:16]} (seed {f['seed']})" for f in fr) + "."),
     ]
     if rep["refused_pairs"]:
@@ -425,6 +449,10 @@ def markdown_report(rep: dict[str, Any]) -> str:
             (f"| canting RMS elevation, mrad | {_f(s['rms_el_mrad'], '.3f')} | {_f(s['grid_rms_el_mrad'], '.3f')} "
              f"| target <= {TARGET_MRAD:g}; paper grid step {GRID_STEP_MRAD:.2f}; H-FACET {HFACET_MRAD:.2f} |"),
             f"| largest facet error (either axis), mrad | {_f(s['max_abs_err_mrad'], '.3f')} | | |",
+            (f"| best-fit orientation against the mean true canting of the facets used, RMS az / el, mrad "
+             f"| {_f((s.get('orientation_rms_mrad') or [None, None])[0], '.3f')} / "
+             f"{_f((s.get('orientation_rms_mrad') or [None, None])[1], '.3f')} | | exact truth without tracking "
+             "error |"),
             (f"| facets used per good frame (of 25) | {', '.join(map(str, s['facets_used_per_good_frame'])) or '-'} "
              f"| | |"),
             (f"| prior corner error, median px | {_f(s['prior_corner_error_px_median'], '.0f')} | | |"),
@@ -469,6 +497,10 @@ def _configure(parser: Any) -> None:
                         help=f"frames (default {DEFAULT_FRAMES}, --quick {QUICK_FRAMES}; 20 for the issue's study)")
     parser.add_argument("--priors", choices=("both", *(s[0] for s in SETTINGS)), default="both",
                         help="prior settings to run (default both)")
+    parser.add_argument("--tracking-sigma-mrad", type=float, default=0.0, metavar="S",
+                        help="every heliostat's drive-angle error (true minus logged), standard deviation, mrad")
+    parser.add_argument("--no-orientation-search", action="store_true",
+                        help="skip the +-5 deg orientation search (facet grids centred on the design)")
 
 
 def main(
@@ -501,7 +533,10 @@ def main(
     n = frames if frames is not None else (QUICK_FRAMES if o.quick else DEFAULT_FRAMES)
     if n < 1:
         raise ValueError("--frames must be >= 1")
-    report = run_benchmark(n, o.args.priors if o.args is not None else "both")
+    a = o.args
+    report = run_benchmark(n, a.priors if a is not None else "both",
+                           a.tracking_sigma_mrad if a is not None else 0.0,
+                           not a.no_orientation_search if a is not None else True)
     harness.write_json(report, o.json_path)  # before the report, so a long run is never lost
     if echo:
         print(markdown_report(report))

@@ -32,7 +32,7 @@ held to an independent statement by ``tests/inspection/test_kernels.py``.
   in one compiled loop;
 * :func:`edge_nms`: the non-maximum suppression and parabolic sub-pixel peak
   of :func:`pihim.inspection.features.edge_points`;
-* :func:`grid_scores`: the canting grid search's chamfer score of every node;
+* :func:`grid_counts`, :func:`grid_scores`: the canting grid searches' chamfer counts and score of every node;
 * :func:`line_normals`, :func:`nearest_within`: the unit normals of projected
   polylines, and the nearest model point of each edge point within a gate
   (a bucket grid; exact ties are left to the k-d tree the estimators used
@@ -56,10 +56,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 from numpy.typing import NDArray
 
-__all__ = ["CHAMFER", "POINT_TO_LINE", "REFLECTION", "bilinear", "camera_vector", "edge_nms", "grid_scores",
+__all__ = ["CHAMFER", "POINT_TO_LINE", "REFLECTION", "bilinear", "camera_vector", "edge_nms", "grid_counts", "grid_scores",
            "jacobian", "left_jacobian", "line_normals", "nearest_within", "problem", "project_pose", "project_rc",
            "project_rc_jacobian", "residuals", "rotation_from_vector", "sobel_bilinear", "solve"]
 
@@ -920,10 +920,10 @@ def edge_nms(gx: NDArray, gy: NDArray, mag: NDArray, threshold: float, mask: NDA
     return xy, normal, strength
 
 
-@njit(cache=True, error_model="numpy")
-def grid_scores(coef: NDArray, az: NDArray, el: NDArray, sub: NDArray, r0: int, c0: int, dt: NDArray, tol: float,
-                min_inside: int) -> NDArray:  # pragma: no cover - compiled
-    """Chamfer score of each node of the canting grid search.
+@njit(cache=True, error_model="numpy", parallel=True)
+def grid_counts(coef: NDArray, az: NDArray, el: NDArray, sub: NDArray, r0: int, c0: int, dt: NDArray,
+                tol: float) -> tuple[NDArray, NDArray]:  # pragma: no cover - compiled
+    """Counts of each node of a canting grid search: model points inside the mask, and of those near an edge.
 
     Model point ``n`` lies at pixel ``sum_k coef[k, n] b_k(a, e)`` with the quadratic basis
     ``b = (1, a, e, a^2, e^2, a e)`` at node ``(a, e) = (az[i], el[j])`` (node ``i * len(el) + j``).
@@ -937,7 +937,7 @@ def grid_scores(coef: NDArray, az: NDArray, el: NDArray, sub: NDArray, r0: int, 
     hh, ww = sub.shape
     n_in = np.zeros(az.shape[0] * n_el, np.int64)
     n_near = np.zeros(az.shape[0] * n_el, np.int64)
-    for i in range(az.shape[0]):
+    for i in prange(az.shape[0]):  # rows of the grid: disjoint nodes, one thread each
         a = az[i]
         for n in range(n_pts):
             # u(e) = ua + e (ub + uc e) along this row of the grid, v alike
@@ -961,10 +961,15 @@ def grid_scores(coef: NDArray, az: NDArray, el: NDArray, sub: NDArray, r0: int, 
                 n_in[g] += 1
                 if dt[r, c] <= tol:
                     n_near[g] += 1
-    out = np.empty(n_in.shape[0])
-    for g in range(out.shape[0]):
-        out[g] = n_near[g] / max(n_in[g], 1) if n_in[g] >= min_inside else -1.0
-    return out
+    return n_in, n_near
+
+
+def grid_scores(coef: NDArray, az: NDArray, el: NDArray, sub: NDArray, r0: int, c0: int, dt: NDArray, tol: float,
+                min_inside: int) -> NDArray:
+    """Chamfer score of each node of the canting grid search (:func:`grid_counts`): the share of the
+    points inside the mask that lie near an edge, or -1 with fewer than ``min_inside`` inside."""
+    n_in, n_near = grid_counts(coef, az, el, sub, r0, c0, dt, tol)
+    return np.where(n_in >= min_inside, n_near / np.maximum(n_in, 1), -1.0)
 
 
 @njit(cache=True, error_model="numpy")

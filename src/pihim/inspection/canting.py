@@ -9,7 +9,15 @@ facet's two canting angles move them: a tilt ``d`` turns the reflected rays by
 ``2 d``, which at the usual UFACET geometry moves the reflection by several
 pixels per mrad.
 
-For each facet:
+First the heliostat's **orientation** (the paper's relative-orientation
+step): :func:`search_orientation` turns every facet by the same angles over
+the paper's +-5 deg in 0.1 deg steps and keeps the node where the facets'
+reflections of the target best line up with the image's edges. A facet's own
+search below spans +-1 deg around it (around the design when the heliostat
+is within half a degree of it), so a heliostat whose logged drive angles are
+off by more than a facet's grid is still measured.
+
+Then for each facet:
 
 1. **Baseline** (the paper's method): a grid search over azimuth and
    elevation deviations with the paper's step, 0.1 deg = 1.745 mrad, scored by
@@ -56,6 +64,7 @@ References
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -69,13 +78,45 @@ from pihim.inspection.features import EdgePoints
 from pihim.inspection.pose import facet_outline_segments, line_normals, match_edge_points, sample_segments
 from pihim.render.scene import StructureSizes
 
-__all__ = ["CantingResult", "FacetCanting", "PAPER_GRID_STEP_MRAD", "estimate_canting", "target_outline_segments"]
+__all__ = ["CantingResult", "FacetCanting", "OrientationSearch", "PAPER_GRID_STEP_MRAD", "PAPER_ORIENTATION_SPAN_MRAD",
+           "drive_correction", "estimate_canting", "search_orientation", "target_outline_segments"]
 
 #: Scale of the two canting angles in the refinement, mrad.
 _X_SCALE = np.array([0.1, 0.1])
 
 #: The paper's grid step, 0.1 deg, in mrad.
 PAPER_GRID_STEP_MRAD = float(np.radians(0.1) * 1e3)
+
+
+#: Half-range of the paper's heliostat orientation search, +-5 deg, in mrad.
+PAPER_ORIENTATION_SPAN_MRAD = float(np.radians(5.0) * 1e3)
+
+
+@dataclass(frozen=True)
+class OrientationSearch:
+    """The paper's orientation grid search: one rotation common to every facet of the HUA.
+
+    Paper sec. 4.4: the relative orientation of the HUA and the target is
+    corrected over +-5 deg in 0.1 deg steps until the facets' reflections of
+    the target line up, before any facet is fitted; a facet's own search then
+    spans +-1 deg around it. ``az_mrad`` / ``el_mrad`` are canting-style
+    angles in the HUA's frame (:func:`pihim.field.kinematics.apply_canting_deviation`)
+    at the best grid node; ``score`` is the mean over the ``facets`` scored
+    of the share of each facet's reflected target outline points that fall
+    inside the facet within ``tol_px`` of an image edge there.
+    """
+
+    az_mrad: float
+    el_mrad: float
+    score: float
+    facets: int
+    span_mrad: float
+    step_mrad: float
+    tol_px: float
+    seconds: float
+
+    def to_dict(self) -> dict[str, object]:
+        return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in self.__dict__.items()}
 
 
 @dataclass(frozen=True)
@@ -115,6 +156,16 @@ class CantingResult:
     orientation_az_mrad, orientation_el_mrad : float
         Best-fit heliostat orientation: the mean raw facet rotation of the
         used facets (what the relative deviations are relative to).
+    search : OrientationSearch or None
+        The paper's +-5 deg orientation grid search the facet fits started
+        from (None when it was not run).
+    drive_correction_deg : (float, float) or None
+        The best-fit orientation as a correction of the HUA's logged drive
+        angles, (azimuth, elevation) in degrees: the drive angles that turn
+        the heliostat's normal as the best-fit orientation does. One frame
+        constrains only the orientation of the HUA relative to the target
+        (and to the camera pose fitted on the HUA), so the whole correction
+        is carried by the HUA and the target keeps its logged angles.
     """
 
     hua: str
@@ -124,6 +175,8 @@ class CantingResult:
     orientation_el_mrad: float | None
     frames: int = 1
     notes: tuple[str, ...] = field(default_factory=tuple)
+    search: OrientationSearch | None = None
+    drive_correction_deg: tuple[float, float] | None = None
 
     def to_dict(self) -> dict[str, object]:
         return {
@@ -133,6 +186,9 @@ class CantingResult:
             "reference": "facet deviations relative to the best-fit heliostat orientation (mean over used facets)",
             "orientation_mrad": None if self.orientation_az_mrad is None else
             {"az": float(self.orientation_az_mrad), "el": float(self.orientation_el_mrad)},
+            "orientation_search": None if self.search is None else self.search.to_dict(),
+            "drive_correction_deg": None if self.drive_correction_deg is None else
+            {"az": float(self.drive_correction_deg[0]), "el": float(self.drive_correction_deg[1])},
             "facets": [f.to_dict() for f in self.facets],
             "notes": list(self.notes),
         }
@@ -271,40 +327,45 @@ class _FacetModel:
         return _FacetModel(self.camera, self.pose, self.rot, self.centre, self.normal_local, self.pts[::k],
                            self.seg[::k])
 
-    def near(self, mask: _Mask, span_mrad: float, margin_px: float = 20.0) -> _FacetModel:
+    def near(self, mask: _Mask, span_mrad: float, margin_px: float = 20.0,
+             centre_mrad: tuple[float, float] = (0.0, 0.0)) -> _FacetModel:
         """The model restricted to the points that can reach the facet's mask within the search span.
 
-        A point is kept if its projection at zero deviation lies inside the mask's bounding box
-        grown by ``margin_px`` plus the largest move of any point between the centre and the
-        corners of the ``+-span_mrad`` grid (measured on every 16th point; the reflection moves
-        almost affinely with the angles).
+        A point is kept if its projection at the search centre ``centre_mrad``
+        lies inside the mask's bounding box grown by ``margin_px`` plus the
+        largest move of any point between the centre and the corners of the
+        ``+-span_mrad`` grid around it (measured on every 16th point; the
+        reflection moves almost affinely with the angles).
         """
         ext = mask.extent()
         if ext is None:
             return self
         r_lo, r_hi, c_lo, c_hi = ext
         s = float(span_mrad)
-        sub = self.project_many(np.array([0.0, -s, -s, s, s]), np.array([0.0, -s, s, -s, s]), self.pts[::16])
+        a0, e0 = (float(v) for v in centre_mrad)
+        sub = self.project_many(a0 + np.array([0.0, -s, -s, s, s]), e0 + np.array([0.0, -s, s, -s, s]),
+                                self.pts[::16])
         reach = float(np.nanmax(np.linalg.norm(sub[1:] - sub[:1], axis=2), initial=0.0))
         grow = margin_px + reach
-        uv = self.project_many(np.zeros(1), np.zeros(1))[0]
+        uv = self.project_many(np.array([a0]), np.array([e0]))[0]
         keep = (uv[:, 0] >= c_lo - grow) & (uv[:, 0] <= c_hi + grow) \
             & (uv[:, 1] >= r_lo - grow) & (uv[:, 1] <= r_hi + grow)
         return _FacetModel(self.camera, self.pose, self.rot, self.centre, self.normal_local, self.pts[keep],
                            self.seg[keep])
 
-    def quadratic_coefficients(self, s: float) -> NDArray:
-        """Coefficients (6, N, 2) of each point's pixel as a quadratic in the angles (mrad),
-        on the basis ``(1, az, el, az^2, el^2, az el)``.
+    def quadratic_coefficients(self, s: float, centre_mrad: tuple[float, float] = (0.0, 0.0)) -> NDArray:
+        """Coefficients (6, N, 2) of each point's pixel as a quadratic in the angles (mrad)
+        measured from ``centre_mrad``, on the basis ``(1, az, el, az^2, el^2, az el)``.
 
-        Exact projections on the 3 x 3 grid ``{-s, 0, s}^2`` fix the quadratic (least
-        squares on the nine nodes); its error is third order, far below a pixel over
-        +-17.5 mrad, and it costs nine projections instead of one per grid node (the
-        refinement uses :meth:`project`, exact).
+        Exact projections on the 3 x 3 grid ``centre + {-s, 0, s}^2`` fix the
+        quadratic (least squares on the nine nodes); its error is third order,
+        far below a pixel over +-17.5 mrad, and it costs nine projections
+        instead of one per grid node (the refinement uses :meth:`project`,
+        exact).
         """
         k = np.array([-s, 0.0, s])
         na, ne = (g.ravel() for g in np.meshgrid(k, k, indexing="ij"))
-        uv = self.project_many(na, ne)  # (9, N, 2)
+        uv = self.project_many(na + centre_mrad[0], ne + centre_mrad[1])  # (9, N, 2)
         return (np.linalg.pinv(_quadratic_basis(na, ne)) @ uv.reshape(9, -1)).reshape(6, -1, 2)
 
     def project_quadratic(self, az_mrad: NDArray, el_mrad: NDArray) -> NDArray:
@@ -332,8 +393,12 @@ class _FacetModel:
 
 
 def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_mrad: float,
-               step_mrad: float, gates_px: tuple[float, ...], grid_tol_px: float = 5.0) -> tuple:
+               step_mrad: float, gates_px: tuple[float, ...], grid_tol_px: float = 5.0,
+               centre_mrad: tuple[float, float] = (0.0, 0.0)) -> tuple:
     """(grid az, grid el, az, el, sigma az, sigma el, points, rms) for one facet (raw, not relative).
+
+    The grid spans ``+-span_mrad`` around ``centre_mrad`` (the heliostat's
+    orientation from :func:`search_orientation`, or the design).
 
     The refinement rounds solve the two angles by trust-region least squares with a soft-L1
     loss (scale 0.5 px) and the analytic Jacobian of the mirrored projection
@@ -348,12 +413,12 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     gaz, gel = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
     coarse_model = model.subsampled(6)  # every 6 cm of outline: the score is a share, not a sum
     # every grid node at once, from the quadratic through the nodes {-s, 0, s}^2
-    coef = coarse_model.quadratic_coefficients(max(float(np.max(np.abs(grid))), 1.0))
+    coef = coarse_model.quadratic_coefficients(max(float(np.max(np.abs(grid))), 1.0), centre_mrad)
     hh, ww = mask.sub.shape
     dt_crop = np.ascontiguousarray(dt[mask.r0:mask.r0 + hh, mask.c0:mask.c0 + ww])
     score = _kernels.grid_scores(coef, grid, grid, mask.sub, mask.r0, mask.c0, dt_crop, float(grid_tol_px), 10)
     k = int(np.argmax(score))  # first maximum: the same node the loop over az, then el, kept
-    g_best = (float(score[k]), float(gaz[k]), float(gel[k]))
+    g_best = (float(score[k]), float(gaz[k]) + centre_mrad[0], float(gel[k]) + centre_mrad[1])
     if g_best[0] < 0:
         raise PihimInputError("no reflected target outline falls inside this facet")
     grid_az, grid_el = g_best[1], g_best[2]
@@ -399,6 +464,106 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     return grid_az, grid_el, az, el, float(sig[0]), float(sig[1]), n, rms, support
 
 
+def search_orientation(
+    facets: list[tuple[_FacetModel, _Mask]],
+    dt: NDArray,
+    *,
+    span_mrad: float = PAPER_ORIENTATION_SPAN_MRAD,
+    step_mrad: float = PAPER_GRID_STEP_MRAD,
+    tol_px: float = 5.0,
+    block: int = 21,
+    subsample: int = 96,
+    highpass: int = 11,
+) -> OrientationSearch:
+    """The paper's heliostat orientation grid search (sec. 4.4): one rotation for every facet.
+
+    Every node of the grid ``{-span, ..., span}^2`` (step ``step_mrad``;
+    101 x 101 nodes for the paper's +-5 deg at 0.1 deg) tilts all facet
+    normals by the same angles; each facet scores the share of its reflected
+    target outline points that fall inside its eroded mask within ``tol_px``
+    of an image edge, and the node with the largest mean over the facets
+    wins. (The share of the points *inside the mask* would not do: a node
+    that leaves a few points in a facet, on some edge, would score high.)
+    Facet canting errors (a few mrad) move each facet's reflection a little
+    differently; the mean over the facets is what a common rotation fixes.
+
+    The projections are evaluated on blocks of ``block`` x ``block`` nodes
+    from a quadratic through nine exact projections per block (the same
+    scheme as a facet's own grid; a block spans 2 deg, where the quadratic is
+    well under a pixel), with every ``subsample``-th outline point.
+
+    Parameters
+    ----------
+    facets : list of (_FacetModel, _Mask)
+        The facets to score, each with its target model (design canting) and
+        eroded mask.
+    dt : ndarray
+        Distance transform of the edge-point image, pixels.
+
+    Returns
+    -------
+    OrientationSearch
+    """
+    import time
+
+    from scipy import ndimage
+
+    from pihim.inspection import _kernels
+
+    t0 = time.perf_counter()
+    m = int(math.floor(span_mrad / step_mrad + 1e-9))
+    grid = step_mrad * np.arange(-m, m + 1)  # symmetric, zero (the design) a node
+    n = len(grid)
+    total = np.zeros((n, n))
+    scored = 0
+    blocks = [grid[i:i + block] for i in range(0, n, block)]
+    for model, mask in facets:
+        sub_model = model.subsampled(subsample)
+        if len(sub_model.pts) < 10:
+            continue
+        hh, ww = mask.sub.shape
+        dt_crop = np.ascontiguousarray(dt[mask.r0:mask.r0 + hh, mask.c0:mask.c0 + ww])
+        near = np.zeros((n, n))
+        for i, ga in enumerate(blocks):
+            for j, ge in enumerate(blocks):
+                ca, ce = 0.5 * (ga[0] + ga[-1]), 0.5 * (ge[0] + ge[-1])
+                s = max(float(np.max(np.abs(ga - ca))), float(np.max(np.abs(ge - ce))), 1.0)
+                coef = sub_model.quadratic_coefficients(s, (ca, ce))
+                _, nn = _kernels.grid_counts(coef, ga - ca, ge - ce, mask.sub, mask.r0, mask.c0, dt_crop, float(tol_px))
+                near[i * block:i * block + len(ga), j * block:j * block + len(ge)] = nn.reshape(len(ga), -1)
+        if near.max() > 0:
+            scored += 1
+            # clutter (other heliostats' backs, the ground) raises a facet's counts over broad regions of
+            # the grid; the target's reflection is a sharp peak: keep what stands above the local mean,
+            # widened by a node either way (facets' own canting spreads their peaks by a few mrad)
+            peak = np.clip(near - ndimage.uniform_filter(near, size=highpass, mode="nearest"), 0.0, None)
+            total += ndimage.maximum_filter(peak, size=3, mode="nearest") / len(sub_model.pts)
+    if scored == 0:
+        raise PihimInputError("no facet shows the target's reflection anywhere within the orientation search")
+    k = int(np.argmax(total))
+    i, j = divmod(k, n)
+    return OrientationSearch(float(grid[i]), float(grid[j]), float(total[i, j] / scored), scored, float(span_mrad),
+                             float(step_mrad), float(tol_px), time.perf_counter() - t0)
+
+
+def drive_correction(field_pose: FieldPose, index: int, az_mrad: float, el_mrad: float) -> tuple[float, float]:
+    """A canting-style rotation of a whole heliostat as a change of its drive angles, degrees.
+
+    The heliostat's normal (its frame's ``z``) tilted by ``(az_mrad,
+    el_mrad)`` (:func:`pihim.field.kinematics.apply_canting_deviation`) has
+    drive angles that differ from the logged ones by the returned
+    ``(d_azimuth, d_elevation)`` (azimuth wrapped to [-180, 180)).
+    """
+    from pihim.field.kinematics import drive_angles
+
+    rot = field_pose.rotations[index]
+    n0 = rot[:, 2]
+    n1 = rot @ apply_canting_deviation(np.array([0.0, 0.0, 1.0]), az_mrad, el_mrad)
+    d0, d1 = drive_angles(n0), drive_angles(n1)
+    d_az = (float(d1.azimuth_deg) - float(d0.azimuth_deg) + 180.0) % 360.0 - 180.0
+    return d_az, float(d1.elevation_deg) - float(d0.elevation_deg)
+
+
 def estimate_canting(
     camera: CameraModel,
     pose: CameraPose,
@@ -418,6 +583,7 @@ def estimate_canting(
     min_support: float = 0.3,
     max_rms_px: float = 0.3,
     sizes: StructureSizes = StructureSizes(),
+    orientation_span_mrad: float | None = PAPER_ORIENTATION_SPAN_MRAD,
 ) -> CantingResult:
     """Estimate every facet's canting of ``hua`` from ``target``'s reflection in one frame.
 
@@ -457,6 +623,12 @@ def estimate_canting(
         must lie within 1.5 px of an image edge at the solution; facets whose
         reflection shows something else are skipped, as they would bias the
         best-fit orientation every deviation is relative to.
+    orientation_span_mrad : float or None
+        Half-range of the orientation search (:func:`search_orientation`,
+        step ``step_mrad``) run over the facets that pass the view, saturation
+        and DoLP tests before any facet is fitted; each facet's grid then
+        spans ``span_mrad`` around its result. Default the paper's +-5 deg;
+        None skips it (the facets' grids centred on the design).
 
     Returns
     -------
@@ -482,6 +654,7 @@ def estimate_canting(
     dolp_img = None if dolp is None else np.asarray(dolp, float)
     sat = None if saturated is None else np.asarray(saturated, bool)
     raw: list[tuple] = []
+    candidates: list[tuple[int, _Mask]] = []
     for f in range(spec.n_facets):
         fid = f + 1
         mask = masks[f]
@@ -498,27 +671,49 @@ def estimate_canting(
             if not p90 > min_dolp:
                 raw.append((fid, f"DoLP <= {min_dolp:g} on the reflection (paper sec. 4.1)"))
                 continue
-        model = _FacetModel(camera, pose, field_pose.rotations[h], field_pose.facet_centres[h, f],
-                            field_pose.facet_normals_local[h, f], pts, seg).near(mask, span_mrad)
+        raw.append((fid, None))
+        candidates.append((f, mask))
+
+    def facet_model(f: int) -> _FacetModel:
+        return _FacetModel(camera, pose, field_pose.rotations[h], field_pose.facet_centres[h, f],
+                           field_pose.facet_normals_local[h, f], pts, seg)
+
+    search = None
+    centre = (0.0, 0.0)
+    notes = []
+    if orientation_span_mrad is not None and candidates:
         try:
-            fit = _fit_facet(model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px)
+            search = search_orientation([(facet_model(f).near(m, orientation_span_mrad), m) for f, m in candidates],
+                                        dt, span_mrad=float(orientation_span_mrad))
+            # a facet's own grid (+-span_mrad) is centred on the design unless the heliostat is more than
+            # half a span away from it (then on the search's node), per axis: the facet fits were tuned with
+            # grids centred on the design, and a search node within half a span leaves every facet's
+            # canting (a few mrad) well inside its grid either way
+            centre = tuple(v if abs(v) > 0.5 * span_mrad else 0.0 for v in (search.az_mrad, search.el_mrad))
         except PihimInputError as exc:
-            raw.append((fid, f"no usable reflection of {target}: {exc}"))
+            notes.append(f"orientation search: {exc}; the facets were searched around the design")
+    fits: dict[int, object] = {}
+    for f, mask in candidates:
+        model = facet_model(f).near(mask, span_mrad, centre_mrad=centre)
+        try:
+            fit = _fit_facet(model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px, centre_mrad=centre)
+        except PihimInputError as exc:
+            fits[f + 1] = f"no usable reflection of {target}: {exc}"
             continue
         if fit[6] < min_points:
-            raw.append((fid, f"too few matched edge points ({fit[6]} < {min_points})"))
+            fits[f + 1] = f"too few matched edge points ({fit[6]} < {min_points})"
             continue
         if not fit[7] <= max_rms_px:
-            raw.append((fid, f"the fit is not sub-pixel consistent (residual {fit[7]:.2f} px > {max_rms_px:g} px:"
-                             " locked to other features)"))
+            fits[f + 1] = (f"the fit is not sub-pixel consistent (residual {fit[7]:.2f} px > {max_rms_px:g} px:"
+                           " locked to other features)")
             continue
         if fit[8] < min_support:
-            raw.append((fid, f"the reflection does not look like {target}'s outline (support {fit[8]:.2f} < "
-                             f"{min_support:g}: hidden, or another heliostat)"))
+            fits[f + 1] = (f"the reflection does not look like {target}'s outline (support {fit[8]:.2f} < "
+                           f"{min_support:g}: hidden, or another heliostat)")
             continue
-        raw.append((fid, fit))
+        fits[f + 1] = fit
+    raw = [(fid, fits[fid] if r is None else r) for fid, r in raw]
     used = [r for r in raw if not isinstance(r[1], str)]
-    notes = []
     if used:
         o_az = float(np.mean([r[1][2] for r in used]))
         o_el = float(np.mean([r[1][3] for r in used]))
@@ -535,4 +730,5 @@ def estimate_canting(
             ga, ge, a, e, sa, se, n, rms, support = r
             out.append(FacetCanting(fid, True, None, a - o_az, e - o_el, sa, se, ga - g_az, ge - g_el, n, rms,
                                     support))
-    return CantingResult(hua, target, tuple(out), o_az, o_el, 1, tuple(notes))
+    corr = None if o_az is None else drive_correction(field_pose, h, o_az, o_el)
+    return CantingResult(hua, target, tuple(out), o_az, o_el, 1, tuple(notes), search, corr)

@@ -71,6 +71,9 @@ def canting_record(result: CantingResult, inspections: list[tuple[Path, Path, In
             "facets_used": sum(1 for f in c.facets if f.used),
             "orientation_mrad": None if c.orientation_az_mrad is None else
             {"az": float(c.orientation_az_mrad), "el": float(c.orientation_el_mrad)},
+            "drive_correction_deg": None if c.drive_correction_deg is None else
+            {"az": float(c.drive_correction_deg[0]), "el": float(c.drive_correction_deg[1])},
+            "orientation_search": None if c.search is None else c.search.to_dict(),
             "seconds": r.seconds,
         })
     return {
@@ -80,6 +83,7 @@ def canting_record(result: CantingResult, inspections: list[tuple[Path, Path, In
         "frames": doc["frames"],
         "reference": doc["reference"],
         "orientation_mrad": doc["orientation_mrad"],
+        "drive_correction_deg": doc["drive_correction_deg"],
         "facet_grid": {"rows": int(rows), "cols": int(cols),
                        "numbering": "1..rows*cols row by row from the top left, seen from the front"},
         "facets_used": sum(1 for f in facets if f["used"]),
@@ -155,6 +159,9 @@ def canting_figure(record: dict[str, Any]) -> Any:
         fig.colorbar(sm, ax=ax, orientation="horizontal", fraction=0.05, pad=0.02)
     o = record["orientation_mrad"]
     orient = "none" if o is None else f"az {o['az']:+.2f}, el {o['el']:+.2f} mrad"
+    dc = record.get("drive_correction_deg")
+    if dc is not None:
+        orient += f"; drive correction az {dc['az']:+.3f}, el {dc['el']:+.3f} deg"
     fig.suptitle(f"Facet canting of {record['hua']} (target {record['target']}, {record['frames']} frame(s), "
                  f"{record['facets_used']} facets used), seen from the front\n"
                  f"relative to the best-fit heliostat orientation ({orient}); value ± standard error",

@@ -280,7 +280,8 @@ def combine_results(results: Iterable[InspectionResult | CantingResult]) -> Cant
     weighted mean over its facets) and removed, alternating a few times.
     The result is re-referenced to the mean of the combined facets; the
     best-fit orientation is the mean of the frames' orientations (each
-    shifted by its offset). Grid values are averaged (unweighted) and
+    shifted by its offset), the drive correction the mean of the frames'
+    (the orientation searches stay with their frames). Grid values are averaged (unweighted) and
     re-referenced likewise; points add up; ``rms_px`` is the point-weighted
     RMS; ``frames`` counts the frames.
 
@@ -364,5 +365,7 @@ def combine_results(results: Iterable[InspectionResult | CantingResult]) -> Cant
     notes = [f"combined from {n_k} frames ({n_used} facets measured in at least one)"]
     if n_used == 0:
         notes.append("no facet could be measured")
+    corr = [r.drive_correction_deg for r in res if r.drive_correction_deg is not None]
+    drive = (float(np.mean([c[0] for c in corr])), float(np.mean([c[1] for c in corr]))) if corr else None
     return CantingResult(res[0].hua, "+".join(targets), tuple(out), comps["az"][2], comps["el"][2],
-                         sum(r.frames for r in res), tuple(notes))
+                         sum(r.frames for r in res), tuple(notes), None, drive)
