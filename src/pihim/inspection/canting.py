@@ -9,13 +9,16 @@ facet's two canting angles move them: a tilt ``d`` turns the reflected rays by
 ``2 d``, which at the usual UFACET geometry moves the reflection by several
 pixels per mrad.
 
-First the heliostat's **orientation** (the paper's relative-orientation
-step): :func:`search_orientation` turns every facet by the same angles over
-the paper's +-5 deg in 0.1 deg steps and keeps the node where the facets'
-reflections of the target best line up with the image's edges. A facet's own
-search below spans +-1 deg around it (around the design when the heliostat
-is within half a degree of it), so a heliostat whose logged drive angles are
-off by more than a facet's grid is still measured.
+The heliostat's **orientation** (the paper's relative-orientation step):
+:func:`search_orientation` turns every facet by the same angles over the
+paper's +-5 deg in 0.1 deg steps and finds the node where the facets'
+reflections of the target best line up with the image's edges. The facets'
+own searches below span +-1 deg around the design; when the orientation
+search puts the heliostat farther than half a degree from it, the facets are
+fitted again around the search's node and that pass is kept if it measures
+more facets (the search proposes, the facet fits decide: clutter can raise a
+false peak far from the design). So a heliostat whose logged drive angles
+are off by more than a facet's grid is still measured.
 
 Then for each facet:
 
@@ -678,40 +681,59 @@ def estimate_canting(
         return _FacetModel(camera, pose, field_pose.rotations[h], field_pose.facet_centres[h, f],
                            field_pose.facet_normals_local[h, f], pts, seg)
 
+    def fit_facets(centre: tuple[float, float]) -> dict[int, object]:
+        fits: dict[int, object] = {}
+        for f, mask in candidates:
+            model = facet_model(f).near(mask, span_mrad, centre_mrad=centre)
+            try:
+                fit = _fit_facet(model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px, centre_mrad=centre)
+            except PihimInputError as exc:
+                fits[f + 1] = f"no usable reflection of {target}: {exc}"
+                continue
+            if fit[6] < min_points:
+                fits[f + 1] = f"too few matched edge points ({fit[6]} < {min_points})"
+                continue
+            if not fit[7] <= max_rms_px:
+                fits[f + 1] = (f"the fit is not sub-pixel consistent (residual {fit[7]:.2f} px > {max_rms_px:g} px:"
+                               " locked to other features)")
+                continue
+            if fit[8] < min_support:
+                fits[f + 1] = (f"the reflection does not look like {target}'s outline (support {fit[8]:.2f} < "
+                               f"{min_support:g}: hidden, or another heliostat)")
+                continue
+            fits[f + 1] = fit
+        return fits
+
+    def n_used(fits: dict[int, object]) -> int:
+        return sum(not isinstance(v, str) for v in fits.values())
+
     search = None
-    centre = (0.0, 0.0)
     notes = []
+    fits = fit_facets((0.0, 0.0))
     if orientation_span_mrad is not None and candidates:
         try:
             search = search_orientation([(facet_model(f).near(m, orientation_span_mrad), m) for f, m in candidates],
                                         dt, span_mrad=float(orientation_span_mrad))
-            # a facet's own grid (+-span_mrad) is centred on the design unless the heliostat is more than
-            # half a span away from it (then on the search's node), per axis: the facet fits were tuned with
-            # grids centred on the design, and a search node within half a span leaves every facet's
-            # canting (a few mrad) well inside its grid either way
+        except PihimInputError as exc:
+            notes.append(f"orientation search: {exc}")
+        else:
+            # The facets' own grids (+-span_mrad) around the design already hold a heliostat within half a
+            # span of it. Farther, the search proposes and the facet fits decide: the facets are fitted again
+            # around the search's node, and that pass is kept if it measures more facets (clutter -- other
+            # heliostats' backs, the ground -- can raise a false peak of the search far from the design).
             centre = tuple(v if abs(v) > 0.5 * span_mrad else 0.0 for v in (search.az_mrad, search.el_mrad))
-        except PihimInputError as exc:
-            notes.append(f"orientation search: {exc}; the facets were searched around the design")
-    fits: dict[int, object] = {}
-    for f, mask in candidates:
-        model = facet_model(f).near(mask, span_mrad, centre_mrad=centre)
-        try:
-            fit = _fit_facet(model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px, centre_mrad=centre)
-        except PihimInputError as exc:
-            fits[f + 1] = f"no usable reflection of {target}: {exc}"
-            continue
-        if fit[6] < min_points:
-            fits[f + 1] = f"too few matched edge points ({fit[6]} < {min_points})"
-            continue
-        if not fit[7] <= max_rms_px:
-            fits[f + 1] = (f"the fit is not sub-pixel consistent (residual {fit[7]:.2f} px > {max_rms_px:g} px:"
-                           " locked to other features)")
-            continue
-        if fit[8] < min_support:
-            fits[f + 1] = (f"the reflection does not look like {target}'s outline (support {fit[8]:.2f} < "
-                           f"{min_support:g}: hidden, or another heliostat)")
-            continue
-        fits[f + 1] = fit
+            if centre != (0.0, 0.0):
+                moved = fit_facets(centre)
+                n_moved, n_design = n_used(moved), n_used(fits)
+                if n_moved > n_design:
+                    fits = moved
+                    notes.append(f"facets fitted around the orientation search's node (az {centre[0]:+.1f}, "
+                                 f"el {centre[1]:+.1f} mrad): {n_moved} facets measured there, "
+                                 f"{n_design} around the design")
+                else:
+                    notes.append(f"the orientation search's node (az {search.az_mrad:+.1f}, el "
+                                 f"{search.el_mrad:+.1f} mrad) measured fewer facets than the design; kept the "
+                                 "design")
     raw = [(fid, fits[fid] if r is None else r) for fid, r in raw]
     used = [r for r in raw if not isinstance(r[1], str)]
     if used:
