@@ -397,11 +397,18 @@ class _FacetModel:
 
 def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_mrad: float,
                step_mrad: float, gates_px: tuple[float, ...], grid_tol_px: float = 5.0,
-               centre_mrad: tuple[float, float] = (0.0, 0.0)) -> tuple:
+               centre_mrad: tuple[float, float] = (0.0, 0.0), prefer_mrad: tuple[float, float] | None = None,
+               ambiguity: float = 0.05) -> tuple:
     """(grid az, grid el, az, el, sigma az, sigma el, points, rms) for one facet (raw, not relative).
 
     The grid spans ``+-span_mrad`` around ``centre_mrad`` (the heliostat's
-    orientation from :func:`search_orientation`, or the design).
+    orientation from :func:`search_orientation`, or the design). The grid
+    values returned are the paper's (the best node); the refinement starts
+    from the node nearest ``prefer_mrad`` (default the centre) among those
+    scoring within ``ambiguity`` of the best: the target's back is periodic
+    (facet rows and columns, crossbars), so a facet that sees only part of it
+    matches almost as well one period away (15-30 mrad at UFACET distances),
+    and canting errors are small next to that.
 
     The refinement rounds solve the two angles by trust-region least squares with a soft-L1
     loss (scale 0.5 px) and the analytic Jacobian of the mirrored projection
@@ -425,8 +432,11 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     if g_best[0] < 0:
         raise PihimInputError("no reflected target outline falls inside this facet")
     grid_az, grid_el = g_best[1], g_best[2]
-    # 2. continuous refinement: point-to-line ICP with LM
-    az, el = grid_az, grid_el
+    # 2. continuous refinement: point-to-line ICP with LM, from the near-best node nearest the preferred angles
+    pa, pe = centre_mrad if prefer_mrad is None else prefer_mrad
+    cand = np.flatnonzero(score >= (1.0 - ambiguity) * g_best[0])
+    k0 = int(cand[np.argmin((gaz[cand] + centre_mrad[0] - pa) ** 2 + (gel[cand] + centre_mrad[1] - pe) ** 2)])
+    az, el = float(gaz[k0]) + centre_mrad[0], float(gel[k0]) + centre_mrad[1]
     ob = obs[mask.inside(obs)]
     if len(ob) < 20:
         raise PihimInputError("too few edge points inside this facet")
@@ -681,12 +691,13 @@ def estimate_canting(
         return _FacetModel(camera, pose, field_pose.rotations[h], field_pose.facet_centres[h, f],
                            field_pose.facet_normals_local[h, f], pts, seg)
 
-    def fit_facets(centre: tuple[float, float]) -> dict[int, object]:
+    def fit_facets(centre: tuple[float, float], prefer: tuple[float, float] | None) -> dict[int, object]:
         fits: dict[int, object] = {}
         for f, mask in candidates:
             model = facet_model(f).near(mask, span_mrad, centre_mrad=centre)
             try:
-                fit = _fit_facet(model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px, centre_mrad=centre)
+                fit = _fit_facet(model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px, centre_mrad=centre,
+                                 prefer_mrad=prefer)
             except PihimInputError as exc:
                 fits[f + 1] = f"no usable reflection of {target}: {exc}"
                 continue
@@ -709,31 +720,31 @@ def estimate_canting(
 
     search = None
     notes = []
-    fits = fit_facets((0.0, 0.0))
     if orientation_span_mrad is not None and candidates:
         try:
             search = search_orientation([(facet_model(f).near(m, orientation_span_mrad), m) for f, m in candidates],
                                         dt, span_mrad=float(orientation_span_mrad))
         except PihimInputError as exc:
             notes.append(f"orientation search: {exc}")
+    # The facets' own grids (+-span_mrad) around the design hold a heliostat within half a span of it;
+    # between near-equal peaks of a facet's grid the refinement starts from the one nearest the search's
+    # node. Farther, the search proposes and the facet fits decide: the facets are fitted again around the
+    # search's node, and that pass is kept if it measures more facets (clutter -- other heliostats' backs,
+    # the ground -- can raise a false peak of the search far from the design).
+    centre = (0.0, 0.0) if search is None else \
+        tuple(v if abs(v) > 0.5 * span_mrad else 0.0 for v in (search.az_mrad, search.el_mrad))
+    node = None if search is None else (search.az_mrad, search.el_mrad)
+    fits = fit_facets((0.0, 0.0), node if centre == (0.0, 0.0) else None)
+    if centre != (0.0, 0.0):
+        moved = fit_facets(centre, node)
+        n_moved, n_design = n_used(moved), n_used(fits)
+        if n_moved > n_design:
+            fits = moved
+            notes.append(f"facets fitted around the orientation search's node (az {centre[0]:+.1f}, "
+                         f"el {centre[1]:+.1f} mrad): {n_moved} facets measured there, {n_design} around the design")
         else:
-            # The facets' own grids (+-span_mrad) around the design already hold a heliostat within half a
-            # span of it. Farther, the search proposes and the facet fits decide: the facets are fitted again
-            # around the search's node, and that pass is kept if it measures more facets (clutter -- other
-            # heliostats' backs, the ground -- can raise a false peak of the search far from the design).
-            centre = tuple(v if abs(v) > 0.5 * span_mrad else 0.0 for v in (search.az_mrad, search.el_mrad))
-            if centre != (0.0, 0.0):
-                moved = fit_facets(centre)
-                n_moved, n_design = n_used(moved), n_used(fits)
-                if n_moved > n_design:
-                    fits = moved
-                    notes.append(f"facets fitted around the orientation search's node (az {centre[0]:+.1f}, "
-                                 f"el {centre[1]:+.1f} mrad): {n_moved} facets measured there, "
-                                 f"{n_design} around the design")
-                else:
-                    notes.append(f"the orientation search's node (az {search.az_mrad:+.1f}, el "
-                                 f"{search.el_mrad:+.1f} mrad) measured fewer facets than the design; kept the "
-                                 "design")
+            notes.append(f"the orientation search's node (az {search.az_mrad:+.1f}, el {search.el_mrad:+.1f} mrad) "
+                         "measured fewer facets than the design; kept the design")
     raw = [(fid, fits[fid] if r is None else r) for fid, r in raw]
     used = [r for r in raw if not isinstance(r[1], str)]
     if used:
