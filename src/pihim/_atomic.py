@@ -22,6 +22,8 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from pihim.errors import PihimInputError
+
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 
@@ -236,3 +238,58 @@ def write_text_atomic(path: str | os.PathLike[str], text: str) -> Path:
 def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> Path:
     """Write ``obj`` as indented JSON to ``path`` atomically."""
     return write_text_atomic(path, json.dumps(obj, indent=2, allow_nan=False) + "\n")
+
+
+# -- output folders --------------------------------------------------------------------------------
+
+
+def check_out_dir(out: str | os.PathLike, *, option: str = "--out") -> None:
+    """Refuse an output directory that cannot be one, before any work is done.
+
+    ``out`` must be a directory or not exist yet; its nearest existing
+    ancestor must be a writable directory; and a missing ``out`` must be
+    creatable: it is created and removed again at once (so that, say,
+    ``--out /proc/x`` is refused before a long computation, not after it).
+    Nothing is left behind (see :func:`make_out_dir`).
+    """
+    p = Path(out)
+    if p.exists() and not p.is_dir():
+        raise PihimInputError(f"{option} {out}: exists and is not a directory")
+    missing: list[Path] = []
+    existing = None
+    for q in (p.absolute(), *p.absolute().parents):
+        if q.exists():
+            if not q.is_dir():
+                raise PihimInputError(f"{option} {out}: {q} is not a directory")
+            existing = q
+            break
+        missing.append(q)
+    if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
+        raise PihimInputError(f"{option} {out}: cannot write in {existing} (permission denied)")
+    if not missing:
+        return
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PihimInputError(f"{option} {out}: cannot create the directory ({exc.strerror or exc})") from None
+    finally:
+        for q in missing:  # deepest first; a folder another process filled meanwhile is not empty and stays
+            with contextlib.suppress(OSError):
+                q.rmdir()
+
+
+def make_out_dir(out: str | os.PathLike, *, option: str = "--out") -> Path:
+    """Create the output directory (one-line error if impossible) and clean stale temporaries in it.
+
+    Temporary files that killed runs left behind (see
+    :func:`clean_stale_temporaries`) are removed. ``option`` names the
+    directory in error messages (the command's option, or a parameter name).
+    """
+    p = Path(out)
+    check_out_dir(p, option=option)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PihimInputError(f"{option} {out}: cannot create the directory ({exc.strerror or exc})") from None
+    clean_stale_temporaries(p)
+    return p

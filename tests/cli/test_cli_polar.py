@@ -206,8 +206,8 @@ def test_frame_too_large_for_memory_refused_with_the_figure(frame, tmp_path, cap
     assert main(["polar", str(frame), "--out", str(out), "--demosaic", "full"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
-    # 32 x 40 pixels x 64 B = 81.9 kB needed, 10 kB available
-    assert "frame_a.tiff: a 40x32 frame with --demosaic full needs about 81.9 kB of memory; 10 kB is available" in err[0]
+    # 32 x 40 pixels x 80 B = 102 kB needed, 10 kB available
+    assert "frame_a.tiff: a 40x32 frame with --demosaic full needs about 102 kB of memory; 10 kB is available" in err[0]
     assert not list(out.glob("frame_a.*"))
 
 

@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from pihim.errors import PihimInputError
 
-__all__ = ["DISTORTION_NAMES", "CameraModel"]
+__all__ = ["DISTORTION_NAMES", "CameraModel", "camera_for_size"]
 
 #: Names of the distortion coefficients, in OpenCV's order.
 DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
@@ -437,3 +437,21 @@ class CameraModel:
         extra = {"name": str(data["name"])} if "name" in data else {}
         return cls(width_px=int(width), height_px=int(height), pixel_size_um=ps, focal_length_mm=f_mm,
                    principal_point_px=pp, distortion=coeffs, pixel_aspect=aspect, **extra)  # type: ignore[arg-type]
+
+
+def camera_for_size(width: int, height: int) -> CameraModel:
+    """The default camera (Triton + 35 mm) at another pixel count, with the same horizontal field of view.
+
+    The focal length is scaled with the width (pixel pitch unchanged), so a
+    small frame sees what the full frame sees, with fewer pixels.
+
+    Parameters
+    ----------
+    width, height : int
+        Frame size, pixels.
+    """
+    full = CameraModel()
+    if (width, height) == (full.width_px, full.height_px):
+        return full
+    return CameraModel(width_px=width, height_px=height, focal_length_mm=full.focal_length_mm * width / full.width_px,
+                       name=f"{full.name}, scaled to {width}x{height} (same horizontal FOV)")

@@ -239,7 +239,7 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     max_frames : int, optional
         Stop after this many frames.
     size : (int, int)
-        Frame size; the Triton's field of view is kept (:func:`pihim.cli.simulate.camera_for_size`).
+        Frame size; the Triton's field of view is kept (:func:`pihim.camera.model.camera_for_size`).
     log : {"csv", "ulog", "dataflash"}
         Where the poses go: ``frames.csv`` pose columns, or a ULog / DataFlash
         log sampled at 10 Hz (position) and 50 Hz (attitude, gimbal).
@@ -269,7 +269,7 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     from pihim._inputs import load_json_file
     from pihim.camera.pose import CameraPose
     from pihim.campaign.logs import write_dataflash, write_frames_csv, write_ulog
-    from pihim.cli.simulate import camera_for_size
+    from pihim.camera.model import camera_for_size
     from pihim.field import enu_to_geodetic, nsttf_like_field
     from pihim.render.simulate import LookAtPose, WaypointPose, simulate_frame
     from pihim.sky.sun import parse_time

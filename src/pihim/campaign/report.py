@@ -138,8 +138,7 @@ def write_report(store: Any, out_dir: str | Path, *, campaign: str | None = None
     import matplotlib.pyplot as plt
     from matplotlib.colors import Normalize, TwoSlopeNorm
 
-    from pihim._atomic import atomic_group
-    from pihim.cli._common import make_out_dir
+    from pihim._atomic import atomic_group, make_out_dir
     from pihim.inspection.canting_output import canting_figure, reason_code
 
     cur, prev = _pick(store, campaign, compare)
@@ -148,7 +147,7 @@ def write_report(store: Any, out_dir: str | Path, *, campaign: str | None = None
     measured = [h for h in hel if h["facets_used"]]  # pages for every heliostat with a used facet
     rms = {h["name"]: float(h["canting_rms_mrad"]) for h in measured if h["canting_rms_mrad"] is not None}
     counts = store.counts(cid)
-    out = make_out_dir(Path(out_dir))
+    out = make_out_dir(Path(out_dir), option="out_dir")
     files: dict[str, Path] = {"index": out / "index.html", "json": out / "report.json", "field": out / "field.png"}
     staged: list[tuple[Path, Path]] = []  # (temporary, final): figures saved as soon as drawn, renamed at the end
     texts: dict[Path, str] = {}

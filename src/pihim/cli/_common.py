@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+from pihim._atomic import check_out_dir, make_out_dir  # noqa: F401 - the commands import them from here
 from pihim.camera.layout import MosaicLayout
 from pihim.errors import PihimInputError
 
@@ -69,65 +70,6 @@ def progress(items: Sequence[T], description: str, *, min_items: int = 2) -> Ite
 def report_error(message: str) -> None:
     """Print one error line on stderr."""
     print(f"pihim: error: {message}", file=sys.stderr)
-
-
-def check_out_dir(out: "Path", *, option: str = "--out") -> None:
-    """Refuse an output directory that cannot be one, before any work is done.
-
-    ``out`` must be a directory or not exist yet; its nearest existing
-    ancestor must be a writable directory; and a missing ``out`` must be
-    creatable: it is created and removed again at once (so that, say,
-    ``--out /proc/x`` is refused before a long computation, not after it).
-    Nothing is left behind (see :func:`make_out_dir`).
-    """
-    import contextlib
-    import os
-    from pathlib import Path
-
-    p = Path(out)
-    if p.exists() and not p.is_dir():
-        raise PihimInputError(f"{option} {out}: exists and is not a directory")
-    missing: list[Path] = []
-    existing = None
-    for q in (p.absolute(), *p.absolute().parents):
-        if q.exists():
-            if not q.is_dir():
-                raise PihimInputError(f"{option} {out}: {q} is not a directory")
-            existing = q
-            break
-        missing.append(q)
-    if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
-        raise PihimInputError(f"{option} {out}: cannot write in {existing} (permission denied)")
-    if not missing:
-        return
-    try:
-        p.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise PihimInputError(f"{option} {out}: cannot create the directory ({exc.strerror or exc})") from None
-    finally:
-        for q in missing:  # deepest first; a folder another process filled meanwhile is not empty and stays
-            with contextlib.suppress(OSError):
-                q.rmdir()
-
-
-def make_out_dir(out: "Path", *, option: str = "--out") -> "Path":
-    """Create the output directory (one-line error if impossible) and clean stale temporaries in it.
-
-    Temporary files that killed runs left behind (see
-    :func:`pihim._atomic.clean_stale_temporaries`) are removed.
-    """
-    from pathlib import Path
-
-    from pihim._atomic import clean_stale_temporaries
-
-    p = Path(out)
-    check_out_dir(p, option=option)
-    try:
-        p.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise PihimInputError(f"{option} {out}: cannot create the directory ({exc.strerror or exc})") from None
-    clean_stale_temporaries(p)
-    return p
 
 
 def load_field_option(spec: str, facets: "Path | None", *, nsttf_tower: bool = True) -> "Field":

@@ -18,7 +18,7 @@ import typer
 from pihim._atomic import clean_stale_temporaries
 from pihim._inputs import load_json_file
 from pihim._resources import require_memory
-from pihim.camera.model import CameraModel
+from pihim.camera.model import camera_for_size
 from pihim.cli._common import check_out_dir, emit_json, load_field_option, parse_point, stderr_console
 from pihim.errors import PihimInputError
 from pihim.field import UFACET_AIM_POINT
@@ -32,8 +32,6 @@ if TYPE_CHECKING:
 DEFAULT_SUPERSAMPLE = 3
 
 SUMMARY_SCHEMA_ID = "pihim.simulate-summary/1"
-_TRITON_WIDTH_PX = 2448
-_TRITON_FOCAL_MM = 35.0
 #: Peak bytes per pixel of a render and its writing (raw, Stokes and truth images, 7 label planes, the
 #: renderer's working arrays) and the about constant part (scene, shading tables): the peak resident size
 #: of a whole ``pihim simulate`` run of the NSTTF-like field grows by 120-131 B per pixel plus 75-87 MB
@@ -57,18 +55,6 @@ def parse_size(text: str) -> tuple[int, int]:
         raise PihimInputError(f"--size must be even and at least 16x16, got {text}")
     require_memory(render_bytes(w, h), f"--size {w}x{h}")
     return w, h
-
-
-def camera_for_size(width: int, height: int) -> CameraModel:
-    """The Triton + 35 mm camera at another pixel count, with the same horizontal field of view.
-
-    The focal length is scaled with the width (pixel pitch unchanged), so a
-    small frame sees what the full frame sees, with fewer pixels.
-    """
-    if (width, height) == (CameraModel().width_px, CameraModel().height_px):
-        return CameraModel()
-    return CameraModel(width_px=width, height_px=height, focal_length_mm=_TRITON_FOCAL_MM * width / _TRITON_WIDTH_PX,
-                       name=f"Lucid Triton TRI050S-PC + 35 mm, scaled to {width}x{height} (same horizontal FOV)")
 
 
 def parse_pose_request(hua: str | None, target: str | None, waypoint: str | None, camera: str | None,
