@@ -178,7 +178,16 @@ def estimate_frame(field: Any, sim: Any, refine_kw: dict[str, Any], orientation_
         prior = CameraPose.from_dict(log["pose"])
     out: dict[str, Any] = {"hua": hua, "target": target, "time": log["time"], "edge_points": len(edges)}
     true_pose = CameraPose.from_dict(truth["pose"])
-    uv_true = project_points(camera, true_pose, corners.reshape(-1, 3))
+    # where the HUA's corners really are in the image: the true pose and the HUA at its true drive angles
+    # (with a tracking error the logged corners are elsewhere; the refined pose puts them on the image)
+    true_fp = fp
+    true_h = next((e for e in truth["heliostats"] if e["name"] == hua), None)
+    if true_h is not None and "az_deg" in true_h:
+        d_true = fp.drive
+        az, el = np.array(d_true.azimuth_deg, float), np.array(d_true.elevation_deg, float)
+        az[h], el[h] = true_h["az_deg"], true_h["el_deg"]
+        true_fp = fp.with_drive(az, el)
+    uv_true = project_points(camera, true_pose, true_fp.facet_corners()[h].reshape(-1, 3))
     uv_prior = project_points(camera, prior, corners.reshape(-1, 3))
     out["prior_corner_error_px"] = float(np.nanmax(np.linalg.norm(uv_prior - uv_true, axis=1)))
     fit = None
