@@ -44,17 +44,17 @@ of the renderer's ray tracer that made the test frames.
 
 Status (measured on 20 rendered NSTTF UFACET frames, ``benchmarks/canting_quality.py``)
 -----------------------------------------------------------------------------------
-From the issue's GPS 1.5 m / attitude 1 deg priors (pose refined to 0.31 px
-median) and S0 edge points (the DoLP of the dark target back is too noisy at
-39 dB to add its edges unweighted), 0-10 facets per frame pass the quality
-gates and their deviations are recovered to 0.16 / 0.25 mrad RMS (azimuth /
-elevation) against 0.84 / 0.41 mrad for the paper's grid search on the same
-frames; a facet whose fit locks onto other features is mostly caught by its
-residual. This step takes a median 0.5 s of CPU on a full frame (1.1 s wall
-on a heavily loaded 2-core machine; the whole frame, polar image to
-canting, 1.2 s CPU / 2.9 s wall), the grid search and the refinement running
-in compiled loops (:mod:`pihim.inspection._kernels`). Not yet: polarimetric
-edge weighting.
+From the issue's GPS 1.5 m / attitude 1 deg priors (pose refined to 0.27 px
+median at the HUA's corners) and S0 edge points (the DoLP of the dark target
+back is too noisy at 39 dB to add its edges unweighted), 0-10 facets per
+frame pass the quality gates and their deviations are recovered to 0.19 /
+0.24 mrad RMS (azimuth / elevation; the best-fit orientation to 0.14 / 0.11
+mrad) against 1.67 / 2.08 mrad for the paper's grid search on the same frames;
+a median 1.8 s per frame for the whole chain (1.1 s of it this step's CPU,
+0.6 s of that the orientation search). Not yet: the target's own
+orientation (a logged drive angle off by 0.1 deg already distorts its
+modelled outline enough that most facets fail the residual gate; see
+BENCHMARKS.md), polarimetric edge weighting.
 
 References
 ----------
