@@ -154,7 +154,8 @@ def _reason_key(reason: str, target: str) -> str:
     return r.split(" (")[0].split(":")[0].strip()
 
 
-def estimate_frame(field: Any, sim: Any, refine_kw: dict[str, Any], orientation_search: bool = True) -> dict[str, Any]:
+def estimate_frame(field: Any, sim: Any, refine_kw: dict[str, Any], orientation_search: bool = True,
+                   target_orientation: bool = False) -> dict[str, Any]:
     """Run the estimator on ``sim.raw`` and ``sim.log``; score against ``sim.truth``."""
     from pihim.camera import CameraModel, CameraPose, polar_image, project_points
     from pihim.errors import PihimInputError
@@ -209,6 +210,7 @@ def estimate_frame(field: Any, sim: Any, refine_kw: dict[str, Any], orientation_
     out["pose_ok"] = bool(np.all(np.isfinite(d)) and out["corner_error_max_px"] <= POSE_FAIL_PX)
     with clock("canting"):
         res = estimate_canting(camera, fit.pose, fp, hua, target, edges, dolp=pim.dolp, saturated=pim.saturated,
+                               target_orientation=target_orientation,
                                **({} if orientation_search else {"orientation_span_mrad": None}))
     clock.total()
     true_h = next(e for e in truth["heliostats"] if e["name"] == hua)
@@ -335,7 +337,7 @@ def summarise(frames: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def run_benchmark(n_frames: int, priors: str = "both", tracking_sigma_mrad: float = 0.0,
-                  orientation_search: bool = True) -> dict[str, Any]:
+                  orientation_search: bool = True, target_orientation: bool = False) -> dict[str, Any]:
     from pihim.camera import CameraModel
     from pihim.errors import PihimInputError
     from pihim.field import nsttf_like_field
@@ -378,7 +380,7 @@ def run_benchmark(n_frames: int, priors: str = "both", tracking_sigma_mrad: floa
         frames_info.append({"seed": k, "time": t, "hua": hua, "target": tgt,
                             "render_s": [s for _, s in sims]})
         for (key, _label, _gps, _att, kw), (sim, render_s) in zip(settings, sims, strict=True):
-            r = estimate_frame(field, sim, kw, orientation_search)
+            r = estimate_frame(field, sim, kw, orientation_search, target_orientation)
             r["seed"] = k
             r["render_s"] = render_s
             results[key].append(r)
@@ -403,6 +405,7 @@ def run_benchmark(n_frames: int, priors: str = "both", tracking_sigma_mrad: floa
         "benchmark": "canting",
         "settings": {"frames": n_frames, "times": list(TIMES), "canting_sigma_mrad": CANTING_SIGMA_MRAD,
                      "tracking_sigma_mrad": tracking_sigma_mrad, "orientation_search": orientation_search,
+                     "target_orientation": target_orientation,
                      "pose_fail_px": POSE_FAIL_PX,
                      "priors": [{"key": k_, "label": lb, "gps_sigma_m": g, "attitude_sigma_deg": a, **kw}
                                 for k_, lb, g, a, kw in settings]},
@@ -434,7 +437,8 @@ def markdown_report(rep: dict[str, Any]) -> str:
         (f"{len(fr)} rendered UFACET frames (Triton 2448 x 2048, 35 mm; canting N(0, "
          f"{rep['settings']['canting_sigma_mrad']:g} mrad); drive-angle (tracking) error N(0, "
          f"{rep['settings'].get('tracking_sigma_mrad', 0.0):g} mrad); orientation search "
-         f"{'on' if rep['settings'].get('orientation_search', True) else 'off'}; sensor 39 dB, 12 bit): "
+         f"{'on' if rep['settings'].get('orientation_search', True) else 'off'}; target orientation "
+         f"{'corrected' if rep['settings'].get('target_orientation') else 'as logged'}; sensor 39 dB, 12 bit): "
          + ", ".join(f"{f['hua']}/{f['target']} {f['time'][11:16]} (seed {f['seed']})" for f in fr) + "."),
     ]
     if rep["refused_pairs"]:
@@ -508,6 +512,8 @@ def _configure(parser: Any) -> None:
                         help="prior settings to run (default both)")
     parser.add_argument("--tracking-sigma-mrad", type=float, default=0.0, metavar="S",
                         help="every heliostat's drive-angle error (true minus logged), standard deviation, mrad")
+    parser.add_argument("--correct-target", action="store_true",
+                        help="also correct the target's logged drive angles (estimate_canting(target_orientation=True))")
     parser.add_argument("--no-orientation-search", action="store_true",
                         help="skip the +-5 deg orientation search (facet grids centred on the design)")
 
@@ -545,7 +551,8 @@ def main(
     a = o.args
     report = run_benchmark(n, a.priors if a is not None else "both",
                            a.tracking_sigma_mrad if a is not None else 0.0,
-                           not a.no_orientation_search if a is not None else True)
+                           not a.no_orientation_search if a is not None else True,
+                           a.correct_target if a is not None else False)
     harness.write_json(report, o.json_path)  # before the report, so a long run is never lost
     if echo:
         print(markdown_report(report))

@@ -141,3 +141,28 @@ def test_drive_correction_turns_the_normal_like_the_orientation(ufacet):
         moved = pose.with_drive(az, el)  # normals from drive angles: independent of drive_correction's inverse
         want = pose.rotations[h] @ apply_canting_deviation(np.array([0.0, 0.0, 1.0]), a, e)
         np.testing.assert_allclose(moved.normals[h], want, atol=1e-12)
+
+
+def test_target_orientation_is_corrected_from_its_reflection(ufacet):
+    """The target 7E3 really stands 0.15 deg further in azimuth and 0.10 deg higher than logged."""
+    field, pose, h, az, el, cam, cp, _ = ufacet
+    t = field.index("7E3")
+    d = pose.drive
+    t_az, t_el = np.array(d.azimuth_deg, float), np.array(d.elevation_deg, float)
+    t_az[t] -= 0.15
+    t_el[t] += 0.10
+    normals = pose.facet_normals_local.copy()
+    normals[h] = apply_canting_deviation(pose.facet_normals_local[h], az, el)
+    sun = sun_position(NSTTF, parse_time("2021-05-13T13:00-06:00")).vector
+    fr = render_frame(field_scene(pose.with_drive(t_az, t_el), normals), cam, cp, Environment.clear_sky(sun))
+    z = np.zeros_like(fr.s0)
+    ep = edge_points(fr.s0, z, z)
+    logged = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, min_dolp=None, target_orientation=False)
+    res = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, min_dolp=None, target_orientation=True)
+    assert res.target_correction_deg is not None
+    # measured -0.128 / +0.106 deg
+    assert res.target_correction_deg[0] == pytest.approx(-0.15, abs=0.05)
+    assert res.target_correction_deg[1] == pytest.approx(0.10, abs=0.05)
+    # on the corrected outline more facets pass the residual gate (measured 4 against 3)
+    assert sum(f.used for f in res.facets) > sum(f.used for f in logged.facets)
+    assert any("corrected" in n for n in res.notes)

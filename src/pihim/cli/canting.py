@@ -46,6 +46,7 @@ def canting(
     facets: Annotated[Path | None, typer.Option("--facets", help="Facet CSV for --field CSV.")] = None,
     hua: Annotated[str | None, typer.Option("--hua", help="Heliostat under assessment (default: the log's 'hua').")] = None,
     target: Annotated[str | None, typer.Option("--target", help="Target heliostat reflected in it (default: the log's 'target').")] = None,
+    correct_target: Annotated[bool, typer.Option("--correct-target", help="Also correct the target's logged drive angles from its reflection (about 1 s more per frame; for logs off by 0.1 deg or more).")] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print canting.json on stdout.")] = False,
 ) -> int:
     """Facet canting deviations of a heliostat from the target's reflection (canting.json + canting.png).
@@ -86,7 +87,7 @@ def canting(
         if model.get("bit_depth") is None and raw.bit_depth:  # the reader's bit depth when the log has none
             log = {**log, "sensor": {**sensor, "model": {**model, "bit_depth": int(raw.bit_depth)}}}
         try:
-            r = inspect_frame(raw.data, log, fld, hua=hua, target=target)
+            r = inspect_frame(raw.data, log, fld, hua=hua, target=target, target_orientation=correct_target)
         except PihimInputError as exc:
             raise PihimInputError(f"{frame}: {exc}") from None
         results.append((frame, m, r))

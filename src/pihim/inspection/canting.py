@@ -82,7 +82,8 @@ from pihim.inspection.pose import facet_outline_segments, line_normals, match_ed
 from pihim.render.scene import StructureSizes
 
 __all__ = ["CantingResult", "FacetCanting", "OrientationSearch", "PAPER_GRID_STEP_MRAD", "PAPER_ORIENTATION_SPAN_MRAD",
-           "drive_correction", "estimate_canting", "search_orientation", "target_outline_segments"]
+           "drive_correction", "estimate_canting", "refine_target_orientation", "search_orientation",
+           "target_outline_segments"]
 
 #: Scale of the two canting angles in the refinement, mrad.
 _X_SCALE = np.array([0.1, 0.1])
@@ -168,7 +169,12 @@ class CantingResult:
         the heliostat's normal as the best-fit orientation does. One frame
         constrains only the orientation of the HUA relative to the target
         (and to the camera pose fitted on the HUA), so the whole correction
-        is carried by the HUA and the target keeps its logged angles.
+        is carried by the HUA.
+    target_correction_deg : (float, float) or None
+        Correction of the target's logged drive angles (azimuth, elevation),
+        degrees, when the facets were measured on the target's corrected
+        outline (:func:`refine_target_orientation`); None when its logged
+        angles were kept.
     """
 
     hua: str
@@ -180,6 +186,7 @@ class CantingResult:
     notes: tuple[str, ...] = field(default_factory=tuple)
     search: OrientationSearch | None = None
     drive_correction_deg: tuple[float, float] | None = None
+    target_correction_deg: tuple[float, float] | None = None
 
     def to_dict(self) -> dict[str, object]:
         return {
@@ -192,6 +199,8 @@ class CantingResult:
             "orientation_search": None if self.search is None else self.search.to_dict(),
             "drive_correction_deg": None if self.drive_correction_deg is None else
             {"az": float(self.drive_correction_deg[0]), "el": float(self.drive_correction_deg[1])},
+            "target_correction_deg": None if self.target_correction_deg is None else
+            {"az": float(self.target_correction_deg[0]), "el": float(self.target_correction_deg[1])},
             "facets": [f.to_dict() for f in self.facets],
             "notes": list(self.notes),
         }
@@ -398,7 +407,7 @@ class _FacetModel:
 def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_mrad: float,
                step_mrad: float, gates_px: tuple[float, ...], grid_tol_px: float = 5.0,
                centre_mrad: tuple[float, float] = (0.0, 0.0), prefer_mrad: tuple[float, float] | None = None,
-               ambiguity: float = 0.05) -> tuple:
+               ambiguity: float = 0.05, matches: list | None = None) -> tuple:
     """(grid az, grid el, az, el, sigma az, sigma el, points, rms) for one facet (raw, not relative).
 
     The grid spans ``+-span_mrad`` around ``centre_mrad`` (the heliostat's
@@ -408,7 +417,9 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     scoring within ``ambiguity`` of the best: the target's back is periodic
     (facet rows and columns, crossbars), so a facet that sees only part of it
     matches almost as well one period away (15-30 mrad at UFACET distances),
-    and canting errors are small next to that.
+    and canting errors are small next to that. Given a list ``matches``, the
+    last round's matched model points (world), image points and line normals
+    are appended to it as one tuple (for :func:`refine_target_orientation`).
 
     The refinement rounds solve the two angles by trust-region least squares with a soft-L1
     loss (scale 0.5 px) and the analytic Jacobian of the mirrored projection
@@ -459,6 +470,8 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
         x, r, jac = _kernels.solve(prob, np.array([az, el]), len(q), _X_SCALE, 200, True, 0.5)
         az, el = float(x[0]), float(x[1])
     assert jac is not None
+    if matches is not None:
+        matches.append((model.pts[idx], q, nq))
     inl = np.abs(r) < 1.0
     n = int(inl.sum())
     jac = jac[inl] if n > 2 else jac
@@ -559,6 +572,91 @@ def search_orientation(
                              float(step_mrad), float(tol_px), time.perf_counter() - t0)
 
 
+def refine_target_orientation(
+    camera: CameraModel,
+    pose: CameraPose,
+    field_pose: FieldPose,
+    hua: int,
+    target: int,
+    facets: list[tuple[int, float, float, tuple[NDArray, NDArray, NDArray]]],
+    *,
+    max_deg: float = 5.0,
+) -> tuple[float, float]:
+    """The target's drive-angle correction that best explains its reflections in the HUA's facets, degrees.
+
+    The paper corrects the target's logged orientation before measuring
+    canting (sec. 4.4): a target at a wrong logged orientation has a
+    distorted outline in the model (its points move out of its plane by up
+    to its half-width times the error), and every facet's fit is off by a
+    few pixels. Here the target's two drive angles and every facet's two
+    canting angles are solved together by robust least squares (soft-L1,
+    0.5 px) on the point-to-line distances of the facets' last matches
+    (:func:`_fit_facet`'s ``matches``): the target's points turn about its
+    pivot with the drive angles (mirror centre ``pivot + offset * normal``),
+    each facet mirrors them in its plane.
+
+    Parameters
+    ----------
+    facets : list of (facet index, az_mrad, el_mrad, (points, image points, line normals))
+        The facets' fits (raw deviations) and their matches.
+    max_deg : float
+        Largest correction accepted per axis; beyond it the fit is not
+        trusted and (0, 0) is returned.
+
+    Returns
+    -------
+    (d_azimuth_deg, d_elevation_deg)
+    """
+    from scipy.optimize import least_squares
+    from scipy.sparse import lil_matrix
+
+    from pihim.field.kinematics import rotation_from_drive
+    from pihim.inspection import _kernels
+
+    if not facets:
+        return 0.0, 0.0
+    d = field_pose.drive
+    az0, el0 = float(d.azimuth_deg[target]), float(d.elevation_deg[target])
+    r0 = field_pose.rotations[target]
+    c0 = field_pose.mirror_centres[target]
+    pivot = np.asarray(field_pose.field.pivots, float)[target]  # type: ignore[attr-defined]
+    offset = float(field_pose.field.spec.pivot_offset_m)  # type: ignore[attr-defined]
+    rot_h = field_pose.rotations[hua]
+    cam = _kernels.camera_vector(camera)
+    rc = np.array(pose.rotation, float)
+    cc = np.array(pose.position_m, float)
+    local = [(m[0] - c0) @ r0 for _, _, _, m in facets]  # target frame
+    sizes = [len(m[1]) for *_, m in facets]
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    centres = [field_pose.facet_centres[hua, f] for f, *_ in facets]
+    normals_local = [field_pose.facet_normals_local[hua, f] for f, *_ in facets]
+
+    def residuals(x: NDArray) -> NDArray:
+        rt = rotation_from_drive(az0 + x[0], el0 + x[1])
+        ct = pivot + offset * rt[:, 2]
+        out = np.empty(starts[-1])
+        for k, (loc, (_, _, _, m)) in enumerate(zip(local, facets, strict=True)):
+            p = ct + loc @ rt.T
+            n = rot_h @ apply_canting_deviation(normals_local[k], x[2 + 2 * k], x[3 + 2 * k])
+            virt = p - 2.0 * ((p - centres[k]) @ n)[:, None] * n
+            uv = _kernels.project_rc(rc, cc, np.ascontiguousarray(virt), cam)
+            out[starts[k]:starts[k + 1]] = np.sum((uv - m[1]) * m[2], axis=1)
+        return np.nan_to_num(out, nan=10.0)
+
+    n_p = 2 + 2 * len(facets)
+    sparsity = lil_matrix((int(starts[-1]), n_p), dtype=int)
+    for k in range(len(facets)):
+        sparsity[starts[k]:starts[k + 1], [0, 1, 2 + 2 * k, 3 + 2 * k]] = 1
+    x0 = np.concatenate([[0.0, 0.0], np.ravel([[a, e] for _, a, e, _ in facets])])
+    scale = np.concatenate([[0.01, 0.01], np.full(n_p - 2, 0.1)])
+    fit = least_squares(residuals, x0, jac_sparsity=sparsity, loss="soft_l1", f_scale=0.5, x_scale=scale,
+                        max_nfev=200)
+    d_az, d_el = float(fit.x[0]), float(fit.x[1])
+    if not (abs(d_az) <= max_deg and abs(d_el) <= max_deg):
+        return 0.0, 0.0
+    return d_az, d_el
+
+
 def drive_correction(field_pose: FieldPose, index: int, az_mrad: float, el_mrad: float) -> tuple[float, float]:
     """A canting-style rotation of a whole heliostat as a change of its drive angles, degrees.
 
@@ -597,6 +695,7 @@ def estimate_canting(
     max_rms_px: float = 0.3,
     sizes: StructureSizes = StructureSizes(),
     orientation_span_mrad: float | None = PAPER_ORIENTATION_SPAN_MRAD,
+    target_orientation: bool = False,
 ) -> CantingResult:
     """Estimate every facet's canting of ``hua`` from ``target``'s reflection in one frame.
 
@@ -642,6 +741,13 @@ def estimate_canting(
         and DoLP tests before any facet is fitted; each facet's grid then
         spans ``span_mrad`` around its result. Default the paper's +-5 deg;
         None skips it (the facets' grids centred on the design).
+    target_orientation : bool
+        Correct the target's logged drive angles
+        (:func:`refine_target_orientation`) and fit the facets again on its
+        corrected outline, kept if that measures more facets (or as many,
+        with smaller residuals). Off by default: it costs about 1 s of CPU
+        per frame and helps only when the plant's logged drive angles are
+        off by about 0.1 deg or more (BENCHMARKS.md).
 
     Returns
     -------
@@ -687,20 +793,26 @@ def estimate_canting(
         raw.append((fid, None))
         candidates.append((f, mask))
 
+    outline = {"pts": pts, "seg": seg}  # the target's outline samples (replaced once its orientation is corrected)
+
     def facet_model(f: int) -> _FacetModel:
         return _FacetModel(camera, pose, field_pose.rotations[h], field_pose.facet_centres[h, f],
-                           field_pose.facet_normals_local[h, f], pts, seg)
+                           field_pose.facet_normals_local[h, f], outline["pts"], outline["seg"])
 
-    def fit_facets(centre: tuple[float, float], prefer: tuple[float, float] | None) -> dict[int, object]:
+    def fit_facets(centre: tuple[float, float], prefer: tuple[float, float] | None,
+                   collect: list | None = None) -> dict[int, object]:
         fits: dict[int, object] = {}
         for f, mask in candidates:
             model = facet_model(f).near(mask, span_mrad, centre_mrad=centre)
+            found: list = []
             try:
                 fit = _fit_facet(model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px, centre_mrad=centre,
-                                 prefer_mrad=prefer)
+                                 prefer_mrad=prefer, matches=found)
             except PihimInputError as exc:
                 fits[f + 1] = f"no usable reflection of {target}: {exc}"
                 continue
+            if collect is not None and found and fit[6] >= min_points and fit[8] >= min_support:
+                collect.append((f, fit[2], fit[3], found[-1]))  # the residual gate aside: see below
             if fit[6] < min_points:
                 fits[f + 1] = f"too few matched edge points ({fit[6]} < {min_points})"
                 continue
@@ -718,6 +830,10 @@ def estimate_canting(
     def n_used(fits: dict[int, object]) -> int:
         return sum(not isinstance(v, str) for v in fits.values())
 
+    def mean_rms(fits: dict[int, object]) -> float:
+        v = [r[7] for r in fits.values() if not isinstance(r, str)]
+        return float(np.mean(v)) if v else float("inf")
+
     search = None
     notes = []
     if orientation_span_mrad is not None and candidates:
@@ -734,17 +850,57 @@ def estimate_canting(
     centre = (0.0, 0.0) if search is None else \
         tuple(v if abs(v) > 0.5 * span_mrad else 0.0 for v in (search.az_mrad, search.el_mrad))
     node = None if search is None else (search.az_mrad, search.el_mrad)
-    fits = fit_facets((0.0, 0.0), node if centre == (0.0, 0.0) else None)
+    design_matches: list = []
+    fits = fit_facets((0.0, 0.0), node if centre == (0.0, 0.0) else None, design_matches)
+    matches = design_matches
+    prefer = node if centre == (0.0, 0.0) else None
     if centre != (0.0, 0.0):
-        moved = fit_facets(centre, node)
+        moved_matches: list = []
+        moved = fit_facets(centre, node, moved_matches)
         n_moved, n_design = n_used(moved), n_used(fits)
         if n_moved > n_design:
-            fits = moved
+            fits, matches, prefer = moved, moved_matches, node
             notes.append(f"facets fitted around the orientation search's node (az {centre[0]:+.1f}, "
                          f"el {centre[1]:+.1f} mrad): {n_moved} facets measured there, {n_design} around the design")
         else:
+            centre = (0.0, 0.0)
             notes.append(f"the orientation search's node (az {search.az_mrad:+.1f}, el {search.el_mrad:+.1f} mrad) "
                          "measured fewer facets than the design; kept the design")
+    # The target's logged orientation (paper sec. 4.4): solved with every facet that found the target's
+    # outline (the residual gate aside: a target off its logged angles fails it everywhere), then the facets
+    # fitted again on the corrected outline; kept if it measures more facets (or as many, closer).
+    target_corr = None
+    if target_orientation and len(matches) >= 2:
+        drv = field_pose.drive
+        az_t = np.array(drv.azimuth_deg, float)
+        el_t = np.array(drv.elevation_deg, float)
+        plain = dict(outline)
+        total = np.zeros(2)
+        best = (n_used(fits), -mean_rms(fits))
+        tried = fits
+        for _ in range(4):  # solve, refit on the corrected outline, solve again from the new matches
+            fp_t = field_pose.with_drive(np.where(np.arange(len(az_t)) == t, az_t + total[0], az_t),
+                                         np.where(np.arange(len(el_t)) == t, el_t + total[1], el_t))
+            step = np.array(refine_target_orientation(camera, pose, fp_t, h, t, matches))
+            if not np.any(np.abs(step) > 1e-3):
+                break
+            total += step
+            az_n, el_n = az_t.copy(), el_t.copy()
+            az_n[t] += total[0]
+            el_n[t] += total[1]
+            p2, s2 = sample_segments(target_outline_segments(field_pose.with_drive(az_n, el_n), t, sizes), 0.01)
+            outline.update(pts=p2, seg=s2)
+            matches = []
+            tried = fit_facets(centre, prefer, matches)
+            if len(matches) < 2 or np.max(np.abs(step)) < 0.005:
+                break
+        if np.any(total != 0.0) and (n_used(tried), -mean_rms(tried)) > best:
+            fits, target_corr = tried, (float(total[0]), float(total[1]))
+            notes.append(f"target {target}'s logged orientation corrected by az {total[0]:+.3f}, el {total[1]:+.3f} deg")
+        elif np.any(total != 0.0):
+            outline.update(plain)
+            notes.append(f"target {target}'s orientation fit (az {total[0]:+.3f}, el {total[1]:+.3f} deg) measured no "
+                         "more facets; kept its logged angles")
     raw = [(fid, fits[fid] if r is None else r) for fid, r in raw]
     used = [r for r in raw if not isinstance(r[1], str)]
     if used:
@@ -764,4 +920,4 @@ def estimate_canting(
             out.append(FacetCanting(fid, True, None, a - o_az, e - o_el, sa, se, ga - g_az, ge - g_el, n, rms,
                                     support))
     corr = None if o_az is None else drive_correction(field_pose, h, o_az, o_el)
-    return CantingResult(hua, target, tuple(out), o_az, o_el, 1, tuple(notes), search, corr)
+    return CantingResult(hua, target, tuple(out), o_az, o_el, 1, tuple(notes), search, corr, target_corr)

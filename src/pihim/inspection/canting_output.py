@@ -74,6 +74,8 @@ def canting_record(result: CantingResult, inspections: list[tuple[Path, Path, In
             "drive_correction_deg": None if c.drive_correction_deg is None else
             {"az": float(c.drive_correction_deg[0]), "el": float(c.drive_correction_deg[1])},
             "orientation_search": None if c.search is None else c.search.to_dict(),
+            "target_correction_deg": None if c.target_correction_deg is None else
+            {"az": float(c.target_correction_deg[0]), "el": float(c.target_correction_deg[1])},
             "seconds": r.seconds,
         })
     return {

@@ -177,6 +177,7 @@ def inspect_frame(
     hua: str | None = None,
     target: str | None = None,
     demosaic: str = "full",
+    target_orientation: bool = False,
 ) -> InspectionResult:
     """Facet canting of ``hua`` from ``target``'s reflection in one raw mosaic frame.
 
@@ -196,6 +197,9 @@ def inspect_frame(
     demosaic : {"full", "superpixel"}
         Demosaicing; the estimators need ``full`` (the pixel grid of the
         camera model).
+    target_orientation : bool
+        Also correct the target's logged drive angles (see
+        :func:`pihim.inspection.canting.estimate_canting`).
 
     Returns
     -------
@@ -250,7 +254,8 @@ def inspect_frame(
     t3 = _time.perf_counter()
     fit = refine_pose(camera, prior, facet_outline_segments(corners), ep)
     t4 = _time.perf_counter()
-    res = estimate_canting(camera, fit.pose, fp, hua, target, ep, dolp=pol.dolp, saturated=pol.saturated)
+    res = estimate_canting(camera, fit.pose, fp, hua, target, ep, dolp=pol.dolp, saturated=pol.saturated,
+                           target_orientation=target_orientation)
     t5 = _time.perf_counter()
     sat = np.asarray(pol.saturated, bool)
     image = {
