@@ -20,6 +20,13 @@ more facets (the search proposes, the facet fits decide: clutter can raise a
 false peak far from the design). So a heliostat whose logged drive angles
 are off by more than a facet's grid is still measured.
 
+Optionally (``target_orientation=True``) the **target's** logged drive
+angles are corrected too, as the paper does: a target off its logged
+orientation has a distorted outline in the model, and the facets' fits miss
+by a few pixels; :func:`refine_target_orientation` solves the target's two
+angles with every facet's canting, and the facets are fitted again on the
+corrected outline.
+
 Then for each facet:
 
 1. **Baseline** (the paper's method): a grid search over azimuth and
@@ -51,10 +58,11 @@ frame pass the quality gates and their deviations are recovered to 0.19 /
 0.24 mrad RMS (azimuth / elevation; the best-fit orientation to 0.14 / 0.11
 mrad) against 1.67 / 2.08 mrad for the paper's grid search on the same frames;
 a median 1.8 s per frame for the whole chain (1.1 s of it this step's CPU,
-0.6 s of that the orientation search). Not yet: the target's own
-orientation (a logged drive angle off by 0.1 deg already distorts its
-modelled outline enough that most facets fail the residual gate; see
-BENCHMARKS.md), polarimetric edge weighting.
+0.6 s of that the orientation search). Weak: logged drive angles off by
+0.1 deg or more (the target's correction recovers some facets at 0.1 deg,
+none at 0.5 deg, where the HUA's own turn, absorbed by the camera pose,
+displaces the target as a whole; see BENCHMARKS.md). Not yet: polarimetric
+edge weighting.
 
 References
 ----------
