@@ -9,6 +9,7 @@ exhausts Python's recursion limit. The helpers here refuse both with one-line
 from __future__ import annotations
 
 import json
+import math
 import os
 import stat
 from pathlib import Path
@@ -85,3 +86,19 @@ def loads_json(text: str, label: str, what: str = "JSON file") -> Any:
 def load_json_file(path: str | os.PathLike[str], what: str = "JSON file") -> Any:
     """Read and parse a JSON file with :func:`read_text_file` and :func:`loads_json`."""
     return loads_json(read_text_file(path, what), os.fspath(path), what)
+
+
+def finite_number(value: Any, what: str) -> float:
+    """``value`` as a finite float, or a one-line :class:`PihimInputError` naming ``what``.
+
+    Booleans are refused (``True`` is not a number of anything here).
+    """
+    if isinstance(value, bool):
+        raise PihimInputError(f"{what} must be a number, got {value!r}")
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise PihimInputError(f"{what} must be a number, got {value!r}") from None
+    if not math.isfinite(x):
+        raise PihimInputError(f"{what} must be finite, got {value!r}")
+    return x

@@ -24,23 +24,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from pihim._inputs import finite_number
 from pihim.errors import PihimInputError
 
 __all__ = ["DISTORTION_NAMES", "CameraModel", "camera_for_size"]
 
 #: Names of the distortion coefficients, in OpenCV's order.
 DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
-
-
-def _finite(value: Any, what: str) -> float:
-    """``value`` as a finite float, or a one-line PihimInputError naming ``what``."""
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise PihimInputError(f"{what} must be a number, got {value!r}") from None
-    if not math.isfinite(x):
-        raise PihimInputError(f"{what} must be finite, got {x!r}")
-    return x
 
 
 @dataclass(frozen=True)
@@ -85,9 +75,9 @@ class CameraModel:
             raise PihimInputError("camera sensor must be at least 2x2 pixels")
         if not (self.pixel_size_um > 0 and self.focal_length_mm > 0):
             raise PihimInputError("pixel size and focal length must be positive")
-        _finite(self.pixel_size_um, "pixel size (um)")
-        _finite(self.focal_length_mm, "focal length (mm)")
-        aspect = _finite(self.pixel_aspect, "pixel aspect fy/fx")
+        finite_number(self.pixel_size_um, "pixel size (um)")
+        finite_number(self.focal_length_mm, "focal length (mm)")
+        aspect = finite_number(self.pixel_aspect, "pixel aspect fy/fx")
         if aspect <= 0:
             raise PihimInputError(f"pixel aspect fy/fx must be positive, got {aspect:g}")
         object.__setattr__(self, "pixel_aspect", aspect)
@@ -96,7 +86,7 @@ class CameraModel:
             if pp.size != 2:
                 raise PihimInputError(f"principal point must be (cx, cy) in pixels, got {self.principal_point_px!r}")
             object.__setattr__(self, "principal_point_px",
-                               (_finite(pp[0], "principal point cx"), _finite(pp[1], "principal point cy")))
+                               (finite_number(pp[0], "principal point cx"), finite_number(pp[1], "principal point cy")))
         try:
             coeffs = tuple(self.distortion)
         except TypeError:
@@ -106,7 +96,7 @@ class CameraModel:
             raise PihimInputError(
                 f"distortion must be 5 coefficients (k1, k2, p1, p2, k3) in OpenCV's order, got {len(coeffs)}")
         object.__setattr__(self, "distortion",
-                           tuple(_finite(c, f"distortion coefficient {n}") for c, n in zip(coeffs, DISTORTION_NAMES)))
+                           tuple(finite_number(c, f"distortion coefficient {n}") for c, n in zip(coeffs, DISTORTION_NAMES)))
 
     # --- intrinsics ---------------------------------------------------------------------------
 
@@ -340,7 +330,7 @@ class CameraModel:
             w, h = (int(image_size_wh[0]), int(image_size_wh[1]))
         except (TypeError, ValueError, IndexError):
             raise PihimInputError(f"image size must be (width, height) in pixels, got {image_size_wh!r}") from None
-        ps = _finite(pixel_size_um, "pixel size (um)")
+        ps = finite_number(pixel_size_um, "pixel size (um)")
         return cls(width_px=w, height_px=h, pixel_size_um=ps, focal_length_mm=fx * ps / 1000.0, name=str(name),
                    principal_point_px=(float(k[0, 2]), float(k[1, 2])),
                    distortion=tuple(float(c) for c in coeffs), pixel_aspect=fy / fx)  # type: ignore[arg-type]
@@ -398,29 +388,29 @@ class CameraModel:
         if not all(isinstance(n, (int, float)) and not isinstance(n, bool) and float(n).is_integer()
                    for n in (width, height)):
             raise PihimInputError(f"camera width_px and height_px must be integers, got {width!r}, {height!r}")
-        ps = _finite(data["pixel_size_um"], "camera pixel_size_um")
+        ps = finite_number(data["pixel_size_um"], "camera pixel_size_um")
         if "focal_length_mm" in data:
-            f_mm = _finite(data["focal_length_mm"], "camera focal_length_mm")
+            f_mm = finite_number(data["focal_length_mm"], "camera focal_length_mm")
         elif "fx_px" in data:
-            f_mm = _finite(data["fx_px"], "camera fx_px") * ps / 1000.0
+            f_mm = finite_number(data["fx_px"], "camera fx_px") * ps / 1000.0
         else:
             raise PihimInputError("camera description has neither 'focal_length_mm' nor 'fx_px'")
         fx = f_mm * 1000.0 / ps
         if "pixel_aspect" in data:
-            aspect = _finite(data["pixel_aspect"], "camera pixel_aspect")
+            aspect = finite_number(data["pixel_aspect"], "camera pixel_aspect")
         elif "fy_px" in data:
-            aspect = _finite(data["fy_px"], "camera fy_px") / fx
+            aspect = finite_number(data["fy_px"], "camera fy_px") / fx
         else:
             aspect = 1.0
         for key, expected in (("fx_px", fx), ("fy_px", fx * aspect)):
-            if key in data and abs(_finite(data[key], f"camera {key}") - expected) > 1e-9 * abs(expected):
+            if key in data and abs(finite_number(data[key], f"camera {key}") - expected) > 1e-9 * abs(expected):
                 raise PihimInputError(f"camera {key} = {float(data[key])!r} disagrees with focal_length_mm, "
                                       f"pixel_size_um and pixel_aspect (expected {expected!r})")
         pp: tuple[float, float] | None = None
         if ("cx_px" in data) != ("cy_px" in data):
             raise PihimInputError("camera description must give both cx_px and cy_px, or neither")
         if "cx_px" in data:
-            pp = (_finite(data["cx_px"], "camera cx_px"), _finite(data["cy_px"], "camera cy_px"))
+            pp = (finite_number(data["cx_px"], "camera cx_px"), finite_number(data["cy_px"], "camera cy_px"))
             if pp == ((int(width) - 1) / 2.0, (int(height) - 1) / 2.0):
                 pp = None  # the default: keep the round trip exact
         dist = data.get("distortion", None)

@@ -72,6 +72,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from pihim._inputs import finite_number
 from pihim.errors import PihimInputError
 
 __all__ = [
@@ -84,18 +85,6 @@ __all__ = [
     "next_exposure",
     "region_stats",
 ]
-
-
-def _finite(name: str, value: Any) -> float:
-    if isinstance(value, bool):
-        raise PihimInputError(f"{name} must be a number, got {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise PihimInputError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise PihimInputError(f"{name} must be finite, got {value!r}")
-    return v
 
 
 @dataclass(frozen=True)
@@ -114,8 +103,8 @@ class ExposureSettings:
     gain_db: float = 0.0
 
     def __post_init__(self) -> None:
-        t = _finite("exposure time", self.exposure_us)
-        g = _finite("gain", self.gain_db)
+        t = finite_number(self.exposure_us, "exposure time")
+        g = finite_number(self.gain_db, "gain")
         if t <= 0:
             raise PihimInputError(f"exposure time must be > 0 us, got {self.exposure_us!r}")
         if g < 0:
@@ -188,7 +177,7 @@ class ExposureParams:
     def __post_init__(self) -> None:
         for name in ("limit", "aim", "percentile", "median_target", "damping", "deadband", "clipped_step",
                      "exposure_min_us", "exposure_max_us", "gain_max_db"):
-            object.__setattr__(self, name, _finite(name, getattr(self, name)))
+            object.__setattr__(self, name, finite_number(getattr(self, name), name))
         if not 0 < self.aim < self.limit <= 1:
             raise PihimInputError(f"need 0 < aim < limit <= 1, got aim {self.aim:g}, limit {self.limit:g}")
         if not 50 <= self.percentile < 100:
@@ -525,12 +514,12 @@ def motion_blur_exposure_cap_us(
     >>> round(motion_blur_exposure_cap_us(5.0, 30.0))
     591
     """
-    v = _finite("speed", speed_m_s)
-    r = _finite("range", range_m)
-    f = _finite("focal length", focal_length_mm) * 1e-3
-    p = _finite("pixel pitch", pixel_pitch_um) * 1e-6
-    b = _finite("max blur", max_blur_px)
-    w = math.radians(_finite("angular rate", angular_rate_deg_s))
+    v = finite_number(speed_m_s, "speed")
+    r = finite_number(range_m, "range")
+    f = finite_number(focal_length_mm, "focal length") * 1e-3
+    p = finite_number(pixel_pitch_um, "pixel pitch") * 1e-6
+    b = finite_number(max_blur_px, "max blur")
+    w = math.radians(finite_number(angular_rate_deg_s, "angular rate"))
     if v < 0 or w < 0:
         raise PihimInputError("speed and angular rate must be >= 0")
     if r <= 0 or f <= 0 or p <= 0 or b <= 0:

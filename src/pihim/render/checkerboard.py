@@ -55,6 +55,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from pihim.camera.model import CameraModel
 from pihim.camera.pose import CameraPose, project_points
+from pihim._inputs import finite_number
 from pihim.errors import PihimInputError
 from pihim.render.sensor import Exposure, SensorModel, choose_exposure, expose, lens_blur
 
@@ -79,18 +80,8 @@ def _board_size(cols: Any, rows: Any) -> tuple[int, int]:
     return int(cols), int(rows)
 
 
-def _number(value: Any, what: str) -> float:
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise PihimInputError(f"{what} must be a number, got {value!r}") from None
-    if not math.isfinite(x):
-        raise PihimInputError(f"{what} must be finite, got {value!r}")
-    return x
-
-
 def _positive(value: Any, what: str) -> float:
-    x = _number(value, what)
+    x = finite_number(value, what)
     if not x > 0:
         raise PihimInputError(f"{what} must be a positive finite number, got {value!r}")
     return x
@@ -157,7 +148,7 @@ def board_view_pose(cols: int, rows: int, square_m: float, *, distance_m: float,
     off = np.asarray(target_offset_m, dtype=float).ravel()
     if off.shape != (2,) or not np.all(np.isfinite(off)):
         raise PihimInputError(f"target offset must be two finite numbers (x, y) in metres, got {target_offset_m!r}")
-    y, p, q = (math.radians(_number(a, name))
+    y, p, q = (math.radians(finite_number(a, name))
                for a, name in ((yaw_deg, "yaw"), (pitch_deg, "pitch"), (roll_deg, "roll")))
     ry = np.array([[math.cos(y), 0.0, math.sin(y)], [0.0, 1.0, 0.0], [-math.sin(y), 0.0, math.cos(y)]])
     rx = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(p), -math.sin(p)], [0.0, math.sin(p), math.cos(p)]])
@@ -416,13 +407,13 @@ def render_checkerboard(
     if isinstance(supersample, bool) or not isinstance(supersample, (int, np.integer)) \
             or not 1 <= supersample <= 16:
         raise PihimInputError(f"supersample must be an integer in 1..16, got {supersample!r}")
-    k = _number(contrast, "contrast")
+    k = finite_number(contrast, "contrast")
     if not 0.0 < k <= 1.0:
         raise PihimInputError(f"contrast must be in (0, 1], got {contrast!r}")
-    bg = _number(background, "background")
+    bg = finite_number(background, "background")
     if not bg >= 0.0:
         raise PihimInputError(f"background must be a finite number >= 0, got {background!r}")
-    m = _number(margin_squares, "margin_squares")
+    m = finite_number(margin_squares, "margin_squares")
     if not m >= 0.0:
         raise PihimInputError(f"margin_squares must be a finite number >= 0, got {margin_squares!r}")
 

@@ -34,7 +34,6 @@ References
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,23 +42,12 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import gaussian_filter
 
 from pihim.camera.layout import IMX250MZR, MosaicLayout, check_mosaic_shape
+from pihim._inputs import finite_number
 from pihim.errors import PihimInputError
 from pihim.polarimetry.analyser import AnalyserMatrix
 from pihim.render.mosaic import mosaic_from_stokes
 
 __all__ = ["Exposure", "SensorModel", "choose_exposure", "expose", "lens_blur"]
-
-
-def _finite_number(name: str, value: Any) -> float:
-    if isinstance(value, bool):
-        raise PihimInputError(f"{name} must be a number, got {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise PihimInputError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise PihimInputError(f"{name} must be finite, got {value!r}")
-    return v
 
 
 @dataclass(frozen=True)
@@ -104,9 +92,9 @@ class SensorModel:
         bits = self.bit_depth
         if isinstance(bits, bool) or not isinstance(bits, (int, np.integer)) or not 1 <= bits <= 16:
             raise PihimInputError(f"bit_depth must be an integer in 1..16, got {bits!r}")
-        snr = _finite_number("snr_db", self.snr_db)
-        dr = _finite_number("dynamic_range_db", self.dynamic_range_db)
-        dark = _finite_number("dark_level_dn", self.dark_level_dn)
+        snr = finite_number(self.snr_db, "snr_db")
+        dr = finite_number(self.dynamic_range_db, "dynamic_range_db")
+        dark = finite_number(self.dark_level_dn, "dark_level_dn")
         if snr <= 0:
             raise PihimInputError(f"snr_db must be > 0, got {self.snr_db!r}")
         if dr <= 0:
@@ -201,14 +189,14 @@ class Exposure:
     clipped_fraction: float | None = None
 
     def __post_init__(self) -> None:
-        g = _finite_number("gain_dn", self.gain_dn)
+        g = finite_number(self.gain_dn, "gain_dn")
         if g <= 0:
             raise PihimInputError(f"gain_dn must be > 0, got {self.gain_dn!r}")
         object.__setattr__(self, "gain_dn", g)
         for name in ("reference", "percentile", "headroom", "clipped_fraction"):
             v = getattr(self, name)
             if v is not None:
-                object.__setattr__(self, name, _finite_number(name, v))
+                object.__setattr__(self, name, finite_number(v, name))
 
     def describe(self) -> dict[str, Any]:
         """JSON-ready summary."""
@@ -262,7 +250,7 @@ def lens_blur(
     -------
     s0, s1, s2 : numpy.ndarray, float64
     """
-    sigma = _finite_number("blur_sigma_px", sigma_px)
+    sigma = finite_number(sigma_px, "blur_sigma_px")
     if sigma < 0:
         raise PihimInputError(f"blur_sigma_px must be >= 0, got {sigma_px!r}")
     arrs = np.broadcast_arrays(*(np.asarray(x, dtype=np.float64) for x in (s0, s1, s2)))
@@ -318,10 +306,10 @@ def choose_exposure(
     """
     if not isinstance(sensor, SensorModel):
         raise PihimInputError(f"sensor must be a SensorModel, got {type(sensor).__name__}")
-    p = _finite_number("percentile", percentile)
+    p = finite_number(percentile, "percentile")
     if not 0 < p <= 100:
         raise PihimInputError(f"percentile must be in (0, 100], got {percentile!r}")
-    h = _finite_number("headroom", headroom)
+    h = finite_number(headroom, "headroom")
     if h <= 0:
         raise PihimInputError(f"headroom must be > 0, got {headroom!r}")
     s0a, s1a, s2a = _stokes_arrays(s0, s1, s2)
