@@ -15,10 +15,12 @@ Bounds, so that the whole module runs in well under a minute:
   stub that writes a few bytes (matplotlib's drawing is not under test);
 * ``simulate`` computes the renderer's light tables once (the same sky and
   ground in every example);
-* ``windows`` (a full-day sweep), ``canting`` (pose and facet fits) and
-  ``demo`` (plan, renders, inspections) are stopped with exit 0 where their
-  computation would start: for them the fuzz covers option parsing and
-  validation, not the computation itself.
+* ``windows`` (a full-day sweep), ``canting`` (pose and facet fits),
+  ``demo`` (plan, renders, inspections), ``live`` (the server),
+  ``simulate-flight`` (the renders) and ``campaign run|report`` (the
+  campaign) are stopped with exit 0 where their computation would start:
+  for them the fuzz covers option parsing and validation, not the
+  computation itself.
 """
 
 from __future__ import annotations
@@ -415,3 +417,117 @@ def test_calibrate_camera(root, capsys, budget, data):
                           "--square", "25", "--out", str(fresh(root) / "cam.json")], opts)
     check(main(argv), capsys.readouterr().err)
 
+
+
+@FUZZ
+@given(data=st.data())
+def test_live_options(root, capsys, budget, data):
+    import pihim.live.server as server_mod
+
+    def stop(engine, sock, **kwargs):
+        sock.close()
+        raise typer.Exit(0)  # the server would start serving here: validation passed
+
+    budget.setattr(server_mod, "serve", stop)
+    opts = {
+        "--fps": values(["15", "0", "1000"]),
+        "--size": texts(["64x64", "16x16", "15x16", "100000x100000"]),
+        "--seed": values(["0", "-1"]),
+        "--port": values(["0", "65535", "65536"]),
+        "--host": st.sampled_from(["127.0.0.1", "0.0.0.0", "::1", "not a host", ""]),
+        "--token": st.sampled_from(["auto", "", "x" * 500]),
+        "--dark-level": values(["0", "100"]),
+        "--bit-depth": values(["12", "0", "17"]),
+        "--layout": st.sampled_from(LAYOUTS),
+        "--exposure-us": values(["1000", "0"]),
+        "--max-exposure-us": values(["20000", "0"]),
+        "--max-gain-db": values(["24", "0"]),
+        "--speed": values(["5", "0"]),
+        "--range": values(["30", "0"]),
+        "--max-blur-px": values(["1", "0"]),
+        "--latency-frames": values(["2", "0", "100"]),
+        "--preview-size": values(["640", "0", "100000"]),
+        "--jpeg-quality": values(["80", "0", "101"]),
+        "--duration": values(["1", "0"]),
+        "--waypoint": values(["0", "-1"]),
+        "--plan": st.sampled_from(["/nonexistent/plan.json", str(root)]),
+        "--source": st.sampled_from(["synthetic", "genicam", "/nonexistent", str(root), "synthetic:/nonexistent"]),
+    }
+    argv = mutated(data, ["live", "--source", "synthetic", "--size", "64x64", "--port", "0",
+                          "--captures", str(fresh(root))], opts)
+    check(main(argv), capsys.readouterr().err)
+
+
+@pytest.fixture(scope="module")
+def tiny_plan(tmp_path_factory):
+    """A plan of one heliostat, for ``simulate-flight``."""
+    out = tmp_path_factory.mktemp("plan")
+    assert main(["plan", "--time", TIME, "--heliostats", "8E3", "--out", str(out)]) == 0
+    return out / "plan.json"
+
+
+@FUZZ_SLOW
+@given(data=st.data())
+def test_simulate_flight_options(root, tiny_plan, capsys, budget, data):
+    import pihim.campaign.flight as flight_mod
+
+    def stop(*args, **kwargs):
+        raise typer.Exit(0)  # rendering the flight would start here: validation passed
+
+    budget.setattr(flight_mod, "simulate_flight", stop)
+    opts = {
+        "--flight": values(["1", "0", "2"]),
+        "--fps": values(["1", "0"]),
+        "--max-frames": values(["1", "0", "-1"]),
+        "--size": texts(["64x64", "63x64", "100000x100000"]),
+        "--log": st.sampled_from(["csv", "ulog", "dataflash", "kml", ""]),
+        "--canting-sigma-mrad": values(["3", "-1"]),
+        "--gps-sigma-m": values(["0", "-1"]),
+        "--attitude-sigma-deg": values(["0", "-1"]),
+        "--seed": values(["0", "-1"]),
+    }
+    plan = data.draw(st.sampled_from([str(tiny_plan), "/nonexistent/plan.json", str(root)]), label="plan")
+    argv = mutated(data, ["simulate-flight", plan, "--size", "64x64", "--out", str(fresh(root))], opts)
+    check(main(argv), capsys.readouterr().err)
+
+
+@FUZZ
+@given(data=st.data())
+def test_campaign_options(root, capsys, budget, data):
+    import pihim.campaign.report as report_mod
+    import pihim.campaign.run as run_mod
+
+    def stop(*args, **kwargs):
+        raise typer.Exit(0)  # the campaign would start here: validation passed
+
+    budget.setattr(run_mod, "run_campaign", stop)
+    budget.setattr(report_mod, "write_report", stop)
+    not_sqlite = root / "not.db"
+    not_sqlite.write_text("not sqlite")
+    store = st.sampled_from([str(root / f"s{next(_counter)}.db"), str(not_sqlite), "/nonexistent/dir/s.db", str(root)])
+    which = data.draw(st.sampled_from(["run", "report", "export"]), label="subcommand")
+    if which == "run":
+        opts = {
+            "--workers": values(["1", "0", "1000000"]),
+            "--stages": st.sampled_from(["all", "select", "x"]),
+            "--frames-per-pair": values(["3", "0"]),
+            "--min-dolp": values(["0.2", "2"]),
+            "--scheduler": st.sampled_from(["tcp://127.0.0.1:1", "nonsense", ""]),
+            "--field": st.sampled_from(["nsttf-like", "/nonexistent.csv"]),
+            "--campaign": st.sampled_from(["c1", "", "x" * 300]),
+        }
+        base = ["campaign", "run", str(root / "noflight"), "--store", data.draw(store, label="store")]
+    elif which == "report":
+        opts = {"--campaign": st.sampled_from(["c1", ""]), "--compare": st.sampled_from(["c0", ""])}
+        base = ["campaign", "report", data.draw(store, label="store"), "--out", str(fresh(root))]
+    else:
+        opts = {"--format": st.sampled_from(["csv", "parquet", "xlsx", ""]), "--campaign": st.sampled_from(["c1", ""])}
+        base = ["campaign", "export", data.draw(store, label="store"), "--out", str(fresh(root))]
+    check(main(mutated(data, base, opts)), capsys.readouterr().err)
+
+
+def test_live_refuses_a_negative_seed(capsys):
+    """Found by test_live_options: ``--seed -1`` reached numpy's generator (exit 1, 'internal error')."""
+    assert main(["live", "--source", "synthetic", "--size", "64x64", "--port", "0", "--seed", "-1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["pihim: error: --seed must be an integer in 0..2**32-1, got -1"]

@@ -108,6 +108,8 @@ def live(
     _positive("--duration", duration)
     if not 1 <= latency_frames <= 10:
         raise PihimInputError(f"--latency-frames must be in 1..10, got {latency_frames}")
+    if not 0 <= seed < 2**32:
+        raise PihimInputError(f"--seed must be an integer in 0..2**32-1, got {seed}")
     if (plan is None) != (waypoint is None):
         raise PihimInputError("--plan and --waypoint go together")
     if plan is not None and not plan.is_file():
