@@ -46,7 +46,7 @@ def canting(
     facets: Annotated[Path | None, typer.Option("--facets", help="Facet CSV for --field CSV.")] = None,
     hua: Annotated[str | None, typer.Option("--hua", help="Heliostat under assessment (default: the log's 'hua').")] = None,
     target: Annotated[str | None, typer.Option("--target", help="Target heliostat reflected in it (default: the log's 'target').")] = None,
-    correct_target: Annotated[bool, typer.Option("--correct-target", help="Also correct the target's logged drive angles from its reflection (about 1 s more per frame; for logs off by 0.1 deg or more).")] = False,
+    correct_target: Annotated[bool, typer.Option("--correct-target", help="Also correct the target's logged drive angles, with the HUA's, from the target's reflection (about 2 s more CPU per frame; for logs off by 0.1 deg or more).")] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print canting.json on stdout.")] = False,
 ) -> int:
     """Facet canting deviations of a heliostat from the target's reflection (canting.json + canting.png).

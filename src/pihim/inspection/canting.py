@@ -10,15 +10,18 @@ facet's two canting angles move them: a tilt ``d`` turns the reflected rays by
 pixels per mrad.
 
 The heliostat's **orientation** (the paper's relative-orientation step):
-:func:`search_orientation` turns every facet by the same angles over the
-paper's +-5 deg in 0.1 deg steps and finds the node where the facets'
-reflections of the target best line up with the image's edges. The facets'
-own searches below span +-1 deg around the design; when the orientation
-search puts the heliostat farther than half a degree from it, the facets are
-fitted again around the search's node and that pass is kept if it measures
-more facets (the search proposes, the facet fits decide: clutter can raise a
-false peak far from the design). So a heliostat whose logged drive angles
-are off by more than a facet's grid is still measured.
+the camera pose is refined on the HUA's outline at its *logged* drive
+angles, so it is right relative to the HUA; a HUA really turned from those
+angles sees the target turned back about the HUA's pivot
+(:func:`hua_turn_transform`): moved by the turn times the distance (tens of
+centimetres per 0.5 deg) *and* turned about itself, which distorts its
+reflection by several pixels, more than a facet's canting can absorb.
+:func:`search_orientation` turns the HUA's drive angles over the paper's
++-5 deg in 0.1 deg steps and finds the node where the facets' reflections
+of the target best line up with the image's edges; the facets are fitted on
+the target's outline turned by it, and on the logged outline, and the turn
+is kept if it measures at least as many facets (the search proposes, the
+facet fits decide: clutter can raise a false peak).
 
 Optionally (``target_orientation=True``) the **target's** logged drive
 angles are corrected too, as the paper does: a target off its logged
@@ -58,11 +61,9 @@ frame pass the quality gates and their deviations are recovered to 0.19 /
 0.24 mrad RMS (azimuth / elevation; the best-fit orientation to 0.14 / 0.11
 mrad) against 1.67 / 2.08 mrad for the paper's grid search on the same frames;
 a median 1.8 s per frame for the whole chain (1.1 s of it this step's CPU,
-0.6 s of that the orientation search). Weak: logged drive angles off by
-0.1 deg or more (the target's correction recovers some facets at 0.1 deg,
-none at 0.5 deg, where the HUA's own turn, absorbed by the camera pose,
-displaces the target as a whole; see BENCHMARKS.md). Not yet: polarimetric
-edge weighting.
+0.6 s of that the orientation search). Logged drive angles with errors: see
+BENCHMARKS.md (the target's own error needs ``target_orientation=True``).
+Not yet: polarimetric edge weighting.
 
 References
 ----------
@@ -90,8 +91,8 @@ from pihim.inspection.pose import facet_outline_segments, line_normals, match_ed
 from pihim.render.scene import StructureSizes
 
 __all__ = ["CantingResult", "FacetCanting", "OrientationSearch", "PAPER_GRID_STEP_MRAD", "PAPER_ORIENTATION_SPAN_MRAD",
-           "drive_correction", "estimate_canting", "refine_target_orientation", "search_orientation",
-           "target_outline_segments"]
+           "drive_correction", "estimate_canting", "hua_turn_transform", "refine_orientations",
+           "refine_target_orientation", "search_orientation", "target_outline_segments"]
 
 #: Scale of the two canting angles in the refinement, mrad.
 _X_SCALE = np.array([0.1, 0.1])
@@ -106,16 +107,20 @@ PAPER_ORIENTATION_SPAN_MRAD = float(np.radians(5.0) * 1e3)
 
 @dataclass(frozen=True)
 class OrientationSearch:
-    """The paper's orientation grid search: one rotation common to every facet of the HUA.
+    """The paper's orientation grid search: the HUA's drive-angle error.
 
     Paper sec. 4.4: the relative orientation of the HUA and the target is
     corrected over +-5 deg in 0.1 deg steps until the facets' reflections of
     the target line up, before any facet is fitted; a facet's own search then
-    spans +-1 deg around it. ``az_mrad`` / ``el_mrad`` are canting-style
-    angles in the HUA's frame (:func:`pihim.field.kinematics.apply_canting_deviation`)
-    at the best grid node; ``score`` is the mean over the ``facets`` scored
-    of the share of each facet's reflected target outline points that fall
-    inside the facet within ``tol_px`` of an image edge there.
+    spans +-1 deg around it. ``az_mrad`` / ``el_mrad`` are the HUA's drive
+    azimuth and elevation errors (true minus logged, mrad) at the best grid
+    node (:func:`hua_turn_transform`); ``score`` is the mean over the
+    ``facets`` scored of the share of each facet's reflected target outline
+    points that fall inside the facet within ``tol_px`` of an image edge
+    there. ``alternatives`` are the next-best distinct peaks, ``(az_mrad,
+    el_mrad, score)``, best first (at least half the best score), reported
+    so that a user can see how clear the peak was: clutter can raise a false
+    peak above the true one (the facet fits then keep the logged angles).
     """
 
     az_mrad: float
@@ -126,9 +131,12 @@ class OrientationSearch:
     step_mrad: float
     tol_px: float
     seconds: float
+    alternatives: tuple[tuple[float, float, float], ...] = ()
 
     def to_dict(self) -> dict[str, object]:
-        return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in self.__dict__.items()}
+        out = {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in self.__dict__.items()}
+        out["alternatives"] = [{"az_mrad": a, "el_mrad": e, "score": sc} for a, e, sc in self.alternatives]
+        return out
 
 
 @dataclass(frozen=True)
@@ -172,12 +180,11 @@ class CantingResult:
         The paper's +-5 deg orientation grid search the facet fits started
         from (None when it was not run).
     drive_correction_deg : (float, float) or None
-        The best-fit orientation as a correction of the HUA's logged drive
-        angles, (azimuth, elevation) in degrees: the drive angles that turn
-        the heliostat's normal as the best-fit orientation does. One frame
-        constrains only the orientation of the HUA relative to the target
-        (and to the camera pose fitted on the HUA), so the whole correction
-        is carried by the HUA.
+        Correction of the HUA's logged drive angles, (azimuth, elevation) in
+        degrees: the orientation search's turn where the facets were fitted
+        on it, plus the drive-angle change that turns the heliostat's normal
+        as the best-fit orientation does (a rotation common to the facets
+        cannot be told from the HUA's turn, so their mean canting is in it).
     target_correction_deg : (float, float) or None
         Correction of the target's logged drive angles (azimuth, elevation),
         degrees, when the facets were measured on the target's corrected
@@ -342,10 +349,13 @@ class _FacetModel:
 
         return _kernels.project_rc(self._r, self._c, np.ascontiguousarray(pts), self._cam)
 
+    def _with(self, pts: NDArray, seg: NDArray) -> _FacetModel:
+        """The same model on other sample points."""
+        return _FacetModel(self.camera, self.pose, self.rot, self.centre, self.normal_local, pts, seg)
+
     def subsampled(self, k: int) -> _FacetModel:
         """The same model with every ``k``-th sample point (a cheaper score for the grid search)."""
-        return _FacetModel(self.camera, self.pose, self.rot, self.centre, self.normal_local, self.pts[::k],
-                           self.seg[::k])
+        return self._with(self.pts[::k], self.seg[::k])
 
     def near(self, mask: _Mask, span_mrad: float, margin_px: float = 20.0,
              centre_mrad: tuple[float, float] = (0.0, 0.0)) -> _FacetModel:
@@ -370,8 +380,7 @@ class _FacetModel:
         uv = self.project_many(np.array([a0]), np.array([e0]))[0]
         keep = (uv[:, 0] >= c_lo - grow) & (uv[:, 0] <= c_hi + grow) \
             & (uv[:, 1] >= r_lo - grow) & (uv[:, 1] <= r_hi + grow)
-        return _FacetModel(self.camera, self.pose, self.rot, self.centre, self.normal_local, self.pts[keep],
-                           self.seg[keep])
+        return self._with(self.pts[keep], self.seg[keep])
 
     def quadratic_coefficients(self, s: float, centre_mrad: tuple[float, float] = (0.0, 0.0)) -> NDArray:
         """Coefficients (6, N, 2) of each point's pixel as a quadratic in the angles (mrad)
@@ -412,20 +421,116 @@ class _FacetModel:
         return uv, line_normals(uv, self.seg)
 
 
+class _TurnModel(_FacetModel):
+    """The target reflected in one HUA facet (design canting) when the HUA is turned from its logged drive angles.
+
+    The two angles of :meth:`project_many` (and so of the quadratic and of
+    :func:`search_orientation`) are the HUA's drive-angle errors, azimuth and
+    elevation in mrad, instead of a facet's canting: the camera pose is
+    fitted on the HUA at its logged angles, so a HUA turned by them sees the
+    target as the world turned back about its pivot (:func:`hua_turn_transform`).
+    """
+
+    def __init__(self, base: _FacetModel, drive_deg: tuple[float, float], pivot: NDArray):
+        super().__init__(base.camera, base.pose, base.rot, base.centre, base.normal_local, base.pts, base.seg)
+        self.drive_deg, self.pivot = drive_deg, np.asarray(pivot, float)
+
+    def _with(self, pts: NDArray, seg: NDArray) -> _TurnModel:
+        return _TurnModel(super()._with(pts, seg), self.drive_deg, self.pivot)
+
+    def project_many(self, az_mrad: NDArray, el_mrad: NDArray, pts: NDArray | None = None) -> NDArray:
+        from pihim.field.kinematics import rotation_from_drive
+
+        pts = self.pts if pts is None else pts
+        to_deg = 180.0 / math.pi * 1e-3
+        az = self.drive_deg[0] + np.asarray(az_mrad, float) * to_deg
+        el = self.drive_deg[1] + np.asarray(el_mrad, float) * to_deg
+        m = self.rot @ np.swapaxes(rotation_from_drive(az, el), -1, -2)  # (G, 3, 3): logged from true
+        world = self.pivot + np.einsum("gij,nj->gni", m, pts - self.pivot)  # (G, N, 3)
+        n = self.rot @ self.normal_local
+        virt = world - 2.0 * ((world - self.centre) @ n)[:, :, None] * n
+        return self._project(virt.reshape(-1, 3)).reshape(len(m), -1, 2)
+
+
+def _equivalent_tilt(model: _FacetModel, turned: _TurnModel, turn_mrad: tuple[float, float],
+                     subsample: int = 8) -> tuple[float, float]:
+    """The facet tilt (canting angles, mrad) that moves the facet's reflection of the target as the HUA's turn
+    ``turn_mrad`` does: Gauss-Newton on the projected outline points (every ``subsample``-th), from no tilt.
+
+    To first order a turn of the HUA and a common tilt of its facets move the
+    target's reflection alike; they differ by the target's distortion (a
+    pixel or so per 0.1 deg), which the least squares averages over.
+    """
+    pts = model.pts[::subsample]
+    if len(pts) < 3:
+        return 0.0, 0.0
+    goal = turned.project_many(np.array([turn_mrad[0]]), np.array([turn_mrad[1]]), pts)[0].ravel()
+    x = np.zeros(2)
+    h = 0.5
+    for _ in range(4):
+        uv = model.project_many(x[0] + np.array([0.0, h, 0.0]), x[1] + np.array([0.0, 0.0, h]), pts)
+        r = goal - uv[0].ravel()
+        jac = np.column_stack([(uv[1] - uv[0]).ravel() / h, (uv[2] - uv[0]).ravel() / h])
+        ok = np.isfinite(r) & np.all(np.isfinite(jac), axis=1)
+        if ok.sum() < 3:
+            return 0.0, 0.0
+        dx = np.linalg.lstsq(jac[ok], r[ok], rcond=None)[0]
+        x += dx
+        if np.max(np.abs(dx)) < 1e-3:
+            break
+    return float(x[0]), float(x[1])
+
+
+def hua_turn_transform(field_pose: FieldPose, index: int, d_az_deg: float, d_el_deg: float) -> tuple[NDArray, NDArray]:
+    """How the world looks from a camera pose fitted on a heliostat that is turned from its logged drive angles.
+
+    A camera pose refined on the HUA's outline at its logged drive angles
+    (:func:`pihim.inspection.pose.refine_pose`) is right *relative to the
+    HUA*. If the HUA is really at ``logged + (d_az, d_el)``, every other
+    point ``p`` of the world (the target) sits, in that pose's frame, at
+    ``pivot + M (p - pivot)`` with ``M = R_logged R_true^T`` (drive frames,
+    :func:`pihim.field.kinematics.rotation_from_drive`) and ``pivot`` the
+    HUA's torque-tube pivot. Returns ``(pivot, M)``.
+    """
+    from pihim.field.kinematics import rotation_from_drive
+
+    d = field_pose.drive
+    az, el = float(d.azimuth_deg[index]), float(d.elevation_deg[index])
+    r_log = rotation_from_drive(az, el)
+    r_true = rotation_from_drive(az + d_az_deg, el + d_el_deg)
+    offset = float(field_pose.field.spec.pivot_offset_m)  # type: ignore[attr-defined]
+    pivot = field_pose.mirror_centres[index] - offset * field_pose.rotations[index][:, 2]
+    return pivot, r_log @ r_true.T
+
+
+def _apply(world: tuple[NDArray, NDArray] | None, pts: NDArray) -> NDArray:
+    """``pivot + M (p - pivot)`` for each point (the identity for ``world=None``)."""
+    if world is None:
+        return pts
+    pivot, m = world
+    return pivot + (pts - pivot) @ m.T
+
+
 def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_mrad: float,
                step_mrad: float, gates_px: tuple[float, ...], grid_tol_px: float = 5.0,
                centre_mrad: tuple[float, float] = (0.0, 0.0), prefer_mrad: tuple[float, float] | None = None,
-               ambiguity: float = 0.05, matches: list | None = None) -> tuple:
+               ambiguity: float = 0.05, matches: list | None = None, max_peaks: int = 3,
+               support_margin: float = 0.05) -> tuple:
     """(grid az, grid el, az, el, sigma az, sigma el, points, rms) for one facet (raw, not relative).
 
     The grid spans ``+-span_mrad`` around ``centre_mrad`` (the heliostat's
     orientation from :func:`search_orientation`, or the design). The grid
     values returned are the paper's (the best node); the refinement starts
-    from the node nearest ``prefer_mrad`` (default the centre) among those
-    scoring within ``ambiguity`` of the best: the target's back is periodic
-    (facet rows and columns, crossbars), so a facet that sees only part of it
-    matches almost as well one period away (15-30 mrad at UFACET distances),
-    and canting errors are small next to that. Given a list ``matches``, the
+    from each of up to ``max_peaks`` local peaks of the grid scoring within
+    ``ambiguity`` of the best, nearest ``prefer_mrad`` (default the centre)
+    first: the target's back is periodic (facet rows and columns,
+    crossbars), so a facet that sees only part of it matches almost as well
+    one period away (5-30 mrad at UFACET distances). The refined fit whose
+    reflected outline lies best on the image's edges (support, the share
+    within 1.5 px) wins; a farther peak must beat a nearer one by
+    ``support_margin``. Two fits more than a grid step apart whose supports
+    are within ``support_margin`` of each other leave the facet ambiguous:
+    it is skipped (raises). Given a list ``matches``, the
     last round's matched model points (world), image points and line normals
     are appended to it as one tuple (for :func:`refine_target_orientation`).
 
@@ -451,14 +556,54 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     if g_best[0] < 0:
         raise PihimInputError("no reflected target outline falls inside this facet")
     grid_az, grid_el = g_best[1], g_best[2]
-    # 2. continuous refinement: point-to-line ICP with LM, from the near-best node nearest the preferred angles
+    # 2. continuous refinement: point-to-line ICP with LM, from each distinct near-best peak of the grid (the
+    #    nearest the preferred angles first); the refined fit whose outline is best supported by the image wins
     pa, pe = centre_mrad if prefer_mrad is None else prefer_mrad
-    cand = np.flatnonzero(score >= (1.0 - ambiguity) * g_best[0])
-    k0 = int(cand[np.argmin((gaz[cand] + centre_mrad[0] - pa) ** 2 + (gel[cand] + centre_mrad[1] - pe) ** 2)])
-    az, el = float(gaz[k0]) + centre_mrad[0], float(gel[k0]) + centre_mrad[1]
+    from scipy import ndimage
+
+    n_g = len(grid)
+    sc = score.reshape(n_g, n_g)
+    peaks = np.flatnonzero(((sc == ndimage.maximum_filter(sc, size=5, mode="nearest"))
+                            & (sc >= (1.0 - ambiguity) * g_best[0])).ravel())
+    if peaks.size == 0:
+        peaks = np.array([k])
+    peaks = peaks[np.argsort((gaz[peaks] + centre_mrad[0] - pa) ** 2 + (gel[peaks] + centre_mrad[1] - pe) ** 2)]
     ob = obs[mask.inside(obs)]
     if len(ob) < 20:
         raise PihimInputError("too few edge points inside this facet")
+    fits = []
+    error: PihimInputError | None = None
+    for k0 in peaks[:max_peaks]:
+        try:
+            fits.append(_refine_facet(model, mask, ob, dt, gates_px, float(gaz[k0]) + centre_mrad[0],
+                                      float(gel[k0]) + centre_mrad[1]))
+        except PihimInputError as exc:
+            error = exc
+    if not fits:
+        assert error is not None
+        raise error
+    best = fits[0]
+    for fit in fits[1:]:  # a farther peak must be clearly better supported to displace a nearer one
+        if fit[6] > best[6] + support_margin:
+            best = fit
+    # two distinct fits that the image supports alike: the facet shows too little of the target to tell them
+    # apart (a part of its back whose edges repeat), and either would be a made-up number
+    for fit in fits:
+        apart = math.hypot(fit[0] - best[0], fit[1] - best[1])
+        if fit is not best and apart > step_mrad and fit[6] >= best[6] - support_margin:
+            raise PihimInputError(f"two fits {apart:.1f} mrad apart explain it alike (support {best[6]:.2f} and "
+                                  f"{fit[6]:.2f})")
+    az, el, sa, se, n, rms, support, found = best
+    if matches is not None:
+        matches.append(found)
+    return grid_az, grid_el, az, el, sa, se, n, rms, support
+
+
+def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gates_px: tuple[float, ...],
+                  az: float, el: float) -> tuple:
+    """Point-to-line ICP with LM from ``(az, el)``: (az, el, sigma az, sigma el, points, rms, support, matches)."""
+    from pihim.inspection import _kernels
+
     aux = np.concatenate([np.ravel(model.rot), model.centre, model.normal_local])
     jac = None
     r = np.zeros(0)
@@ -478,8 +623,7 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
         x, r, jac = _kernels.solve(prob, np.array([az, el]), len(q), _X_SCALE, 200, True, 0.5)
         az, el = float(x[0]), float(x[1])
     assert jac is not None
-    if matches is not None:
-        matches.append((model.pts[idx], q, nq))
+    found = (model.pts[idx], q, nq)
     inl = np.abs(r) < 1.0
     n = int(inl.sum())
     jac = jac[inl] if n > 2 else jac
@@ -495,7 +639,7 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     ins = mask.inside(uv)
     qq = np.rint(uv[ins]).astype(int)
     support = float(np.mean(dt[qq[:, 1], qq[:, 0]] <= 1.5)) if ins.any() else 0.0
-    return grid_az, grid_el, az, el, float(sig[0]), float(sig[1]), n, rms, support
+    return az, el, float(sig[0]), float(sig[1]), n, rms, support, found
 
 
 def search_orientation(
@@ -508,18 +652,21 @@ def search_orientation(
     block: int = 21,
     subsample: int = 96,
     highpass: int = 11,
+    n_alternatives: int = 2,
 ) -> OrientationSearch:
-    """The paper's heliostat orientation grid search (sec. 4.4): one rotation for every facet.
+    """The paper's heliostat orientation grid search (sec. 4.4): one pair of angles for every facet.
 
     Every node of the grid ``{-span, ..., span}^2`` (step ``step_mrad``;
-    101 x 101 nodes for the paper's +-5 deg at 0.1 deg) tilts all facet
-    normals by the same angles; each facet scores the share of its reflected
+    101 x 101 nodes for the paper's +-5 deg at 0.1 deg) is one pair of angles
+    that every facet's model takes: the HUA's drive-angle errors for the
+    models :func:`estimate_canting` passes (``_TurnModel``), or a common
+    canting tilt for plain facet models; each facet scores the share of its reflected
     target outline points that fall inside its eroded mask within ``tol_px``
     of an image edge, and the node with the largest mean over the facets
     wins. (The share of the points *inside the mask* would not do: a node
     that leaves a few points in a facet, on some edge, would score high.)
     Facet canting errors (a few mrad) move each facet's reflection a little
-    differently; the mean over the facets is what a common rotation fixes.
+    differently; the mean over the facets is what a common turn fixes.
 
     The projections are evaluated on blocks of ``block`` x ``block`` nodes
     from a quadratic through nine exact projections per block (the same
@@ -533,6 +680,8 @@ def search_orientation(
         eroded mask.
     dt : ndarray
         Distance transform of the edge-point image, pixels.
+    n_alternatives : int
+        How many next-best distinct peaks to return beside the best.
 
     Returns
     -------
@@ -576,8 +725,15 @@ def search_orientation(
         raise PihimInputError("no facet shows the target's reflection anywhere within the orientation search")
     k = int(np.argmax(total))
     i, j = divmod(k, n)
+    # the next-best distinct peaks (local maxima over +-3 nodes, at least half the best score)
+    local = (total == ndimage.maximum_filter(total, size=7, mode="nearest")) & (total >= 0.5 * total[i, j])
+    local[i, j] = False
+    order = np.flatnonzero(local.ravel())
+    order = order[np.argsort(-total.ravel()[order], kind="stable")][:max(n_alternatives, 0)]
+    alternatives = tuple((float(grid[a]), float(grid[b]), float(total[a, b] / scored))
+                         for a, b in (divmod(int(q), n) for q in order))
     return OrientationSearch(float(grid[i]), float(grid[j]), float(total[i, j] / scored), scored, float(span_mrad),
-                             float(step_mrad), float(tol_px), time.perf_counter() - t0)
+                             float(step_mrad), float(tol_px), time.perf_counter() - t0, alternatives)
 
 
 def refine_target_orientation(
@@ -589,40 +745,84 @@ def refine_target_orientation(
     facets: list[tuple[int, float, float, tuple[NDArray, NDArray, NDArray]]],
     *,
     max_deg: float = 5.0,
+    hua_turn_deg: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[float, float]:
     """The target's drive-angle correction that best explains its reflections in the HUA's facets, degrees.
 
-    The paper corrects the target's logged orientation before measuring
-    canting (sec. 4.4): a target at a wrong logged orientation has a
-    distorted outline in the model (its points move out of its plane by up
-    to its half-width times the error), and every facet's fit is off by a
-    few pixels. Here the target's two drive angles and every facet's two
-    canting angles are solved together by robust least squares (soft-L1,
-    0.5 px) on the point-to-line distances of the facets' last matches
-    (:func:`_fit_facet`'s ``matches``): the target's points turn about its
-    pivot with the drive angles (mirror centre ``pivot + offset * normal``),
-    each facet mirrors them in its plane.
-
-    Parameters
-    ----------
-    facets : list of (facet index, az_mrad, el_mrad, (points, image points, line normals))
-        The facets' fits (raw deviations) and their matches.
-    max_deg : float
-        Largest correction accepted per axis; beyond it the fit is not
-        trusted and (0, 0) is returned.
+    :func:`refine_orientations` with the HUA's turn held at ``hua_turn_deg``.
 
     Returns
     -------
     (d_azimuth_deg, d_elevation_deg)
     """
+    return refine_orientations(camera, pose, field_pose, hua, target, facets, max_deg=max_deg,
+                               hua_turn_deg=hua_turn_deg, solve_hua=False)[0]
+
+
+def refine_orientations(
+    camera: CameraModel,
+    pose: CameraPose,
+    field_pose: FieldPose,
+    hua: int,
+    target: int,
+    facets: list[tuple[int, float, float, tuple[NDArray, NDArray, NDArray]]],
+    *,
+    max_deg: float = 5.0,
+    hua_turn_deg: tuple[float, float] = (0.0, 0.0),
+    solve_hua: bool = True,
+    max_points: int = 300,
+) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Corrections of the target's and the HUA's drive angles that best explain the target's reflections, degrees.
+
+    The paper corrects the logged orientations before measuring canting
+    (sec. 4.4). A target at a wrong logged orientation has a distorted
+    outline in the model (its points move out of its plane by up to its
+    half-width times the error); a HUA at a wrong logged orientation sees,
+    through the camera pose fitted on it, the target turned back about the
+    HUA's pivot (:func:`hua_turn_transform`): moved, which a common tilt of
+    the facets nearly mimics, and turned, which it does not. Either leaves
+    every facet's fit a few pixels off. Here the target's two drive angles,
+    the HUA's two (``solve_hua``) and every facet's two canting angles are
+    solved together by robust least squares (soft-L1, 0.5 px) on the
+    point-to-line distances of the facets' last matches (:func:`_fit_facet`'s
+    ``matches``): the target's points turn about its pivot with its drive
+    angles (mirror centre ``pivot + offset * normal``), then about the
+    HUA's pivot with the HUA's turn, and each facet mirrors them in its
+    plane. A common tilt of the facets and the HUA's turn differ only by
+    that second-order picture, so the HUA's share is weakly determined; the
+    facets' deviations relative to their mean are not affected.
+
+    Parameters
+    ----------
+    facets : list of (facet index, az_mrad, el_mrad, (points, image points, line normals))
+        The facets' fits (raw deviations) and their matches, made on the
+        target's outline at its logged angles turned by ``hua_turn_deg``.
+    max_deg : float
+        Largest correction accepted per axis; beyond it the fit is not
+        trusted and no correction is returned.
+    hua_turn_deg : (float, float)
+        The HUA's drive-angle error the matches were made with
+        (:func:`hua_turn_transform`), degrees.
+    solve_hua : bool
+        Also correct the HUA's turn; otherwise it is held. The facets'
+        mean canting is then held near zero by a weak penalty (1 px per
+        mrad), as the HUA's turn and a common tilt nearly trade off.
+    max_points : int
+        Matches used per facet, at most (evenly along them).
+
+    Returns
+    -------
+    ((d_az_target, d_el_target), (d_az_hua, d_el_hua))
+        Degrees; the HUA's correction is on top of ``hua_turn_deg``.
+    """
     from scipy.optimize import least_squares
-    from scipy.sparse import lil_matrix
 
     from pihim.field.kinematics import rotation_from_drive
     from pihim.inspection import _kernels
 
+    none = ((0.0, 0.0), (0.0, 0.0))
     if not facets:
-        return 0.0, 0.0
+        return none
     d = field_pose.drive
     az0, el0 = float(d.azimuth_deg[target]), float(d.elevation_deg[target])
     r0 = field_pose.rotations[target]
@@ -633,36 +833,75 @@ def refine_target_orientation(
     cam = _kernels.camera_vector(camera)
     rc = np.array(pose.rotation, float)
     cc = np.array(pose.position_m, float)
-    local = [(m[0] - c0) @ r0 for _, _, _, m in facets]  # target frame
+    h_pivot, m0 = hua_turn_transform(field_pose, hua, *hua_turn_deg)
+    h_az, h_el = float(d.azimuth_deg[hua]), float(d.elevation_deg[hua])
+    r_log = rotation_from_drive(h_az, h_el)
+    # at most ``max_points`` matches per facet, evenly along them: a few hundred fix two angles as well
+    facets = [(f, a, e, tuple(np.asarray(v)[::max(1, -(-len(m[1]) // max_points))] for v in m))
+              for f, a, e, m in facets]
+    local = [(_apply((h_pivot, m0.T), m[0]) - c0) @ r0 for _, _, _, m in facets]  # target frame
     sizes = [len(m[1]) for *_, m in facets]
     starts = np.concatenate([[0], np.cumsum(sizes)])
     centres = [field_pose.facet_centres[hua, f] for f, *_ in facets]
     normals_local = [field_pose.facet_normals_local[hua, f] for f, *_ in facets]
+    n_o = 4 if solve_hua else 2
+    n_f = len(facets)
+    # the facets' mean canting is held near zero (weight ``mean_weight`` px per mrad): with the HUA's turn
+    # free, a common tilt of the facets and the turn nearly trade off, and the turn takes the common part
+    mean_weight = 1.0 if solve_hua else 0.0
+
+    def block(x_o: NDArray, x_f: NDArray, k: int) -> NDArray:
+        """Point-to-line residuals of facet ``k`` at orientation ``x_o`` and its canting ``x_f``."""
+        rt = rotation_from_drive(az0 + x_o[0], el0 + x_o[1])
+        ct = pivot + offset * rt[:, 2]
+        world = (h_pivot, m0) if not solve_hua else \
+            (h_pivot, r_log @ rotation_from_drive(h_az + hua_turn_deg[0] + x_o[2], h_el + hua_turn_deg[1] + x_o[3]).T)
+        m = facets[k][3]
+        p = _apply(world, ct + local[k] @ rt.T)
+        n = rot_h @ apply_canting_deviation(normals_local[k], x_f[0], x_f[1])
+        virt = p - 2.0 * ((p - centres[k]) @ n)[:, None] * n
+        uv = _kernels.project_rc(rc, cc, np.ascontiguousarray(virt), cam)
+        return np.nan_to_num(np.sum((uv - m[1]) * m[2], axis=1), nan=10.0)
 
     def residuals(x: NDArray) -> NDArray:
-        rt = rotation_from_drive(az0 + x[0], el0 + x[1])
-        ct = pivot + offset * rt[:, 2]
-        out = np.empty(starts[-1])
-        for k, (loc, (_, _, _, m)) in enumerate(zip(local, facets, strict=True)):
-            p = ct + loc @ rt.T
-            n = rot_h @ apply_canting_deviation(normals_local[k], x[2 + 2 * k], x[3 + 2 * k])
-            virt = p - 2.0 * ((p - centres[k]) @ n)[:, None] * n
-            uv = _kernels.project_rc(rc, cc, np.ascontiguousarray(virt), cam)
-            out[starts[k]:starts[k + 1]] = np.sum((uv - m[1]) * m[2], axis=1)
-        return np.nan_to_num(out, nan=10.0)
+        out = np.empty(starts[-1] + 2)
+        for k in range(n_f):
+            out[starts[k]:starts[k + 1]] = block(x[:n_o], x[n_o + 2 * k:n_o + 2 * k + 2], k)
+        xf = x[n_o:].reshape(n_f, 2)
+        out[starts[-1]:] = mean_weight * xf.mean(axis=0)
+        return out
 
-    n_p = 2 + 2 * len(facets)
-    sparsity = lil_matrix((int(starts[-1]), n_p), dtype=int)
-    for k in range(len(facets)):
-        sparsity[starts[k]:starts[k + 1], [0, 1, 2 + 2 * k, 3 + 2 * k]] = 1
-    x0 = np.concatenate([[0.0, 0.0], np.ravel([[a, e] for _, a, e, _ in facets])])
-    scale = np.concatenate([[0.01, 0.01], np.full(n_p - 2, 0.1)])
-    fit = least_squares(residuals, x0, jac_sparsity=sparsity, loss="soft_l1", f_scale=0.5, x_scale=scale,
-                        max_nfev=200)
-    d_az, d_el = float(fit.x[0]), float(fit.x[1])
-    if not (abs(d_az) <= max_deg and abs(d_el) <= max_deg):
-        return 0.0, 0.0
-    return d_az, d_el
+    def jacobian(x: NDArray) -> object:
+        # each facet's residuals depend on the orientation angles and its own two: forward differences
+        # per facet (n_o + 2 evaluations of that facet's block), the mean rows analytic
+        jac = np.zeros((int(starts[-1]) + 2, n_o + 2 * n_f))
+        for k in range(n_f):
+            xo, xf = x[:n_o].copy(), x[n_o + 2 * k:n_o + 2 * k + 2].copy()
+            r0 = block(xo, xf, k)
+            idx = np.arange(starts[k], starts[k + 1])
+            for j in range(n_o + 2):
+                step = (1e-5 if j < n_o else 1e-3)
+                xo2, xf2 = xo.copy(), xf.copy()
+                if j < n_o:
+                    xo2[j] += step
+                    col = j
+                else:
+                    xf2[j - n_o] += step
+                    col = n_o + 2 * k + j - n_o
+                jac[idx, col] = (block(xo2, xf2, k) - r0) / step
+        for a in range(2):
+            jac[starts[-1] + a, n_o + 2 * np.arange(n_f) + a] = mean_weight / n_f
+        return jac
+
+    n_p = n_o + 2 * n_f
+    x0 = np.concatenate([np.zeros(n_o), np.ravel([[a, e] for _, a, e, _ in facets])])
+    scale = np.concatenate([np.full(n_o, 0.01), np.full(n_p - n_o, 0.1)])
+    fit = least_squares(residuals, x0, jac=jacobian, loss="soft_l1", f_scale=0.5, x_scale=scale, max_nfev=50,
+                        tr_solver="exact")
+    corr = np.asarray(fit.x[:n_o], float)
+    if not np.all(np.abs(corr) <= max_deg):
+        return none
+    return (float(corr[0]), float(corr[1])), ((float(corr[2]), float(corr[3])) if solve_hua else (0.0, 0.0))
 
 
 def drive_correction(field_pose: FieldPose, index: int, az_mrad: float, el_mrad: float) -> tuple[float, float]:
@@ -750,12 +989,12 @@ def estimate_canting(
         spans ``span_mrad`` around its result. Default the paper's +-5 deg;
         None skips it (the facets' grids centred on the design).
     target_orientation : bool
-        Correct the target's logged drive angles
-        (:func:`refine_target_orientation`) and fit the facets again on its
-        corrected outline, kept if that measures more facets (or as many,
-        with smaller residuals). Off by default: it costs about 1 s of CPU
-        per frame and helps only when the plant's logged drive angles are
-        off by about 0.1 deg or more (BENCHMARKS.md).
+        Correct the target's logged drive angles and the HUA's turn
+        together (:func:`refine_orientations`) and fit the facets again on
+        the corrected outline, kept if that measures more facets (or as
+        many, with smaller residuals). Off by default: it costs about 2 s of
+        CPU per frame and helps only when the plant's logged drive angles
+        are off by about 0.1 deg or more (BENCHMARKS.md).
 
     Returns
     -------
@@ -807,7 +1046,7 @@ def estimate_canting(
         return _FacetModel(camera, pose, field_pose.rotations[h], field_pose.facet_centres[h, f],
                            field_pose.facet_normals_local[h, f], outline["pts"], outline["seg"])
 
-    def fit_facets(centre: tuple[float, float], prefer: tuple[float, float] | None,
+    def fit_facets(centre: tuple[float, float], prefer: dict[int, tuple[float, float]] | None,
                    collect: list | None = None) -> dict[int, object]:
         fits: dict[int, object] = {}
         for f, mask in candidates:
@@ -815,7 +1054,7 @@ def estimate_canting(
             found: list = []
             try:
                 fit = _fit_facet(model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px, centre_mrad=centre,
-                                 prefer_mrad=prefer, matches=found)
+                                 prefer_mrad=None if prefer is None else prefer.get(f), matches=found)
             except PihimInputError as exc:
                 fits[f + 1] = f"no usable reflection of {target}: {exc}"
                 continue
@@ -845,70 +1084,99 @@ def estimate_canting(
     search = None
     notes = []
     if orientation_span_mrad is not None and candidates:
+        drv = field_pose.drive
+        drive_h = (float(drv.azimuth_deg[h]), float(drv.elevation_deg[h]))
+        pivot_h, _ = hua_turn_transform(field_pose, h, 0.0, 0.0)
         try:
-            search = search_orientation([(facet_model(f).near(m, orientation_span_mrad), m) for f, m in candidates],
-                                        dt, span_mrad=float(orientation_span_mrad))
+            search = search_orientation([(_TurnModel(facet_model(f), drive_h, pivot_h).near(m, orientation_span_mrad), m)
+                                         for f, m in candidates], dt, span_mrad=float(orientation_span_mrad))
         except PihimInputError as exc:
             notes.append(f"orientation search: {exc}")
-    # The facets' own grids (+-span_mrad) around the design hold a heliostat within half a span of it;
-    # between near-equal peaks of a facet's grid the refinement starts from the one nearest the search's
-    # node. Farther, the search proposes and the facet fits decide: the facets are fitted again around the
-    # search's node, and that pass is kept if it measures more facets (clutter -- other heliostats' backs,
-    # the ground -- can raise a false peak of the search far from the design).
-    centre = (0.0, 0.0) if search is None else \
-        tuple(v if abs(v) > 0.5 * span_mrad else 0.0 for v in (search.az_mrad, search.el_mrad))
-    node = None if search is None else (search.az_mrad, search.el_mrad)
-    design_matches: list = []
-    fits = fit_facets((0.0, 0.0), node if centre == (0.0, 0.0) else None, design_matches)
-    matches = design_matches
-    prefer = node if centre == (0.0, 0.0) else None
-    if centre != (0.0, 0.0):
-        moved_matches: list = []
-        moved = fit_facets(centre, node, moved_matches)
-        n_moved, n_design = n_used(moved), n_used(fits)
-        if n_moved > n_design:
-            fits, matches, prefer = moved, moved_matches, node
-            notes.append(f"facets fitted around the orientation search's node (az {centre[0]:+.1f}, "
-                         f"el {centre[1]:+.1f} mrad): {n_moved} facets measured there, {n_design} around the design")
-        else:
-            centre = (0.0, 0.0)
-            notes.append(f"the orientation search's node (az {search.az_mrad:+.1f}, el {search.el_mrad:+.1f} mrad) "
-                         "measured fewer facets than the design; kept the design")
-    # The target's logged orientation (paper sec. 4.4): solved with every facet that found the target's
-    # outline (the residual gate aside: a target off its logged angles fails it everywhere), then the facets
-    # fitted again on the corrected outline; kept if it measures more facets (or as many, closer).
+    # The search's node is the HUA's drive-angle error: the target's outline is turned as a camera pose fitted
+    # on the HUA sees it (hua_turn_transform) and every facet is fitted around its design on that outline. The
+    # search proposes, the facet fits decide: the facets are fitted on the logged outline too, and the turn is
+    # kept if it measures more facets (or as many, with more facets finding the target's outline -- what the
+    # target's correction below starts from -- or as many, closer): clutter -- other heliostats' backs, the
+    # ground -- can raise a false peak of the search.
+    plain = {"pts": pts, "seg": seg}
+    turn_deg = (0.0, 0.0)
+    fits: dict[int, object] = {}
+    matches: list = []
+    world = None
+    if search is not None and (search.az_mrad != 0.0 or search.el_mrad != 0.0):
+        turn_deg = (math.degrees(search.az_mrad * 1e-3), math.degrees(search.el_mrad * 1e-3))
+        world = hua_turn_transform(field_pose, h, *turn_deg)
+        outline.update(pts=_apply(world, pts))
+        fits = fit_facets((0.0, 0.0), None, matches)
+        outline.update(plain)
+    # on the logged outline, a facet whose grid has near-equal peaks (the target's back is periodic) starts
+    # from the one nearest the tilt that mimics the search's turn
+    prefer = None if world is None else {
+        f: _equivalent_tilt(facet_model(f).near(m, span_mrad),
+                            _TurnModel(facet_model(f), drive_h, pivot_h).near(m, span_mrad),
+                            (search.az_mrad, search.el_mrad))
+        for f, m in candidates}
+    logged_matches: list = []
+    logged = fit_facets((0.0, 0.0), prefer, logged_matches)
+    if world is not None and (n_used(fits), len(matches), -mean_rms(fits)) > \
+            (n_used(logged), len(logged_matches), -mean_rms(logged)):
+        notes.append(f"HUA {hua}'s logged drive angles corrected by the orientation search: az {turn_deg[0]:+.2f}, "
+                     f"el {turn_deg[1]:+.2f} deg ({n_used(fits)} facets measured, {n_used(logged)} at the logged "
+                     "angles)")
+        outline.update(pts=_apply(world, pts))
+    else:
+        if world is not None:
+            notes.append(f"the orientation search's node (HUA az {turn_deg[0]:+.2f}, el {turn_deg[1]:+.2f} deg) "
+                         f"measured {n_used(fits)} facets, the logged angles {n_used(logged)}: kept the logged angles")
+        fits, matches, world, turn_deg = logged, logged_matches, None, (0.0, 0.0)
+    # The logged orientations (paper sec. 4.4): the target's drive angles and the HUA's turn solved with every
+    # facet that found the target's outline (the residual gate aside: a target off its logged angles fails it
+    # everywhere), then the facets fitted again on the corrected outline; kept if it measures more facets (or
+    # as many, closer).
     target_corr = None
     if target_orientation and len(matches) >= 2:
         drv = field_pose.drive
         az_t = np.array(drv.azimuth_deg, float)
         el_t = np.array(drv.elevation_deg, float)
-        plain = dict(outline)
+        kept = dict(outline)
         total = np.zeros(2)
+        turn = np.array(turn_deg, float)
         best = (n_used(fits), -mean_rms(fits))
-        tried = fits
-        for _ in range(4):  # solve, refit on the corrected outline, solve again from the new matches
+        found = None  # (fits, target correction, HUA turn, outline) of the best iteration that beats ``best``
+        last = (total.copy(), turn.copy())
+        for _ in range(3):  # solve, refit on the corrected outline, solve again from the new matches
             fp_t = field_pose.with_drive(np.where(np.arange(len(az_t)) == t, az_t + total[0], az_t),
                                          np.where(np.arange(len(el_t)) == t, el_t + total[1], el_t))
-            step = np.array(refine_target_orientation(camera, pose, fp_t, h, t, matches))
-            if not np.any(np.abs(step) > 1e-3):
+            step_t, step_h = (np.array(v) for v in refine_orientations(camera, pose, fp_t, h, t, matches,
+                                                                         hua_turn_deg=(turn[0], turn[1])))
+            if not np.any(np.abs(np.concatenate([step_t, step_h])) > 1e-3):
                 break
-            total += step
-            az_n, el_n = az_t.copy(), el_t.copy()
-            az_n[t] += total[0]
-            el_n[t] += total[1]
-            p2, s2 = sample_segments(target_outline_segments(field_pose.with_drive(az_n, el_n), t, sizes), 0.01)
-            outline.update(pts=p2, seg=s2)
+            total += step_t
+            turn += step_h
+            last = (total.copy(), turn.copy())
+            p2, s2 = sample_segments(target_outline_segments(field_pose.with_drive(
+                np.where(np.arange(len(az_t)) == t, az_t + total[0], az_t),
+                np.where(np.arange(len(el_t)) == t, el_t + total[1], el_t)), t, sizes), 0.01)
+            outline.update(pts=_apply(hua_turn_transform(field_pose, h, turn[0], turn[1]), p2), seg=s2)
             matches = []
-            tried = fit_facets(centre, prefer, matches)
-            if len(matches) < 2 or np.max(np.abs(step)) < 0.005:
+            tried = fit_facets((0.0, 0.0), None, matches)
+            if (n_used(tried), -mean_rms(tried)) > best:
+                best = (n_used(tried), -mean_rms(tried))
+                found = (tried, total.copy(), turn.copy(), dict(outline))
+            if len(matches) < 2 or np.max(np.abs(np.concatenate([step_t, step_h]))) < 0.01:
                 break
-        if np.any(total != 0.0) and (n_used(tried), -mean_rms(tried)) > best:
-            fits, target_corr = tried, (float(total[0]), float(total[1]))
-            notes.append(f"target {target}'s logged orientation corrected by az {total[0]:+.3f}, el {total[1]:+.3f} deg")
-        elif np.any(total != 0.0):
-            outline.update(plain)
-            notes.append(f"target {target}'s orientation fit (az {total[0]:+.3f}, el {total[1]:+.3f} deg) measured no "
-                         "more facets; kept its logged angles")
+        if found is not None:
+            fits, total, turn, kept_outline = found
+            outline.update(kept_outline)
+            target_corr = (float(total[0]), float(total[1]))
+            notes.append(f"target {target}'s logged orientation corrected by az {total[0]:+.3f}, el {total[1]:+.3f} "
+                         f"deg, with the HUA's turn at az {turn[0]:+.3f}, el {turn[1]:+.3f} deg")
+            turn_deg = (float(turn[0]), float(turn[1]))
+        elif np.any(last[0] != 0.0) or np.any(last[1] != np.array(turn_deg)):
+            outline.update(kept)
+            notes.append(f"target {target}'s orientation fit (az {last[0][0]:+.3f}, el {last[0][1]:+.3f} deg, the "
+                         f"HUA's turn at az {last[1][0]:+.3f}, el {last[1][1]:+.3f} deg) measured no more facets; kept "
+                         "the previous angles")
     raw = [(fid, fits[fid] if r is None else r) for fid, r in raw]
     used = [r for r in raw if not isinstance(r[1], str)]
     if used:
@@ -927,5 +1195,8 @@ def estimate_canting(
             ga, ge, a, e, sa, se, n, rms, support = r
             out.append(FacetCanting(fid, True, None, a - o_az, e - o_el, sa, se, ga - g_az, ge - g_el, n, rms,
                                     support))
-    corr = None if o_az is None else drive_correction(field_pose, h, o_az, o_el)
+    corr = None
+    if o_az is not None:
+        rest = drive_correction(field_pose, h, o_az, o_el)
+        corr = (turn_deg[0] + rest[0], turn_deg[1] + rest[1])
     return CantingResult(hua, target, tuple(out), o_az, o_el, 1, tuple(notes), search, corr, target_corr)
