@@ -1092,8 +1092,9 @@ def estimate_canting(
                                          for f, m in candidates], dt, span_mrad=float(orientation_span_mrad))
         except PihimInputError as exc:
             notes.append(f"orientation search: {exc}")
-    # The search's node is the HUA's drive-angle error: the target's outline is turned as a camera pose fitted
-    # on the HUA sees it (hua_turn_transform) and every facet is fitted around its design on that outline. The
+    # The search's node is the HUA's drive-angle error: beyond two steps, the target's outline is turned as a
+    # camera pose fitted on the HUA sees it (hua_turn_transform) and every facet is fitted around its design on
+    # that outline. The
     # search proposes, the facet fits decide: the facets are fitted on the logged outline too, and the turn is
     # kept if it measures more facets (or as many, with more facets finding the target's outline -- what the
     # target's correction below starts from -- or as many, closer): clutter -- other heliostats' backs, the
@@ -1103,7 +1104,9 @@ def estimate_canting(
     fits: dict[int, object] = {}
     matches: list = []
     world = None
-    if search is not None and (search.az_mrad != 0.0 or search.el_mrad != 0.0):
+    # a turn of a step or two is what the facets' mean canting alone moves the search's node by; the facet
+    # fits absorb it, and fitting twice would only let the two passes' noise choose
+    if search is not None and max(abs(search.az_mrad), abs(search.el_mrad)) > 2.5 * step_mrad:
         turn_deg = (math.degrees(search.az_mrad * 1e-3), math.degrees(search.el_mrad * 1e-3))
         world = hua_turn_transform(field_pose, h, *turn_deg)
         outline.update(pts=_apply(world, pts))
