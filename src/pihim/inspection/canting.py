@@ -57,13 +57,14 @@ Status (measured on 20 rendered NSTTF UFACET frames, ``benchmarks/canting_qualit
 From the issue's GPS 1.5 m / attitude 1 deg priors (pose refined to 0.27 px
 median at the HUA's corners) and S0 edge points (the DoLP of the dark target
 back is too noisy at 39 dB to add its edges unweighted), 0-10 facets per
-frame pass the quality gates and their deviations are recovered to 0.19 /
-0.24 mrad RMS (azimuth / elevation; the best-fit orientation to 0.14 / 0.11
-mrad) against 1.67 / 2.08 mrad for the paper's grid search on the same frames;
-a median 1.8 s per frame for the whole chain (1.1 s of it this step's CPU,
-0.6 s of that the orientation search). Logged drive angles with errors: see
-BENCHMARKS.md (the target's own error needs ``target_orientation=True``).
-Not yet: polarimetric edge weighting.
+frame pass the quality gates and their deviations are recovered to 0.18 /
+0.30 mrad RMS (azimuth / elevation; the HUA's drive-angle correction to
+0.17 / 0.13 mrad) against 1.48 / 2.07 mrad for the paper's grid search on
+the same frames; a median 1.8 s per frame for the whole chain (1.1 s of it
+this step's CPU). With every heliostat's logged drive angles off by
+N(0, 5 mrad), ``target_orientation=True`` measures 40 facets on 10 frames
+(44 without the error) to 0.33 / 0.54 mrad at about 2 s more CPU; without
+it, 7 (BENCHMARKS.md). Not yet: polarimetric edge weighting.
 
 References
 ----------
