@@ -49,6 +49,15 @@ def unit(v: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def dot(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Dot product along the last axis, broadcasting.
+
+    3-vectors are written out by component: on the planner's broadcast
+    shapes (rays against points, (P, K, 3) with (P, 1, 3)) about twice as
+    fast as ``np.einsum("...i,...i->...")``, which the day sweep calls
+    ~20,000 times.
+    """
+    if a.shape[-1] == 3 and b.shape[-1] == 3:
+        return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
     return np.einsum("...i,...i->...", a, b)
 
 
@@ -96,14 +105,31 @@ def camera_frame(heading_deg: NDArray[np.float64], pitch_deg: NDArray[np.float64
 
 def in_fov(points: NDArray[np.float64], cam: NDArray[np.float64], heading: NDArray[np.float64],
             pitch: NDArray[np.float64], camera: CameraModel) -> NDArray[np.bool_]:
-    """Whether ``points`` (..., K, 3) fall in the camera's field of view; cam/heading/pitch shape (...)."""
-    r, dn, f = camera_frame(heading, pitch)
-    v = points - cam[..., None, :]
-    zc = dot(v, f[..., None, :])
+    """Whether ``points`` (..., K, 3) fall in the camera's field of view; cam/heading/pitch shape (...).
+
+    A point is in view when it is in front of the camera (``z > 0`` in the
+    OpenCV frame of :func:`camera_frame`) and within the sensor's half
+    angles (``|x| <= z * w / 2f``, ``|y| <= z * h / 2f``; pinhole, no
+    distortion). One compiled pass over the points
+    (:func:`pihim.planning._kernels.in_fov`): the day sweep tests 400,000
+    facet corners at a time.
+    """
+    from pihim.planning import _kernels
+
+    r, dn, f = camera_frame(np.asarray(heading, float), np.asarray(pitch, float))
+    pts = np.asarray(points, float)
+    cam = np.asarray(cam, float)
+    k = pts.shape[-2]
+    lead = np.broadcast_shapes(pts.shape[:-2], cam.shape[:-1], r.shape[:-1])
+
+    def flat(a: NDArray, tail: tuple[int, ...]) -> NDArray:
+        return np.ascontiguousarray(np.broadcast_to(a, (*lead, *tail)).reshape(-1, *tail))
+
     tx = 0.5 * camera.width_px / camera.focal_length_px
     ty = 0.5 * camera.height_px / camera.focal_length_px
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return (zc > 0) & (np.abs(dot(v, r[..., None, :])) <= tx * zc) & (np.abs(dot(v, dn[..., None, :])) <= ty * zc)
+    out = _kernels.in_fov(flat(pts, (k, 3)), flat(cam, (3,)), flat(r, (3,)), flat(dn, (3,)), flat(f, (3,)),
+                          float(tx), float(ty))
+    return out.reshape(*lead, k)
 
 
 def tower_box(tower: Any, clearance: float = 0.0) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
