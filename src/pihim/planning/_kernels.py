@@ -25,3 +25,114 @@ def in_fov(points: NDArray, cam: NDArray, r: NDArray, dn: NDArray, f: NDArray, t
             y = vx * dn[p, 0] + vy * dn[p, 1] + vz * dn[p, 2]
             out[p, j] = z > 0.0 and abs(x) <= tx * z and abs(y) <= ty * z
     return out
+
+
+@njit(cache=True)
+def view_tests(ch: NDArray, nh: NDArray, w: NDArray, elev: NDArray, origin: NDArray, direction: NDArray,
+               altitude: NDArray, nxy: NDArray, tc: NDArray, tn: NDArray, tx: NDArray, ty: NDArray,
+               half_w: float, half_h: float, max_range: float, min_elev: float, max_offset: float,
+               pitch_min: float, pitch_max: float, keepout: NDArray, use_keepout: bool,
+               code_low: int, code_behind: int, code_off_plane: int, code_gimbal: int, code_miss: int,
+               code_ok: int) -> tuple:  # pragma: no cover - compiled
+    """The geometric tests of :func:`pihim.planning.lines.views_of_pairs` up to the reflected ray's miss
+    distance, one pair at a time (same order, same codes): camera position (K, 3), code, range, unit sight
+    direction HUA -> camera (K, 3), plane offset, miss distance, reflected direction (K, 3) and the hit
+    point on the target's plane (K, 3)."""
+    n = ch.shape[0]
+    cam = np.empty((n, 3))
+    code = np.empty(n, np.int64)
+    rng = np.empty(n)
+    v = np.empty((n, 3))
+    offset = np.empty(n)
+    miss = np.full(n, np.inf)
+    r = np.full((n, 3), np.nan)
+    hit = np.full((n, 3), np.nan)
+    to_deg = 180.0 / np.pi
+    for i in range(n):
+        c = code_low if elev[i] < min_elev else code_ok
+        t = (altitude[i] - ch[i, 2]) / w[i, 2] if w[i, 2] != 0.0 else (
+            np.inf if altitude[i] - ch[i, 2] > 0.0 else (-np.inf if altitude[i] - ch[i, 2] < 0.0 else np.nan))
+        ex = ch[i, 0] + t * w[i, 0] - origin[i, 0]
+        ey = ch[i, 1] + t * w[i, 1] - origin[i, 1]
+        along = ex * direction[i, 0] + ey * direction[i, 1]
+        cam[i, 0] = origin[i, 0] + along * direction[i, 0]
+        cam[i, 1] = origin[i, 1] + along * direction[i, 1]
+        cam[i, 2] = altitude[i]
+        dx, dy, dz = cam[i, 0] - ch[i, 0], cam[i, 1] - ch[i, 1], cam[i, 2] - ch[i, 2]
+        rg = np.sqrt(dx * dx + dy * dy + dz * dz)
+        rng[i] = rg
+        s = max(rg, 1e-12)
+        v[i, 0], v[i, 1], v[i, 2] = dx / s, dy / s, dz / s
+        vn = v[i, 0] * nh[i, 0] + v[i, 1] * nh[i, 1] + v[i, 2] * nh[i, 2]
+        if c == code_ok and (not np.isfinite(rg) or vn <= 0.0 or rg > max_range):
+            c = code_behind
+        offset[i] = abs(dx * nxy[i, 1] - dy * nxy[i, 0])
+        if c == code_ok and offset[i] > max_offset:
+            c = code_off_plane
+        pitch = np.arctan2(-dz, np.hypot(dx, dy)) * to_deg
+        bad = pitch < pitch_min - 1e-9 or pitch > pitch_max + 1e-9
+        if use_keepout and (keepout[0, 0] <= cam[i, 0] <= keepout[1, 0] and keepout[0, 1] <= cam[i, 1] <= keepout[1, 1]
+                            and keepout[0, 2] <= cam[i, 2] <= keepout[1, 2]):
+            bad = True
+        if c == code_ok and bad:
+            c = code_gimbal
+        if c == code_ok:
+            rx = 2.0 * vn * nh[i, 0] - v[i, 0]
+            ry = 2.0 * vn * nh[i, 1] - v[i, 1]
+            rz = 2.0 * vn * nh[i, 2] - v[i, 2]
+            r[i, 0], r[i, 1], r[i, 2] = rx, ry, rz
+            denom = rx * tn[i, 0] + ry * tn[i, 1] + rz * tn[i, 2]
+            num = (tc[i, 0] - ch[i, 0]) * tn[i, 0] + (tc[i, 1] - ch[i, 1]) * tn[i, 1] \
+                + (tc[i, 2] - ch[i, 2]) * tn[i, 2]
+            lam = num / denom if denom != 0.0 else np.nan
+            hx, hy, hz = ch[i, 0] + lam * rx, ch[i, 1] + lam * ry, ch[i, 2] + lam * rz
+            hit[i, 0], hit[i, 1], hit[i, 2] = hx, hy, hz
+            qx0, qy0, qz0 = hx - tc[i, 0], hy - tc[i, 1], hz - tc[i, 2]
+            qx = abs(qx0 * tx[i, 0] + qy0 * tx[i, 1] + qz0 * tx[i, 2]) - half_w
+            qy = abs(qx0 * ty[i, 0] + qy0 * ty[i, 1] + qz0 * ty[i, 2]) - half_h
+            if denom > 0.0 and lam > 0.0:
+                # np.maximum's NaN propagation: a NaN miss stays NaN (neither missed nor traced)
+                miss[i] = np.nan if (qx != qx or qy != qy) else max(max(qx, qy), 0.0)
+            else:
+                miss[i] = np.inf
+            if miss[i] > 0.0:
+                c = code_miss
+        code[i] = c
+    return cam, code, rng, v, offset, miss, r, hit
+
+
+@njit(cache=True)
+def first_hits(p0: NDArray, p1: NDArray, ray: NDArray, rect: NDArray, exclude: NDArray, centres: NDArray,
+               normals: NDArray, x: NDArray, y: NDArray, hw: float, hh: float,
+               eps: float) -> NDArray:  # pragma: no cover - compiled
+    """For candidate (segment ``ray``, mirror ``rect``) pairs, the first mirror each segment p0 -> p1 crosses
+    strictly inside (``eps < t < 1 - eps``) within its half-width ``hw`` and half-height ``hh`` (-1 for
+    none), skipping the mirrors in ``exclude[ray]``; equal ``t`` keeps the earlier pair."""
+    n = p0.shape[0]
+    out = np.full(n, -1, np.int64)
+    best = np.full(n, np.inf)
+    for m in range(ray.shape[0]):
+        i, j = ray[m], rect[m]
+        skip = False
+        for e in range(exclude.shape[1]):
+            if exclude[i, e] == j:
+                skip = True
+        if skip:
+            continue
+        dx, dy, dz = p1[i, 0] - p0[i, 0], p1[i, 1] - p0[i, 1], p1[i, 2] - p0[i, 2]
+        denom = dx * normals[j, 0] + dy * normals[j, 1] + dz * normals[j, 2]
+        num = (centres[j, 0] - p0[i, 0]) * normals[j, 0] + (centres[j, 1] - p0[i, 1]) * normals[j, 1] \
+            + (centres[j, 2] - p0[i, 2]) * normals[j, 2]
+        if denom == 0.0:
+            continue
+        t = num / denom
+        if not (np.isfinite(t) and t > eps and t < 1.0 - eps) or not t < best[i]:
+            continue
+        qx = p0[i, 0] + t * dx - centres[j, 0]
+        qy = p0[i, 1] + t * dy - centres[j, 1]
+        qz = p0[i, 2] + t * dz - centres[j, 2]
+        if abs(qx * x[j, 0] + qy * x[j, 1] + qz * x[j, 2]) <= hw and abs(qx * y[j, 0] + qy * y[j, 1]
+                                                                         + qz * y[j, 2]) <= hh:
+            best[i] = t
+            out[i] = j
+    return out

@@ -63,7 +63,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from pihim.field.kinematics import FieldPose
@@ -470,56 +470,32 @@ def views_of_pairs(geom: PairGeometry, pair: NDArray[np.int64], mirrors: MirrorI
                    origin: NDArray[np.float64], direction: NDArray[np.float64], altitude: NDArray[np.float64],
                    *, trace: bool = True) -> Views:
     """:func:`views_from_lines` for pairs ``geom[pair]`` (K,), reusing their precomputed geometry."""
+    from pihim.planning import _kernels
+
     hua, target = geom.hua[pair], geom.target[pair]
-    ch, nh, w = geom.hua_centre[pair], geom.hua_normal[pair], geom.w[pair]
+    ch = geom.hua_centre[pair]
     elev = geom.elevation_deg[pair]
-    code = np.full(len(pair), VIEW_OK, dtype=np.int64)
-    code[elev < limits.min_reflection_elevation_deg] = VIEW_LOW
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (altitude - ch[:, 2]) / w[:, 2]
-    ex = ch[:, 0] + t * w[:, 0] - origin[:, 0]
-    ey = ch[:, 1] + t * w[:, 1] - origin[:, 1]
-    along = ex * direction[:, 0] + ey * direction[:, 1]
-    cam = np.column_stack([origin[:, 0] + along * direction[:, 0], origin[:, 1] + along * direction[:, 1],
-                           altitude])
-    d = cam - ch
-    rng = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2)
-    v = d / np.maximum(rng, 1e-12)[:, None]
-    vn = dot(v, nh)
-    live = code == VIEW_OK
-    code[live & (~np.isfinite(rng) | (vn <= 0.0) | (rng > limits.max_range_m))] = VIEW_BEHIND
-    # distance of the camera from the vertical plane of the HUA's normal
-    nxy = geom.hua_plane_normal_xy[pair]
-    plane_offset = np.abs(d[:, 0] * nxy[:, 1] - d[:, 1] * nxy[:, 0])
-    live = code == VIEW_OK
-    code[live & (plane_offset > limits.max_plane_offset_m)] = VIEW_OFF_PLANE
-    pitch = np.degrees(np.arctan2(-d[:, 2], np.hypot(d[:, 0], d[:, 1])))
-    bad_gimbal = (pitch < limits.gimbal_pitch_min_deg - 1e-9) | (pitch > limits.gimbal_pitch_max_deg + 1e-9)
-    if limits.keepout_box is not None:
-        lo, hi = limits.keepout_box
-        bad_gimbal |= np.all((cam >= lo) & (cam <= hi), axis=1)
-    live = code == VIEW_OK
-    code[live & bad_gimbal] = VIEW_GIMBAL
-    # the ray camera -> HUA centre, reflected about the HUA normal, against the target's mirror (from behind);
-    # only where every test so far passed
-    miss = np.full(len(pair), np.inf)
-    blocker = np.full(len(pair), -1, dtype=np.int64)
-    k = np.flatnonzero(code == VIEW_OK)
-    pk = pair[k]
-    r = 2.0 * vn[k, None] * nh[k] - v[k]
-    ct, nt, chk = geom.target_centre[pk], geom.target_normal[pk], ch[k]
-    denom = dot(r, nt)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = dot(ct - chk, nt) / denom
-    hit = chk + lam[:, None] * r
-    q = hit - ct
-    qx = np.abs(dot(q, geom.target_x[pk])) - geom.half_width_m
-    qy = np.abs(dot(q, geom.target_y[pk])) - geom.half_height_m
-    miss[k] = np.where((denom > 0) & (lam > 0), np.maximum(np.maximum(qx, qy), 0.0), np.inf)
-    code[k[miss[k] > 0]] = VIEW_MISS
+    n = len(pair)
+
+    def f64(a: ArrayLike, shape: tuple[int, ...]) -> NDArray[np.float64]:
+        return np.ascontiguousarray(np.broadcast_to(np.asarray(a, float), shape))
+
+    keep = limits.keepout_box
+    cam, code, rng, v, plane_offset, miss, r_all, hit_all = _kernels.view_tests(
+        f64(ch, (n, 3)), f64(geom.hua_normal[pair], (n, 3)), f64(geom.w[pair], (n, 3)), f64(elev, (n,)),
+        f64(np.asarray(origin)[..., :2], (n, 2)), f64(np.asarray(direction)[..., :2], (n, 2)), f64(altitude, (n,)),
+        f64(geom.hua_plane_normal_xy[pair], (n, 2)),
+        f64(geom.target_centre[pair], (n, 3)), f64(geom.target_normal[pair], (n, 3)),
+        f64(geom.target_x[pair], (n, 3)), f64(geom.target_y[pair], (n, 3)), float(geom.half_width_m),
+        float(geom.half_height_m), float(limits.max_range_m), float(limits.min_reflection_elevation_deg),
+        float(limits.max_plane_offset_m), float(limits.gimbal_pitch_min_deg), float(limits.gimbal_pitch_max_deg),
+        np.zeros((2, 3)) if keep is None else np.array([keep[0], keep[1]], float), keep is not None,
+        VIEW_LOW, VIEW_BEHIND, VIEW_OFF_PLANE, VIEW_GIMBAL, VIEW_MISS, VIEW_OK)
+    blocker = np.full(n, -1, dtype=np.int64)
     if trace:
-        sel = miss[k] <= 0
-        k, r, hit = k[sel], r[sel], hit[sel]
+        # the reflected ray HUA -> target where it hits the target's mirror (every test so far passed)
+        k = np.flatnonzero(miss <= 0)
+        r, hit = r_all[k], hit_all[k]
         if len(k):
             p0, p1 = ch[k] + 1e-6 * r, hit - 1e-6 * r
             hits = mirrors.first_hits(p0, p1, np.stack([hua[k], target[k]], axis=1))

@@ -195,26 +195,14 @@ class MirrorIndex:
         lens = np.fromiter(map(len, lists), dtype=np.int64, count=n)
         if lens.sum() == 0:
             return out
+        from pihim.planning import _kernels
+
         ray = np.repeat(np.arange(n), lens)
         rect = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lens.sum()))
-        keep = np.all(rect[:, None] != exclude[ray], axis=1)
-        ray, rect = ray[keep], rect[keep]
-        d = p1[ray] - p0[ray]
-        nn = self.n[rect]
-        denom = dot(d, nn)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = dot(self.centres[rect] - p0[ray], nn) / denom
-        ok = np.isfinite(t) & (t > _EPS_T) & (t < 1.0 - _EPS_T)
-        ray, rect, t, d = ray[ok], rect[ok], t[ok], d[ok]
-        q = p0[ray] + t[:, None] * d - self.centres[rect]
-        inside = (np.abs(dot(q, self.x[rect])) <= self.hw) & (np.abs(dot(q, self.y[rect])) <= self.hh)
-        ray, rect, t = ray[inside], rect[inside], t[inside]
-        if len(ray):
-            order = np.lexsort((t, ray))
-            ray, rect = ray[order], rect[order]
-            first = np.r_[True, ray[1:] != ray[:-1]]
-            out[ray[first]] = rect[first]
-        return out
+        # the candidates' plane crossings and rectangle tests, one compiled pass
+        return _kernels.first_hits(np.ascontiguousarray(p0, float), np.ascontiguousarray(p1, float), ray, rect,
+                                   np.ascontiguousarray(exclude, np.int64).reshape(n, -1), self.centres, self.n,
+                                   self.x, self.y, self.hw, self.hh, _EPS_T)
 
 
 def first_mirror_hits(pose: FieldPose, p0: ArrayLike, p1: ArrayLike, *,
