@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from pihim.camera import CameraModel, CameraPose, project_points
 from pihim.inspection import _kernels as K
-from pihim.inspection.canting import _facet_masks, _Mask
+from pihim.inspection.reflection import _facet_masks, _Mask
 from pihim.inspection.features import EdgePoints, _median_and_percentile, combined_gradient, edge_points
 from pihim.inspection.pose import _CoarseSearch, _line_neighbours, line_normals
 

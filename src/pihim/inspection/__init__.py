@@ -14,6 +14,12 @@
   DoLP and axial AoP gradient) for model fitting.
 * :mod:`pihim.inspection.pose` -- camera pose refinement on the HUA's facet
   outlines (coarse FFT search, point-to-line ICP with Levenberg-Marquardt).
+* :mod:`pihim.inspection.reflection` -- the estimator's forward model: the
+  target's outline mirrored in a HUA facet and projected, for candidate
+  canting angles or drive-angle errors of the HUA.
+* :mod:`pihim.inspection.orientation` -- the HUA's and the target's logged
+  drive angles corrected from the reflection (the paper's +-5 deg search,
+  a joint least-squares solve).
 * :mod:`pihim.inspection.canting` -- per-facet canting from the target's
   outlines mirrored in each facet (the paper's grid search and a continuous
   refinement), relative to the best-fit heliostat orientation.

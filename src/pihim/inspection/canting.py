@@ -48,9 +48,11 @@ deviation **relative to the best-fit heliostat orientation** (the mean over
 the facets used) and that orientation separately.
 
 The estimator reads the frame and the ``log`` only; its forward model is
-projection of mirrored points (the compiled projection of
-:mod:`pihim.inspection._kernels`, held to ``cv2.projectPoints``), independent
-of the renderer's ray tracer that made the test frames.
+projection of mirrored points (:mod:`pihim.inspection.reflection`; the
+compiled projection of :mod:`pihim.inspection._kernels`, held to
+``cv2.projectPoints``), independent of the renderer's ray tracer that made
+the test frames; the orientation steps are in
+:mod:`pihim.inspection.orientation` (re-exported here).
 
 Status (measured on 20 rendered NSTTF UFACET frames, ``benchmarks/canting_quality.py``)
 -----------------------------------------------------------------------------------
@@ -86,9 +88,28 @@ from numpy.typing import ArrayLike, NDArray
 from pihim.camera.model import CameraModel
 from pihim.camera.pose import CameraPose
 from pihim.errors import PihimInputError
-from pihim.field.kinematics import FieldPose, apply_canting_deviation
+from pihim.field.kinematics import FieldPose
 from pihim.inspection.features import EdgePoints
-from pihim.inspection.pose import facet_outline_segments, line_normals, match_edge_points, sample_segments
+from pihim.inspection.orientation import (
+    PAPER_GRID_STEP_MRAD,
+    PAPER_ORIENTATION_SPAN_MRAD,
+    OrientationSearch,
+    drive_correction,
+    refine_orientations,
+    refine_target_orientation,
+    search_orientation,
+)
+from pihim.inspection.reflection import (
+    _apply,
+    _equivalent_tilt,
+    _facet_masks,
+    _FacetModel,
+    _Mask,
+    _TurnModel,
+    hua_turn_transform,
+    target_outline_segments,
+)
+from pihim.inspection.pose import match_edge_points, sample_segments
 from pihim.render.scene import StructureSizes
 
 __all__ = ["CantingResult", "FacetCanting", "OrientationSearch", "PAPER_GRID_STEP_MRAD", "PAPER_ORIENTATION_SPAN_MRAD",
@@ -97,47 +118,6 @@ __all__ = ["CantingResult", "FacetCanting", "OrientationSearch", "PAPER_GRID_STE
 
 #: Scale of the two canting angles in the refinement, mrad.
 _X_SCALE = np.array([0.1, 0.1])
-
-#: The paper's grid step, 0.1 deg, in mrad.
-PAPER_GRID_STEP_MRAD = float(np.radians(0.1) * 1e3)
-
-
-#: Half-range of the paper's heliostat orientation search, +-5 deg, in mrad.
-PAPER_ORIENTATION_SPAN_MRAD = float(np.radians(5.0) * 1e3)
-
-
-@dataclass(frozen=True)
-class OrientationSearch:
-    """The paper's orientation grid search: the HUA's drive-angle error.
-
-    Paper sec. 4.4: the relative orientation of the HUA and the target is
-    corrected over +-5 deg in 0.1 deg steps until the facets' reflections of
-    the target line up, before any facet is fitted; a facet's own search then
-    spans +-1 deg around it. ``az_mrad`` / ``el_mrad`` are the HUA's drive
-    azimuth and elevation errors (true minus logged, mrad) at the best grid
-    node (:func:`hua_turn_transform`); ``score`` is the mean over the
-    ``facets`` scored of the share of each facet's reflected target outline
-    points that fall inside the facet within ``tol_px`` of an image edge
-    there. ``alternatives`` are the next-best distinct peaks, ``(az_mrad,
-    el_mrad, score)``, best first (at least half the best score), reported
-    so that a user can see how clear the peak was: clutter can raise a false
-    peak above the true one (the facet fits then keep the logged angles).
-    """
-
-    az_mrad: float
-    el_mrad: float
-    score: float
-    facets: int
-    span_mrad: float
-    step_mrad: float
-    tol_px: float
-    seconds: float
-    alternatives: tuple[tuple[float, float, float], ...] = ()
-
-    def to_dict(self) -> dict[str, object]:
-        out = {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in self.__dict__.items()}
-        out["alternatives"] = [{"az_mrad": a, "el_mrad": e, "score": sc} for a, e, sc in self.alternatives]
-        return out
 
 
 @dataclass(frozen=True)
@@ -220,296 +200,6 @@ class CantingResult:
             "facets": [f.to_dict() for f in self.facets],
             "notes": list(self.notes),
         }
-
-
-def target_outline_segments(field_pose: FieldPose, index: int, sizes: StructureSizes = StructureSizes()) -> NDArray:
-    """What the target's back shows a HUA: its facet outlines and the long edges of its back-structure members.
-
-    The members (:func:`pihim.field.kinematics.back_structure`, widths
-    :class:`pihim.render.scene.StructureSizes`) stand between the target's
-    facets and the HUA, so their edges are as much part of the reflected
-    picture as the facets'. Each member contributes the four long edges of its
-    square section (two of them hidden from any one view; the robust fit
-    ignores those).
-    """
-    corners = field_pose.facet_corners()[index]
-    segs = [facet_outline_segments(corners)]
-    back = field_pose.back_structure()
-    rot = field_pose.rotations[index]
-    for k, kind in enumerate(back.kinds):
-        if kind == "pedestal":
-            continue
-        p0, p1 = back.segments[index, k]
-        a = (p1 - p0) / np.linalg.norm(p1 - p0)
-        b = rot[:, 2] - np.dot(rot[:, 2], a) * a  # across the member, along the mirror normal
-        b /= np.linalg.norm(b)
-        c = np.cross(a, b)
-        half = 0.5 * sizes.width(kind)
-        for sb in (-1.0, 1.0):
-            for sc in (-1.0, 1.0):
-                off = half * (sb * b + sc * c)
-                segs.append(np.array([[p0 + off, p1 + off]]))
-    return np.concatenate(segs)
-
-
-class _Mask:
-    """A boolean image mask stored as its bounding box: ``sub`` at rows ``r0..``, columns ``c0..``
-    of an image of ``shape``; everything outside the box is False."""
-
-    def __init__(self, shape: tuple[int, int], r0: int = 0, c0: int = 0, sub: NDArray | None = None):
-        self.shape = shape
-        self.r0, self.c0 = int(r0), int(c0)
-        self.sub = np.zeros((0, 0), bool) if sub is None else sub
-
-    def full(self) -> NDArray[np.bool_]:
-        """The mask as a whole image."""
-        m = np.zeros(self.shape, bool)
-        hh, ww = self.sub.shape
-        m[self.r0:self.r0 + hh, self.c0:self.c0 + ww] = self.sub
-        return m
-
-    def area(self) -> int:
-        return int(self.sub.sum())
-
-    def values(self, img: NDArray) -> NDArray:
-        """``img[mask]`` (same order)."""
-        hh, ww = self.sub.shape
-        return img[self.r0:self.r0 + hh, self.c0:self.c0 + ww][self.sub]
-
-    def extent(self) -> tuple[int, int, int, int] | None:
-        """First and last row and column that hold a True pixel (None if none)."""
-        rows = np.flatnonzero(self.sub.any(axis=1))
-        cols = np.flatnonzero(self.sub.any(axis=0))
-        if rows.size == 0:
-            return None
-        return self.r0 + rows[0], self.r0 + rows[-1], self.c0 + cols[0], self.c0 + cols[-1]
-
-    def inside(self, uv: NDArray) -> NDArray[np.bool_]:
-        """Whether each pixel position ``uv`` (N, 2), rounded to the nearest pixel, is in the mask."""
-        hh, ww = self.sub.shape
-        out = np.zeros(len(uv), bool)
-        with np.errstate(invalid="ignore"):
-            box = (uv[:, 0] > self.c0 - 0.5 - 1) & (uv[:, 0] < self.c0 + ww + 0.5) \
-                & (uv[:, 1] > self.r0 - 0.5 - 1) & (uv[:, 1] < self.r0 + hh + 0.5)
-        k = np.flatnonzero(box)
-        i = np.rint(uv[k, 1]).astype(int) - self.r0
-        j = np.rint(uv[k, 0]).astype(int) - self.c0
-        ok = (i >= 0) & (i < hh) & (j >= 0) & (j < ww)
-        out[k[ok]] = self.sub[i[ok], j[ok]]
-        return out
-
-
-def _facet_masks(camera: CameraModel, pose: CameraPose, corners: NDArray, margin_px: float) -> list[_Mask]:
-    """Masks of each facet's projected outline, eroded by ``margin_px`` (filled and eroded
-    on the outline's bounding box grown by the kernel: the same pixels as on the whole image)."""
-    import cv2
-
-    from pihim.inspection import _kernels
-
-    shape = (camera.height_px, camera.width_px)
-    masks = []
-    k = max(1, int(round(2 * margin_px + 1)))
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-    t = np.linspace(0.0, 1.0, 24, endpoint=False)[:, None]
-    for f in range(corners.shape[0]):
-        ring = np.concatenate([corners[f, j] + t * (corners[f, (j + 1) % 4] - corners[f, j]) for j in range(4)])
-        uv = _kernels.project_pose(camera, pose, ring)
-        if not np.all(np.isfinite(uv)):
-            masks.append(_Mask(shape))
-            continue
-        poly = np.rint(uv).astype(np.int32)
-        lo = np.maximum(poly.min(axis=0) - k, 0)
-        hi = np.minimum(poly.max(axis=0) + k + 1, [shape[1], shape[0]])
-        if np.any(hi <= lo):
-            masks.append(_Mask(shape))
-            continue
-        m = np.zeros((hi[1] - lo[1], hi[0] - lo[0]), np.uint8)
-        cv2.fillPoly(m, [poly - lo.astype(np.int32)], 1)
-        masks.append(_Mask(shape, lo[1], lo[0], cv2.erode(m, kernel).astype(bool)))
-    return masks
-
-
-def _quadratic_basis(a: NDArray, e: NDArray) -> NDArray:
-    return np.stack([np.ones_like(a), a, e, a * a, e * e, a * e], axis=1)
-
-
-class _FacetModel:
-    """The target's outlines reflected in one HUA facet, projected for candidate canting angles."""
-
-    def __init__(self, camera, pose, rot_hua, centre, normal_local, pts, seg):
-        from pihim.inspection import _kernels
-
-        self.camera, self.pose, self.rot, self.centre = camera, pose, rot_hua, centre
-        self.normal_local, self.pts, self.seg = normal_local, np.ascontiguousarray(pts, dtype=float), seg
-        self._cam = _kernels.camera_vector(camera)
-        self._r = np.array(pose.rotation, float)
-        self._c = np.array(pose.position_m, float)
-
-    def _project(self, pts: NDArray) -> NDArray:
-        from pihim.inspection import _kernels
-
-        return _kernels.project_rc(self._r, self._c, np.ascontiguousarray(pts), self._cam)
-
-    def _with(self, pts: NDArray, seg: NDArray) -> _FacetModel:
-        """The same model on other sample points."""
-        return _FacetModel(self.camera, self.pose, self.rot, self.centre, self.normal_local, pts, seg)
-
-    def subsampled(self, k: int) -> _FacetModel:
-        """The same model with every ``k``-th sample point (a cheaper score for the grid search)."""
-        return self._with(self.pts[::k], self.seg[::k])
-
-    def near(self, mask: _Mask, span_mrad: float, margin_px: float = 20.0,
-             centre_mrad: tuple[float, float] = (0.0, 0.0)) -> _FacetModel:
-        """The model restricted to the points that can reach the facet's mask within the search span.
-
-        A point is kept if its projection at the search centre ``centre_mrad``
-        lies inside the mask's bounding box grown by ``margin_px`` plus the
-        largest move of any point between the centre and the corners of the
-        ``+-span_mrad`` grid around it (measured on every 16th point; the
-        reflection moves almost affinely with the angles).
-        """
-        ext = mask.extent()
-        if ext is None:
-            return self
-        r_lo, r_hi, c_lo, c_hi = ext
-        s = float(span_mrad)
-        a0, e0 = (float(v) for v in centre_mrad)
-        sub = self.project_many(a0 + np.array([0.0, -s, -s, s, s]), e0 + np.array([0.0, -s, s, -s, s]),
-                                self.pts[::16])
-        reach = float(np.nanmax(np.linalg.norm(sub[1:] - sub[:1], axis=2), initial=0.0))
-        grow = margin_px + reach
-        uv = self.project_many(np.array([a0]), np.array([e0]))[0]
-        keep = (uv[:, 0] >= c_lo - grow) & (uv[:, 0] <= c_hi + grow) \
-            & (uv[:, 1] >= r_lo - grow) & (uv[:, 1] <= r_hi + grow)
-        return self._with(self.pts[keep], self.seg[keep])
-
-    def quadratic_coefficients(self, s: float, centre_mrad: tuple[float, float] = (0.0, 0.0)) -> NDArray:
-        """Coefficients (6, N, 2) of each point's pixel as a quadratic in the angles (mrad)
-        measured from ``centre_mrad``, on the basis ``(1, az, el, az^2, el^2, az el)``.
-
-        Exact projections on the 3 x 3 grid ``centre + {-s, 0, s}^2`` fix the
-        quadratic (least squares on the nine nodes); its error is third order,
-        far below a pixel over +-17.5 mrad, and it costs nine projections
-        instead of one per grid node (the refinement uses :meth:`project`,
-        exact).
-        """
-        k = np.array([-s, 0.0, s])
-        na, ne = (g.ravel() for g in np.meshgrid(k, k, indexing="ij"))
-        uv = self.project_many(na + centre_mrad[0], ne + centre_mrad[1])  # (9, N, 2)
-        return (np.linalg.pinv(_quadratic_basis(na, ne)) @ uv.reshape(9, -1)).reshape(6, -1, 2)
-
-    def project_quadratic(self, az_mrad: NDArray, el_mrad: NDArray) -> NDArray:
-        """Projected points (G, N, 2) for G angle pairs, to second order in the angles
-        (:meth:`quadratic_coefficients` with ``s`` the largest ``|angle|`` asked for)."""
-        az = np.asarray(az_mrad, float)
-        el = np.asarray(el_mrad, float)
-        s = max(float(np.max(np.abs(az), initial=0.0)), float(np.max(np.abs(el), initial=0.0)), 1.0)
-        coef = self.quadratic_coefficients(s)
-        return (_quadratic_basis(az, el) @ coef.reshape(6, -1)).reshape(len(az), -1, 2)
-
-    def project_many(self, az_mrad: NDArray, el_mrad: NDArray, pts: NDArray | None = None) -> NDArray:
-        """Projected points (G, N, 2) for G candidate angle pairs at once (no normals)."""
-        pts = self.pts if pts is None else pts
-        n = apply_canting_deviation(self.normal_local, az_mrad, el_mrad) @ self.rot.T  # (G, 3)
-        d = (pts - self.centre) @ n.T  # (N, G)
-        virt = pts[None, :, :] - 2.0 * d.T[:, :, None] * n[:, None, :]
-        return self._project(virt.reshape(-1, 3)).reshape(len(n), -1, 2)
-
-    def project(self, az_mrad: float, el_mrad: float) -> tuple[NDArray, NDArray]:
-        n = self.rot @ apply_canting_deviation(self.normal_local, az_mrad, el_mrad)
-        virt = self.pts - 2.0 * ((self.pts - self.centre) @ n)[:, None] * n
-        uv = self._project(virt)
-        return uv, line_normals(uv, self.seg)
-
-
-class _TurnModel(_FacetModel):
-    """The target reflected in one HUA facet (design canting) when the HUA is turned from its logged drive angles.
-
-    The two angles of :meth:`project_many` (and so of the quadratic and of
-    :func:`search_orientation`) are the HUA's drive-angle errors, azimuth and
-    elevation in mrad, instead of a facet's canting: the camera pose is
-    fitted on the HUA at its logged angles, so a HUA turned by them sees the
-    target as the world turned back about its pivot (:func:`hua_turn_transform`).
-    """
-
-    def __init__(self, base: _FacetModel, drive_deg: tuple[float, float], pivot: NDArray):
-        super().__init__(base.camera, base.pose, base.rot, base.centre, base.normal_local, base.pts, base.seg)
-        self.drive_deg, self.pivot = drive_deg, np.asarray(pivot, float)
-
-    def _with(self, pts: NDArray, seg: NDArray) -> _TurnModel:
-        return _TurnModel(super()._with(pts, seg), self.drive_deg, self.pivot)
-
-    def project_many(self, az_mrad: NDArray, el_mrad: NDArray, pts: NDArray | None = None) -> NDArray:
-        from pihim.field.kinematics import rotation_from_drive
-
-        pts = self.pts if pts is None else pts
-        to_deg = 180.0 / math.pi * 1e-3
-        az = self.drive_deg[0] + np.asarray(az_mrad, float) * to_deg
-        el = self.drive_deg[1] + np.asarray(el_mrad, float) * to_deg
-        m = self.rot @ np.swapaxes(rotation_from_drive(az, el), -1, -2)  # (G, 3, 3): logged from true
-        world = self.pivot + np.einsum("gij,nj->gni", m, pts - self.pivot)  # (G, N, 3)
-        n = self.rot @ self.normal_local
-        virt = world - 2.0 * ((world - self.centre) @ n)[:, :, None] * n
-        return self._project(virt.reshape(-1, 3)).reshape(len(m), -1, 2)
-
-
-def _equivalent_tilt(model: _FacetModel, turned: _TurnModel, turn_mrad: tuple[float, float],
-                     subsample: int = 8) -> tuple[float, float]:
-    """The facet tilt (canting angles, mrad) that moves the facet's reflection of the target as the HUA's turn
-    ``turn_mrad`` does: Gauss-Newton on the projected outline points (every ``subsample``-th), from no tilt.
-
-    To first order a turn of the HUA and a common tilt of its facets move the
-    target's reflection alike; they differ by the target's distortion (a
-    pixel or so per 0.1 deg), which the least squares averages over.
-    """
-    pts = model.pts[::subsample]
-    if len(pts) < 3:
-        return 0.0, 0.0
-    goal = turned.project_many(np.array([turn_mrad[0]]), np.array([turn_mrad[1]]), pts)[0].ravel()
-    x = np.zeros(2)
-    h = 0.5
-    for _ in range(4):
-        uv = model.project_many(x[0] + np.array([0.0, h, 0.0]), x[1] + np.array([0.0, 0.0, h]), pts)
-        r = goal - uv[0].ravel()
-        jac = np.column_stack([(uv[1] - uv[0]).ravel() / h, (uv[2] - uv[0]).ravel() / h])
-        ok = np.isfinite(r) & np.all(np.isfinite(jac), axis=1)
-        if ok.sum() < 3:
-            return 0.0, 0.0
-        dx = np.linalg.lstsq(jac[ok], r[ok], rcond=None)[0]
-        x += dx
-        if np.max(np.abs(dx)) < 1e-3:
-            break
-    return float(x[0]), float(x[1])
-
-
-def hua_turn_transform(field_pose: FieldPose, index: int, d_az_deg: float, d_el_deg: float) -> tuple[NDArray, NDArray]:
-    """How the world looks from a camera pose fitted on a heliostat that is turned from its logged drive angles.
-
-    A camera pose refined on the HUA's outline at its logged drive angles
-    (:func:`pihim.inspection.pose.refine_pose`) is right *relative to the
-    HUA*. If the HUA is really at ``logged + (d_az, d_el)``, every other
-    point ``p`` of the world (the target) sits, in that pose's frame, at
-    ``pivot + M (p - pivot)`` with ``M = R_logged R_true^T`` (drive frames,
-    :func:`pihim.field.kinematics.rotation_from_drive`) and ``pivot`` the
-    HUA's torque-tube pivot. Returns ``(pivot, M)``.
-    """
-    from pihim.field.kinematics import rotation_from_drive
-
-    d = field_pose.drive
-    az, el = float(d.azimuth_deg[index]), float(d.elevation_deg[index])
-    r_log = rotation_from_drive(az, el)
-    r_true = rotation_from_drive(az + d_az_deg, el + d_el_deg)
-    offset = float(field_pose.field.spec.pivot_offset_m)  # type: ignore[attr-defined]
-    pivot = field_pose.mirror_centres[index] - offset * field_pose.rotations[index][:, 2]
-    return pivot, r_log @ r_true.T
-
-
-def _apply(world: tuple[NDArray, NDArray] | None, pts: NDArray) -> NDArray:
-    """``pivot + M (p - pivot)`` for each point (the identity for ``world=None``)."""
-    if world is None:
-        return pts
-    pivot, m = world
-    return pivot + (pts - pivot) @ m.T
 
 
 def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_mrad: float,
@@ -641,286 +331,6 @@ def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gat
     qq = np.rint(uv[ins]).astype(int)
     support = float(np.mean(dt[qq[:, 1], qq[:, 0]] <= 1.5)) if ins.any() else 0.0
     return az, el, float(sig[0]), float(sig[1]), n, rms, support, found
-
-
-def search_orientation(
-    facets: list[tuple[_FacetModel, _Mask]],
-    dt: NDArray,
-    *,
-    span_mrad: float = PAPER_ORIENTATION_SPAN_MRAD,
-    step_mrad: float = PAPER_GRID_STEP_MRAD,
-    tol_px: float = 5.0,
-    block: int = 21,
-    subsample: int = 96,
-    highpass: int = 11,
-    n_alternatives: int = 2,
-) -> OrientationSearch:
-    """The paper's heliostat orientation grid search (sec. 4.4): one pair of angles for every facet.
-
-    Every node of the grid ``{-span, ..., span}^2`` (step ``step_mrad``;
-    101 x 101 nodes for the paper's +-5 deg at 0.1 deg) is one pair of angles
-    that every facet's model takes: the HUA's drive-angle errors for the
-    models :func:`estimate_canting` passes (``_TurnModel``), or a common
-    canting tilt for plain facet models; each facet scores the share of its reflected
-    target outline points that fall inside its eroded mask within ``tol_px``
-    of an image edge, and the node with the largest mean over the facets
-    wins. (The share of the points *inside the mask* would not do: a node
-    that leaves a few points in a facet, on some edge, would score high.)
-    Facet canting errors (a few mrad) move each facet's reflection a little
-    differently; the mean over the facets is what a common turn fixes.
-
-    The projections are evaluated on blocks of ``block`` x ``block`` nodes
-    from a quadratic through nine exact projections per block (the same
-    scheme as a facet's own grid; a block spans 2 deg, where the quadratic is
-    well under a pixel), with every ``subsample``-th outline point.
-
-    Parameters
-    ----------
-    facets : list of (_FacetModel, _Mask)
-        The facets to score, each with its target model (design canting) and
-        eroded mask.
-    dt : ndarray
-        Distance transform of the edge-point image, pixels.
-    n_alternatives : int
-        How many next-best distinct peaks to return beside the best.
-
-    Returns
-    -------
-    OrientationSearch
-    """
-    import time
-
-    from scipy import ndimage
-
-    from pihim.inspection import _kernels
-
-    t0 = time.perf_counter()
-    m = int(math.floor(span_mrad / step_mrad + 1e-9))
-    grid = step_mrad * np.arange(-m, m + 1)  # symmetric, zero (the design) a node
-    n = len(grid)
-    total = np.zeros((n, n))
-    scored = 0
-    blocks = [grid[i:i + block] for i in range(0, n, block)]
-    for model, mask in facets:
-        sub_model = model.subsampled(subsample)
-        if len(sub_model.pts) < 10:
-            continue
-        hh, ww = mask.sub.shape
-        dt_crop = np.ascontiguousarray(dt[mask.r0:mask.r0 + hh, mask.c0:mask.c0 + ww])
-        near = np.zeros((n, n))
-        for i, ga in enumerate(blocks):
-            for j, ge in enumerate(blocks):
-                ca, ce = 0.5 * (ga[0] + ga[-1]), 0.5 * (ge[0] + ge[-1])
-                s = max(float(np.max(np.abs(ga - ca))), float(np.max(np.abs(ge - ce))), 1.0)
-                coef = sub_model.quadratic_coefficients(s, (ca, ce))
-                _, nn = _kernels.grid_counts(coef, ga - ca, ge - ce, mask.sub, mask.r0, mask.c0, dt_crop, float(tol_px))
-                near[i * block:i * block + len(ga), j * block:j * block + len(ge)] = nn.reshape(len(ga), -1)
-        if near.max() > 0:
-            scored += 1
-            # clutter (other heliostats' backs, the ground) raises a facet's counts over broad regions of
-            # the grid; the target's reflection is a sharp peak: keep what stands above the local mean,
-            # widened by a node either way (facets' own canting spreads their peaks by a few mrad)
-            peak = np.clip(near - ndimage.uniform_filter(near, size=highpass, mode="nearest"), 0.0, None)
-            total += ndimage.maximum_filter(peak, size=3, mode="nearest") / len(sub_model.pts)
-    if scored == 0:
-        raise PihimInputError("no facet shows the target's reflection anywhere within the orientation search")
-    k = int(np.argmax(total))
-    i, j = divmod(k, n)
-    # the next-best distinct peaks (local maxima over +-3 nodes, at least half the best score)
-    local = (total == ndimage.maximum_filter(total, size=7, mode="nearest")) & (total >= 0.5 * total[i, j])
-    local[i, j] = False
-    order = np.flatnonzero(local.ravel())
-    order = order[np.argsort(-total.ravel()[order], kind="stable")][:max(n_alternatives, 0)]
-    alternatives = tuple((float(grid[a]), float(grid[b]), float(total[a, b] / scored))
-                         for a, b in (divmod(int(q), n) for q in order))
-    return OrientationSearch(float(grid[i]), float(grid[j]), float(total[i, j] / scored), scored, float(span_mrad),
-                             float(step_mrad), float(tol_px), time.perf_counter() - t0, alternatives)
-
-
-def refine_target_orientation(
-    camera: CameraModel,
-    pose: CameraPose,
-    field_pose: FieldPose,
-    hua: int,
-    target: int,
-    facets: list[tuple[int, float, float, tuple[NDArray, NDArray, NDArray]]],
-    *,
-    max_deg: float = 5.0,
-    hua_turn_deg: tuple[float, float] = (0.0, 0.0),
-) -> tuple[float, float]:
-    """The target's drive-angle correction that best explains its reflections in the HUA's facets, degrees.
-
-    :func:`refine_orientations` with the HUA's turn held at ``hua_turn_deg``.
-
-    Returns
-    -------
-    (d_azimuth_deg, d_elevation_deg)
-    """
-    return refine_orientations(camera, pose, field_pose, hua, target, facets, max_deg=max_deg,
-                               hua_turn_deg=hua_turn_deg, solve_hua=False)[0]
-
-
-def refine_orientations(
-    camera: CameraModel,
-    pose: CameraPose,
-    field_pose: FieldPose,
-    hua: int,
-    target: int,
-    facets: list[tuple[int, float, float, tuple[NDArray, NDArray, NDArray]]],
-    *,
-    max_deg: float = 5.0,
-    hua_turn_deg: tuple[float, float] = (0.0, 0.0),
-    solve_hua: bool = True,
-    max_points: int = 300,
-) -> tuple[tuple[float, float], tuple[float, float]]:
-    """Corrections of the target's and the HUA's drive angles that best explain the target's reflections, degrees.
-
-    The paper corrects the logged orientations before measuring canting
-    (sec. 4.4). A target at a wrong logged orientation has a distorted
-    outline in the model (its points move out of its plane by up to its
-    half-width times the error); a HUA at a wrong logged orientation sees,
-    through the camera pose fitted on it, the target turned back about the
-    HUA's pivot (:func:`hua_turn_transform`): moved, which a common tilt of
-    the facets nearly mimics, and turned, which it does not. Either leaves
-    every facet's fit a few pixels off. Here the target's two drive angles,
-    the HUA's two (``solve_hua``) and every facet's two canting angles are
-    solved together by robust least squares (soft-L1, 0.5 px) on the
-    point-to-line distances of the facets' last matches (:func:`_fit_facet`'s
-    ``matches``): the target's points turn about its pivot with its drive
-    angles (mirror centre ``pivot + offset * normal``), then about the
-    HUA's pivot with the HUA's turn, and each facet mirrors them in its
-    plane. A common tilt of the facets and the HUA's turn differ only by
-    that second-order picture, so the HUA's share is weakly determined; the
-    facets' deviations relative to their mean are not affected.
-
-    Parameters
-    ----------
-    facets : list of (facet index, az_mrad, el_mrad, (points, image points, line normals))
-        The facets' fits (raw deviations) and their matches, made on the
-        target's outline at its logged angles turned by ``hua_turn_deg``.
-    max_deg : float
-        Largest correction accepted per axis; beyond it the fit is not
-        trusted and no correction is returned.
-    hua_turn_deg : (float, float)
-        The HUA's drive-angle error the matches were made with
-        (:func:`hua_turn_transform`), degrees.
-    solve_hua : bool
-        Also correct the HUA's turn; otherwise it is held. The facets'
-        mean canting is then held near zero by a weak penalty (1 px per
-        mrad), as the HUA's turn and a common tilt nearly trade off.
-    max_points : int
-        Matches used per facet, at most (evenly along them).
-
-    Returns
-    -------
-    ((d_az_target, d_el_target), (d_az_hua, d_el_hua))
-        Degrees; the HUA's correction is on top of ``hua_turn_deg``.
-    """
-    from scipy.optimize import least_squares
-
-    from pihim.field.kinematics import rotation_from_drive
-    from pihim.inspection import _kernels
-
-    none = ((0.0, 0.0), (0.0, 0.0))
-    if not facets:
-        return none
-    d = field_pose.drive
-    az0, el0 = float(d.azimuth_deg[target]), float(d.elevation_deg[target])
-    r0 = field_pose.rotations[target]
-    c0 = field_pose.mirror_centres[target]
-    pivot = np.asarray(field_pose.field.pivots, float)[target]  # type: ignore[attr-defined]
-    offset = float(field_pose.field.spec.pivot_offset_m)  # type: ignore[attr-defined]
-    rot_h = field_pose.rotations[hua]
-    cam = _kernels.camera_vector(camera)
-    rc = np.array(pose.rotation, float)
-    cc = np.array(pose.position_m, float)
-    h_pivot, m0 = hua_turn_transform(field_pose, hua, *hua_turn_deg)
-    h_az, h_el = float(d.azimuth_deg[hua]), float(d.elevation_deg[hua])
-    r_log = rotation_from_drive(h_az, h_el)
-    # at most ``max_points`` matches per facet, evenly along them: a few hundred fix two angles as well
-    facets = [(f, a, e, tuple(np.asarray(v)[::max(1, -(-len(m[1]) // max_points))] for v in m))
-              for f, a, e, m in facets]
-    local = [(_apply((h_pivot, m0.T), m[0]) - c0) @ r0 for _, _, _, m in facets]  # target frame
-    sizes = [len(m[1]) for *_, m in facets]
-    starts = np.concatenate([[0], np.cumsum(sizes)])
-    centres = [field_pose.facet_centres[hua, f] for f, *_ in facets]
-    normals_local = [field_pose.facet_normals_local[hua, f] for f, *_ in facets]
-    n_o = 4 if solve_hua else 2
-    n_f = len(facets)
-    # the facets' mean canting is held near zero (weight ``mean_weight`` px per mrad): with the HUA's turn
-    # free, a common tilt of the facets and the turn nearly trade off, and the turn takes the common part
-    mean_weight = 1.0 if solve_hua else 0.0
-
-    def block(x_o: NDArray, x_f: NDArray, k: int) -> NDArray:
-        """Point-to-line residuals of facet ``k`` at orientation ``x_o`` and its canting ``x_f``."""
-        rt = rotation_from_drive(az0 + x_o[0], el0 + x_o[1])
-        ct = pivot + offset * rt[:, 2]
-        world = (h_pivot, m0) if not solve_hua else \
-            (h_pivot, r_log @ rotation_from_drive(h_az + hua_turn_deg[0] + x_o[2], h_el + hua_turn_deg[1] + x_o[3]).T)
-        m = facets[k][3]
-        p = _apply(world, ct + local[k] @ rt.T)
-        n = rot_h @ apply_canting_deviation(normals_local[k], x_f[0], x_f[1])
-        virt = p - 2.0 * ((p - centres[k]) @ n)[:, None] * n
-        uv = _kernels.project_rc(rc, cc, np.ascontiguousarray(virt), cam)
-        return np.nan_to_num(np.sum((uv - m[1]) * m[2], axis=1), nan=10.0)
-
-    def residuals(x: NDArray) -> NDArray:
-        out = np.empty(starts[-1] + 2)
-        for k in range(n_f):
-            out[starts[k]:starts[k + 1]] = block(x[:n_o], x[n_o + 2 * k:n_o + 2 * k + 2], k)
-        xf = x[n_o:].reshape(n_f, 2)
-        out[starts[-1]:] = mean_weight * xf.mean(axis=0)
-        return out
-
-    def jacobian(x: NDArray) -> object:
-        # each facet's residuals depend on the orientation angles and its own two: forward differences
-        # per facet (n_o + 2 evaluations of that facet's block), the mean rows analytic
-        jac = np.zeros((int(starts[-1]) + 2, n_o + 2 * n_f))
-        for k in range(n_f):
-            xo, xf = x[:n_o].copy(), x[n_o + 2 * k:n_o + 2 * k + 2].copy()
-            r0 = block(xo, xf, k)
-            idx = np.arange(starts[k], starts[k + 1])
-            for j in range(n_o + 2):
-                step = (1e-5 if j < n_o else 1e-3)
-                xo2, xf2 = xo.copy(), xf.copy()
-                if j < n_o:
-                    xo2[j] += step
-                    col = j
-                else:
-                    xf2[j - n_o] += step
-                    col = n_o + 2 * k + j - n_o
-                jac[idx, col] = (block(xo2, xf2, k) - r0) / step
-        for a in range(2):
-            jac[starts[-1] + a, n_o + 2 * np.arange(n_f) + a] = mean_weight / n_f
-        return jac
-
-    n_p = n_o + 2 * n_f
-    x0 = np.concatenate([np.zeros(n_o), np.ravel([[a, e] for _, a, e, _ in facets])])
-    scale = np.concatenate([np.full(n_o, 0.01), np.full(n_p - n_o, 0.1)])
-    fit = least_squares(residuals, x0, jac=jacobian, loss="soft_l1", f_scale=0.5, x_scale=scale, max_nfev=50,
-                        tr_solver="exact")
-    corr = np.asarray(fit.x[:n_o], float)
-    if not np.all(np.abs(corr) <= max_deg):
-        return none
-    return (float(corr[0]), float(corr[1])), ((float(corr[2]), float(corr[3])) if solve_hua else (0.0, 0.0))
-
-
-def drive_correction(field_pose: FieldPose, index: int, az_mrad: float, el_mrad: float) -> tuple[float, float]:
-    """A canting-style rotation of a whole heliostat as a change of its drive angles, degrees.
-
-    The heliostat's normal (its frame's ``z``) tilted by ``(az_mrad,
-    el_mrad)`` (:func:`pihim.field.kinematics.apply_canting_deviation`) has
-    drive angles that differ from the logged ones by the returned
-    ``(d_azimuth, d_elevation)`` (azimuth wrapped to [-180, 180)).
-    """
-    from pihim.field.kinematics import drive_angles
-
-    rot = field_pose.rotations[index]
-    n0 = rot[:, 2]
-    n1 = rot @ apply_canting_deviation(np.array([0.0, 0.0, 1.0]), az_mrad, el_mrad)
-    d0, d1 = drive_angles(n0), drive_angles(n1)
-    d_az = (float(d1.azimuth_deg) - float(d0.azimuth_deg) + 180.0) % 360.0 - 180.0
-    return d_az, float(d1.elevation_deg) - float(d0.elevation_deg)
 
 
 def estimate_canting(
@@ -1089,8 +499,9 @@ def estimate_canting(
         drive_h = (float(drv.azimuth_deg[h]), float(drv.elevation_deg[h]))
         pivot_h, _ = hua_turn_transform(field_pose, h, 0.0, 0.0)
         try:
-            search = search_orientation([(_TurnModel(facet_model(f), drive_h, pivot_h).near(m, orientation_span_mrad), m)
-                                         for f, m in candidates], dt, span_mrad=float(orientation_span_mrad))
+            turn_models = [(_TurnModel(facet_model(f), drive_h, pivot_h).near(m, orientation_span_mrad), m)
+                           for f, m in candidates]
+            search = search_orientation(turn_models, dt, span_mrad=float(orientation_span_mrad))
         except PihimInputError as exc:
             notes.append(f"orientation search: {exc}")
     # The search's node is the HUA's drive-angle error: beyond two steps, the target's outline is turned as a
