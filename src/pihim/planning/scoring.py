@@ -926,14 +926,6 @@ def _take(pred: ImagePredictions, idx: NDArray[np.int64]) -> ImagePredictions:
     return ImagePredictions(**{f.name: getattr(pred, f.name)[idx] for f in dataclasses.fields(pred)})
 
 
-def _camera_axes(heading_deg: NDArray, pitch_deg: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-    """OpenCV camera axes (x right, y down, z forward) in ENU for zero roll."""
-    h, p = np.radians(heading_deg), np.radians(pitch_deg)
-    z = np.stack([np.sin(h) * np.cos(p), np.cos(h) * np.cos(p), np.sin(p)], axis=-1)
-    x = np.stack([np.cos(h), -np.sin(h), np.zeros_like(h)], axis=-1)
-    return x, np.cross(z, x), z
-
-
 def _gaze(cam: NDArray, look_at: NDArray) -> tuple[NDArray, NDArray]:
     """Heading (deg clockwise from North, [0, 360)) and pitch (deg, negative down) from ``cam`` to ``look_at``."""
     d = look_at - cam
@@ -943,17 +935,11 @@ def _gaze(cam: NDArray, look_at: NDArray) -> tuple[NDArray, NDArray]:
 
 def _framing(cam: NDArray, points: NDArray, heading_deg: NDArray, pitch_deg: NDArray,
              camera: CameraModel) -> NDArray[np.float64]:
-    """Fraction of ``points`` (..., F, 3) inside the image of cameras (..., 3) with the given attitude."""
-    x, y, z = (a[..., None, :] for a in _camera_axes(heading_deg, pitch_deg))
-    c = cam[..., None, :]
-    q0, q1, q2 = (points[..., k] - c[..., k] for k in range(3))
-    zc = q0 * z[..., 0] + q1 * z[..., 1] + q2 * z[..., 2]
-    xc = q0 * x[..., 0] + q1 * x[..., 1]  # image right is horizontal
-    yc = q0 * y[..., 0] + q1 * y[..., 1] + q2 * y[..., 2]
-    tx = 0.5 * camera.width_px / camera.focal_length_px
-    ty = 0.5 * camera.height_px / camera.focal_length_px
-    inside = (zc > 0) & (np.abs(xc) <= tx * zc) & (np.abs(yc) <= ty * zc)
-    return inside.mean(axis=-1)
+    """Fraction of ``points`` (..., F, 3) inside the image of cameras (..., 3) with the given attitude
+    (:func:`pihim.planning.sightlines.in_fov`)."""
+    from pihim.planning.sightlines import in_fov
+
+    return in_fov(points, cam, heading_deg, pitch_deg, camera).mean(axis=-1)
 
 
 def _tower_ok(points: NDArray, tower: Any, clearance: float) -> NDArray[np.bool_]:
