@@ -150,6 +150,55 @@ def test_sigkill_mid_run_then_rerun_loses_and_duplicates_nothing(flight_copy, tm
     assert db.execute("SELECT count(*) FROM run").fetchone()[0] == 2
 
 
+def test_sigkill_in_the_canting_stage_then_rerun_redoes_no_observation(flight_copy, tmp_path) -> None:
+    """The whole chain (polar, selection, the real inspector on the 3 chosen frames of each pair) killed with SIGKILL
+    once some observations are written; the rerun inspects only the rest, keeps the first run's rows and writes no
+    duplicate."""
+    n = 24
+    _many_frames(flight_copy, n)
+    store = tmp_path / "c.sqlite"
+    proc = _cli("campaign", "run", str(flight_copy), "--store", str(store), "--workers", "1")
+    deadline = time.monotonic() + 180
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            if store.exists():
+                try:
+                    with sqlite3.connect(store, timeout=1) as db:
+                        observed = db.execute("SELECT count(*) FROM observation").fetchone()[0]
+                except sqlite3.OperationalError:
+                    observed = 0
+                if observed >= 2:
+                    os.kill(proc.pid, signal.SIGKILL)
+                    break
+            time.sleep(0.02)
+    finally:
+        proc.wait(timeout=30)
+        if _group_alive(proc.pid):
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
+    db = sqlite3.connect(store)
+    first = {r[0]: r[1:] for r in db.execute("SELECT frame_id, id, status, reason, result FROM observation")}
+    chosen = 3 * len({(f["hua"], f["target"]) for f in _truth(flight_copy)["frames"]})  # frames_per_pair 3
+    assert 2 <= len(first) < chosen
+    db.close()
+
+    again = _cli("campaign", "run", str(flight_copy), "--store", str(store), "--workers", "1", "--json")
+    out, err = again.communicate(timeout=300)
+    assert again.returncode == 0, err.decode()
+    summary = json.loads(out)
+    db = sqlite3.connect(store)
+    rows = db.execute("SELECT frame_id, id, status, reason, result FROM observation").fetchall()
+    assert db.execute("SELECT count(*) FROM candidate WHERE chosen = 1").fetchone()[0] == chosen
+    assert len(rows) == chosen and len({r[0] for r in rows}) == len(rows)  # one observation per chosen frame
+    assert summary["processed_this_run"]["observations"] == len(rows) - len(first)  # finished ones not redone
+    now = {r[0]: r[1:] for r in rows}
+    assert all(now[k] == v for k, v in first.items())  # the first run's rows kept as written
+    n_res, n_keys = db.execute("SELECT count(*), count(DISTINCT heliostat_id || '/' || facet) "
+                               "FROM facet_result").fetchone()
+    assert n_res == n_keys  # one combined result per heliostat and facet
+    assert db.execute("SELECT count(*) FROM run").fetchone()[0] == 2
+
+
 def _group_alive(pgid: int) -> bool:
     try:
         os.killpg(pgid, 0)
