@@ -105,25 +105,7 @@ def test_sigkill_mid_run_then_rerun_loses_and_duplicates_nothing(flight_copy, tm
     _many_frames(flight_copy, n)
     store = tmp_path / "c.sqlite"
     proc = _cli("campaign", "run", str(flight_copy), "--store", str(store), "--stages", "select", "--workers", "1")
-    done_before = 0
-    deadline = time.monotonic() + 120
-    try:
-        while time.monotonic() < deadline and proc.poll() is None:
-            if store.exists():
-                try:
-                    with sqlite3.connect(store, timeout=1) as db:
-                        done_before = db.execute("SELECT count(*) FROM frame WHERE stage != 'pending'").fetchone()[0]
-                except sqlite3.OperationalError:
-                    done_before = 0
-                if done_before >= 20:
-                    os.kill(proc.pid, signal.SIGKILL)
-                    break
-            time.sleep(0.02)
-    finally:
-        proc.wait(timeout=30)
-        if _group_alive(proc.pid):  # the local cluster's worker processes
-            os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
+    _kill_when(proc, store, "SELECT count(*) FROM frame WHERE stage != 'pending'", 20, timeout_s=120)
     db = sqlite3.connect(store)
     finished_first = dict(db.execute("SELECT frame_key, run_id FROM frame WHERE stage != 'pending'").fetchall())
     assert 20 <= len(finished_first) < n
@@ -158,24 +140,7 @@ def test_sigkill_in_the_canting_stage_then_rerun_redoes_no_observation(flight_co
     _many_frames(flight_copy, n)
     store = tmp_path / "c.sqlite"
     proc = _cli("campaign", "run", str(flight_copy), "--store", str(store), "--workers", "1")
-    deadline = time.monotonic() + 180
-    try:
-        while time.monotonic() < deadline and proc.poll() is None:
-            if store.exists():
-                try:
-                    with sqlite3.connect(store, timeout=1) as db:
-                        observed = db.execute("SELECT count(*) FROM observation").fetchone()[0]
-                except sqlite3.OperationalError:
-                    observed = 0
-                if observed >= 2:
-                    os.kill(proc.pid, signal.SIGKILL)
-                    break
-            time.sleep(0.02)
-    finally:
-        proc.wait(timeout=30)
-        if _group_alive(proc.pid):
-            os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
+    _kill_when(proc, store, "SELECT count(*) FROM observation", 2, timeout_s=180)
     db = sqlite3.connect(store)
     first = {r[0]: r[1:] for r in db.execute("SELECT frame_id, id, status, reason, result FROM observation")}
     chosen = 3 * len({(f["hua"], f["target"]) for f in _truth(flight_copy)["frames"]})  # frames_per_pair 3
@@ -197,6 +162,28 @@ def test_sigkill_in_the_canting_stage_then_rerun_redoes_no_observation(flight_co
                                "FROM facet_result").fetchone()
     assert n_res == n_keys  # one combined result per heliostat and facet
     assert db.execute("SELECT count(*) FROM run").fetchone()[0] == 2
+
+
+def _kill_when(proc: subprocess.Popen, store: Path, count_sql: str, at_least: int, *, timeout_s: float) -> None:
+    """SIGKILL the run (and its cluster's process group) once ``count_sql`` counts ``at_least`` rows in its store."""
+    deadline = time.monotonic() + timeout_s
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            if store.exists():
+                try:
+                    with sqlite3.connect(store, timeout=1) as db:
+                        n = db.execute(count_sql).fetchone()[0]
+                except sqlite3.OperationalError:
+                    n = 0
+                if n >= at_least:
+                    os.kill(proc.pid, signal.SIGKILL)
+                    break
+            time.sleep(0.02)
+    finally:
+        proc.wait(timeout=30)
+        if _group_alive(proc.pid):  # the local cluster's worker processes
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
 
 
 def _group_alive(pgid: int) -> bool:

@@ -121,7 +121,7 @@ def test_orientation_search_finds_a_heliostat_turned_beyond_the_facet_grids(turn
     pose, h, az, el, cam, cp, ep = turned
     # without the search every facet's +-17.5 mrad grid misses its reflection
     alone = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, min_dolp=None, orientation_span_mrad=None)
-    assert sum(f.used for f in alone.facets) <= 1
+    assert not any(f.used for f in alone.facets)
     res = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, min_dolp=None, target_orientation=True)
     assert res.search is not None and res.search.step_mrad == pytest.approx(PAPER_GRID_STEP_MRAD)
     assert res.search.span_mrad == pytest.approx(PAPER_ORIENTATION_SPAN_MRAD)
