@@ -28,17 +28,18 @@ def in_fov(points: NDArray, cam: NDArray, r: NDArray, dn: NDArray, f: NDArray, t
 
 
 @njit(cache=True)
-def view_tests(ch: NDArray, nh: NDArray, w: NDArray, elev: NDArray, origin: NDArray, direction: NDArray,
-               altitude: NDArray, nxy: NDArray, tc: NDArray, tn: NDArray, tx: NDArray, ty: NDArray,
+def view_tests(pair: NDArray, ch_all: NDArray, nh_all: NDArray, w_all: NDArray, elev_all: NDArray,
+               origin: NDArray, direction: NDArray, altitude: NDArray, nxy_all: NDArray, tc_all: NDArray,
+               tn_all: NDArray, tx_all: NDArray, ty_all: NDArray,
                half_w: float, half_h: float, max_range: float, min_elev: float, max_offset: float,
                pitch_min: float, pitch_max: float, keepout: NDArray, use_keepout: bool,
                code_low: int, code_behind: int, code_off_plane: int, code_gimbal: int, code_miss: int,
                code_ok: int) -> tuple:  # pragma: no cover - compiled
     """The geometric tests of :func:`pihim.planning.lines.views_of_pairs` up to the reflected ray's miss
-    distance, one pair at a time (same order, same codes): camera position (K, 3), code, range, unit sight
-    direction HUA -> camera (K, 3), plane offset, miss distance, reflected direction (K, 3) and the hit
-    point on the target's plane (K, 3)."""
-    n = ch.shape[0]
+    distance, for the pairs ``pair`` of the pair geometry's arrays (``*_all``), one at a time (same order,
+    same codes): camera position (K, 3), code, range, unit sight direction HUA -> camera (K, 3), plane
+    offset, miss distance, reflected direction (K, 3) and the hit point on the target's plane (K, 3)."""
+    n = pair.shape[0]
     cam = np.empty((n, 3))
     code = np.empty(n, np.int64)
     rng = np.empty(n)
@@ -49,24 +50,27 @@ def view_tests(ch: NDArray, nh: NDArray, w: NDArray, elev: NDArray, origin: NDAr
     hit = np.full((n, 3), np.nan)
     to_deg = 180.0 / np.pi
     for i in range(n):
-        c = code_low if elev[i] < min_elev else code_ok
-        t = (altitude[i] - ch[i, 2]) / w[i, 2] if w[i, 2] != 0.0 else (
-            np.inf if altitude[i] - ch[i, 2] > 0.0 else (-np.inf if altitude[i] - ch[i, 2] < 0.0 else np.nan))
-        ex = ch[i, 0] + t * w[i, 0] - origin[i, 0]
-        ey = ch[i, 1] + t * w[i, 1] - origin[i, 1]
+        g = pair[i]
+        ch, nh, w, nxy = ch_all[g], nh_all[g], w_all[g], nxy_all[g]
+        tc, tn, tx, ty = tc_all[g], tn_all[g], tx_all[g], ty_all[g]
+        c = code_low if elev_all[g] < min_elev else code_ok
+        t = (altitude[i] - ch[2]) / w[2] if w[2] != 0.0 else (
+            np.inf if altitude[i] - ch[2] > 0.0 else (-np.inf if altitude[i] - ch[2] < 0.0 else np.nan))
+        ex = ch[0] + t * w[0] - origin[i, 0]
+        ey = ch[1] + t * w[1] - origin[i, 1]
         along = ex * direction[i, 0] + ey * direction[i, 1]
         cam[i, 0] = origin[i, 0] + along * direction[i, 0]
         cam[i, 1] = origin[i, 1] + along * direction[i, 1]
         cam[i, 2] = altitude[i]
-        dx, dy, dz = cam[i, 0] - ch[i, 0], cam[i, 1] - ch[i, 1], cam[i, 2] - ch[i, 2]
+        dx, dy, dz = cam[i, 0] - ch[0], cam[i, 1] - ch[1], cam[i, 2] - ch[2]
         rg = np.sqrt(dx * dx + dy * dy + dz * dz)
         rng[i] = rg
         s = max(rg, 1e-12)
         v[i, 0], v[i, 1], v[i, 2] = dx / s, dy / s, dz / s
-        vn = v[i, 0] * nh[i, 0] + v[i, 1] * nh[i, 1] + v[i, 2] * nh[i, 2]
+        vn = v[i, 0] * nh[0] + v[i, 1] * nh[1] + v[i, 2] * nh[2]
         if c == code_ok and (not np.isfinite(rg) or vn <= 0.0 or rg > max_range):
             c = code_behind
-        offset[i] = abs(dx * nxy[i, 1] - dy * nxy[i, 0])
+        offset[i] = abs(dx * nxy[1] - dy * nxy[0])
         if c == code_ok and offset[i] > max_offset:
             c = code_off_plane
         pitch = np.arctan2(-dz, np.hypot(dx, dy)) * to_deg
@@ -77,19 +81,19 @@ def view_tests(ch: NDArray, nh: NDArray, w: NDArray, elev: NDArray, origin: NDAr
         if c == code_ok and bad:
             c = code_gimbal
         if c == code_ok:
-            rx = 2.0 * vn * nh[i, 0] - v[i, 0]
-            ry = 2.0 * vn * nh[i, 1] - v[i, 1]
-            rz = 2.0 * vn * nh[i, 2] - v[i, 2]
+            rx = 2.0 * vn * nh[0] - v[i, 0]
+            ry = 2.0 * vn * nh[1] - v[i, 1]
+            rz = 2.0 * vn * nh[2] - v[i, 2]
             r[i, 0], r[i, 1], r[i, 2] = rx, ry, rz
-            denom = rx * tn[i, 0] + ry * tn[i, 1] + rz * tn[i, 2]
-            num = (tc[i, 0] - ch[i, 0]) * tn[i, 0] + (tc[i, 1] - ch[i, 1]) * tn[i, 1] \
-                + (tc[i, 2] - ch[i, 2]) * tn[i, 2]
+            denom = rx * tn[0] + ry * tn[1] + rz * tn[2]
+            num = (tc[0] - ch[0]) * tn[0] + (tc[1] - ch[1]) * tn[1] \
+                + (tc[2] - ch[2]) * tn[2]
             lam = num / denom if denom != 0.0 else np.nan
-            hx, hy, hz = ch[i, 0] + lam * rx, ch[i, 1] + lam * ry, ch[i, 2] + lam * rz
+            hx, hy, hz = ch[0] + lam * rx, ch[1] + lam * ry, ch[2] + lam * rz
             hit[i, 0], hit[i, 1], hit[i, 2] = hx, hy, hz
-            qx0, qy0, qz0 = hx - tc[i, 0], hy - tc[i, 1], hz - tc[i, 2]
-            qx = abs(qx0 * tx[i, 0] + qy0 * tx[i, 1] + qz0 * tx[i, 2]) - half_w
-            qy = abs(qx0 * ty[i, 0] + qy0 * ty[i, 1] + qz0 * ty[i, 2]) - half_h
+            qx0, qy0, qz0 = hx - tc[0], hy - tc[1], hz - tc[2]
+            qx = abs(qx0 * tx[0] + qy0 * tx[1] + qz0 * tx[2]) - half_w
+            qy = abs(qx0 * ty[0] + qy0 * ty[1] + qz0 * ty[2]) - half_h
             if denom > 0.0 and lam > 0.0:
                 # np.maximum's NaN propagation: a NaN miss stays NaN (neither missed nor traced)
                 miss[i] = np.nan if (qx != qx or qy != qy) else max(max(qx, qy), 0.0)

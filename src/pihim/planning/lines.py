@@ -472,33 +472,35 @@ def views_of_pairs(geom: PairGeometry, pair: NDArray[np.int64], mirrors: MirrorI
     """:func:`views_from_lines` for pairs ``geom[pair]`` (K,), reusing their precomputed geometry."""
     from pihim.planning import _kernels
 
-    hua, target = geom.hua[pair], geom.target[pair]
-    ch = geom.hua_centre[pair]
-    elev = geom.elevation_deg[pair]
+    pair = np.ascontiguousarray(pair, dtype=np.int64)
     n = len(pair)
 
     def f64(a: ArrayLike, shape: tuple[int, ...]) -> NDArray[np.float64]:
         return np.ascontiguousarray(np.broadcast_to(np.asarray(a, float), shape))
 
+    def whole(a: NDArray) -> NDArray[np.float64]:  # the pair geometry's arrays, indexed in the kernel
+        return np.ascontiguousarray(a, dtype=float)
+
     keep = limits.keepout_box
     cam, code, rng, v, plane_offset, miss, r_all, hit_all = _kernels.view_tests(
-        f64(ch, (n, 3)), f64(geom.hua_normal[pair], (n, 3)), f64(geom.w[pair], (n, 3)), f64(elev, (n,)),
+        pair, whole(geom.hua_centre), whole(geom.hua_normal), whole(geom.w), whole(geom.elevation_deg),
         f64(np.asarray(origin)[..., :2], (n, 2)), f64(np.asarray(direction)[..., :2], (n, 2)), f64(altitude, (n,)),
-        f64(geom.hua_plane_normal_xy[pair], (n, 2)),
-        f64(geom.target_centre[pair], (n, 3)), f64(geom.target_normal[pair], (n, 3)),
-        f64(geom.target_x[pair], (n, 3)), f64(geom.target_y[pair], (n, 3)), float(geom.half_width_m),
+        whole(geom.hua_plane_normal_xy), whole(geom.target_centre), whole(geom.target_normal),
+        whole(geom.target_x), whole(geom.target_y), float(geom.half_width_m),
         float(geom.half_height_m), float(limits.max_range_m), float(limits.min_reflection_elevation_deg),
         float(limits.max_plane_offset_m), float(limits.gimbal_pitch_min_deg), float(limits.gimbal_pitch_max_deg),
         np.zeros((2, 3)) if keep is None else np.array([keep[0], keep[1]], float), keep is not None,
         VIEW_LOW, VIEW_BEHIND, VIEW_OFF_PLANE, VIEW_GIMBAL, VIEW_MISS, VIEW_OK)
+    elev = geom.elevation_deg[pair]
     blocker = np.full(n, -1, dtype=np.int64)
     if trace:
         # the reflected ray HUA -> target where it hits the target's mirror (every test so far passed)
         k = np.flatnonzero(miss <= 0)
         r, hit = r_all[k], hit_all[k]
         if len(k):
-            p0, p1 = ch[k] + 1e-6 * r, hit - 1e-6 * r
-            hits = mirrors.first_hits(p0, p1, np.stack([hua[k], target[k]], axis=1))
+            pk = pair[k]
+            p0, p1 = geom.hua_centre[pk] + 1e-6 * r, hit - 1e-6 * r
+            hits = mirrors.first_hits(p0, p1, np.stack([geom.hua[pk], geom.target[pk]], axis=1))
             if limits.tower_box is not None:
                 hits = np.where((hits < 0) & segments_hit_box(p0, p1, *limits.tower_box), TOWER_HIT, hits)
             blocked = hits != -1
@@ -506,8 +508,9 @@ def views_of_pairs(geom: PairGeometry, pair: NDArray[np.int64], mirrors: MirrorI
             blocker[k[blocked]] = hits[blocked]
         k = np.flatnonzero(code == VIEW_OK)
         if len(k):
-            p0, p1 = cam[k], ch[k] + 1e-6 * v[k]
-            hits = mirrors.first_hits(p0, p1, hua[k, None])
+            pk = pair[k]
+            p0, p1 = cam[k], geom.hua_centre[pk] + 1e-6 * v[k]
+            hits = mirrors.first_hits(p0, p1, geom.hua[pk, None])
             if limits.tower_box is not None:
                 hits = np.where((hits < 0) & segments_hit_box(p0, p1, *limits.tower_box), TOWER_HIT, hits)
             blocked = hits != -1
