@@ -209,8 +209,9 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
                support_margin: float = 0.05) -> tuple:
     """(grid az, grid el, az, el, sigma az, sigma el, points, rms) for one facet (raw, not relative).
 
-    The grid spans ``+-span_mrad`` around ``centre_mrad`` (the heliostat's
-    orientation from :func:`search_orientation`, or the design). The grid
+    The grid spans ``+-span_mrad`` around ``centre_mrad`` (default the
+    design; :func:`estimate_canting` turns the target's outline with the
+    HUA's orientation instead of moving the grid). The grid
     values returned are the paper's (the best node); the refinement starts
     from each of up to ``max_peaks`` local peaks of the grid scoring within
     ``ambiguity`` of the best, nearest ``prefer_mrad`` (default the centre)
@@ -457,14 +458,14 @@ def estimate_canting(
         return _FacetModel(camera, pose, field_pose.rotations[h], field_pose.facet_centres[h, f],
                            field_pose.facet_normals_local[h, f], outline["pts"], outline["seg"])
 
-    def fit_facets(centre: tuple[float, float], prefer: dict[int, tuple[float, float]] | None,
-                   collect: list | None = None) -> dict[int, object]:
+    def fit_facets(prefer: dict[int, tuple[float, float]] | None, collect: list | None = None) -> dict[int, object]:
+        """Every candidate facet fitted on the current outline, its grid around the design."""
         fits: dict[int, object] = {}
         for f, mask in candidates:
-            model = facet_model(f).near(mask, span_mrad, centre_mrad=centre)
+            model = facet_model(f).near(mask, span_mrad)
             found: list = []
             try:
-                fit = _fit_facet(model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px, centre_mrad=centre,
+                fit = _fit_facet(model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px,
                                  prefer_mrad=None if prefer is None else prefer.get(f), matches=found)
             except PihimInputError as exc:
                 fits[f + 1] = f"no usable reflection of {target}: {exc}"
@@ -506,11 +507,10 @@ def estimate_canting(
             notes.append(f"orientation search: {exc}")
     # The search's node is the HUA's drive-angle error: beyond two steps, the target's outline is turned as a
     # camera pose fitted on the HUA sees it (hua_turn_transform) and every facet is fitted around its design on
-    # that outline. The
-    # search proposes, the facet fits decide: the facets are fitted on the logged outline too, and the turn is
-    # kept if it measures more facets (or as many, with more facets finding the target's outline -- what the
-    # target's correction below starts from -- or as many, closer): clutter -- other heliostats' backs, the
-    # ground -- can raise a false peak of the search.
+    # that outline. The search proposes, the facet fits decide: the facets are fitted on the logged outline too,
+    # and the turn is kept if it measures more facets (or as many, with more facets finding the target's outline
+    # -- what the target's correction below starts from -- or as many, closer): clutter -- other heliostats'
+    # backs, the ground -- can raise a false peak of the search.
     plain = {"pts": pts, "seg": seg}
     turn_deg = (0.0, 0.0)
     fits: dict[int, object] = {}
@@ -522,7 +522,7 @@ def estimate_canting(
         turn_deg = (math.degrees(search.az_mrad * 1e-3), math.degrees(search.el_mrad * 1e-3))
         world = hua_turn_transform(field_pose, h, *turn_deg)
         outline.update(pts=_apply(world, pts))
-        fits = fit_facets((0.0, 0.0), None, matches)
+        fits = fit_facets(None, matches)
         outline.update(plain)
     # on the logged outline, a facet whose grid has near-equal peaks (the target's back is periodic) starts
     # from the one nearest the tilt that mimics the search's turn
@@ -532,7 +532,7 @@ def estimate_canting(
                             (search.az_mrad, search.el_mrad))
         for f, m in candidates}
     logged_matches: list = []
-    logged = fit_facets((0.0, 0.0), prefer, logged_matches)
+    logged = fit_facets(prefer, logged_matches)
     if world is not None and (n_used(fits), len(matches), -mean_rms(fits)) > \
             (n_used(logged), len(logged_matches), -mean_rms(logged)):
         notes.append(f"HUA {hua}'s logged drive angles corrected by the orientation search: az {turn_deg[0]:+.2f}, "
@@ -551,8 +551,13 @@ def estimate_canting(
     target_corr = None
     if target_orientation and len(matches) >= 2:
         drv = field_pose.drive
-        az_t = np.array(drv.azimuth_deg, float)
-        el_t = np.array(drv.elevation_deg, float)
+        is_t = np.arange(len(drv.azimuth_deg)) == t
+
+        def target_turned(d: NDArray) -> FieldPose:
+            """The logged field with the target's drive angles changed by ``d`` (degrees)."""
+            return field_pose.with_drive(np.asarray(drv.azimuth_deg, float) + d[0] * is_t,
+                                         np.asarray(drv.elevation_deg, float) + d[1] * is_t)
+
         kept = dict(outline)
         total = np.zeros(2)
         turn = np.array(turn_deg, float)
@@ -560,21 +565,17 @@ def estimate_canting(
         found = None  # (fits, target correction, HUA turn, outline) of the best iteration that beats ``best``
         last = (total.copy(), turn.copy())
         for _ in range(3):  # solve, refit on the corrected outline, solve again from the new matches
-            fp_t = field_pose.with_drive(np.where(np.arange(len(az_t)) == t, az_t + total[0], az_t),
-                                         np.where(np.arange(len(el_t)) == t, el_t + total[1], el_t))
-            step_t, step_h = (np.array(v) for v in refine_orientations(camera, pose, fp_t, h, t, matches,
-                                                                         hua_turn_deg=(turn[0], turn[1])))
+            step_t, step_h = (np.array(v) for v in refine_orientations(camera, pose, target_turned(total), h, t,
+                                                                         matches, hua_turn_deg=(turn[0], turn[1])))
             if not np.any(np.abs(np.concatenate([step_t, step_h])) > 1e-3):
                 break
             total += step_t
             turn += step_h
             last = (total.copy(), turn.copy())
-            p2, s2 = sample_segments(target_outline_segments(field_pose.with_drive(
-                np.where(np.arange(len(az_t)) == t, az_t + total[0], az_t),
-                np.where(np.arange(len(el_t)) == t, el_t + total[1], el_t)), t, sizes), 0.01)
+            p2, s2 = sample_segments(target_outline_segments(target_turned(total), t, sizes), 0.01)
             outline.update(pts=_apply(hua_turn_transform(field_pose, h, turn[0], turn[1]), p2), seg=s2)
             matches = []
-            tried = fit_facets((0.0, 0.0), None, matches)
+            tried = fit_facets(None, matches)
             if (n_used(tried), -mean_rms(tried)) > best:
                 best = (n_used(tried), -mean_rms(tried))
                 found = (tried, total.copy(), turn.copy(), dict(outline))

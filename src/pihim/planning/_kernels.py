@@ -54,6 +54,7 @@ def view_tests(pair: NDArray, ch_all: NDArray, nh_all: NDArray, w_all: NDArray, 
         ch, nh, w, nxy = ch_all[g], nh_all[g], w_all[g], nxy_all[g]
         tc, tn, tx, ty = tc_all[g], tn_all[g], tx_all[g], ty_all[g]
         c = code_low if elev_all[g] < min_elev else code_ok
+        # the camera: where the direction w from the HUA to the camera reaches the pass altitude, on the line
         t = (altitude[i] - ch[2]) / w[2] if w[2] != 0.0 else (
             np.inf if altitude[i] - ch[2] > 0.0 else (-np.inf if altitude[i] - ch[2] < 0.0 else np.nan))
         ex = ch[0] + t * w[0] - origin[i, 0]
@@ -70,6 +71,7 @@ def view_tests(pair: NDArray, ch_all: NDArray, nh_all: NDArray, w_all: NDArray, 
         vn = v[i, 0] * nh[0] + v[i, 1] * nh[1] + v[i, 2] * nh[2]
         if c == code_ok and (not np.isfinite(rg) or vn <= 0.0 or rg > max_range):
             c = code_behind
+        # distance of the camera from the vertical plane of the HUA's normal
         offset[i] = abs(dx * nxy[1] - dy * nxy[0])
         if c == code_ok and offset[i] > max_offset:
             c = code_off_plane
@@ -80,7 +82,7 @@ def view_tests(pair: NDArray, ch_all: NDArray, nh_all: NDArray, w_all: NDArray, 
             bad = True
         if c == code_ok and bad:
             c = code_gimbal
-        if c == code_ok:
+        if c == code_ok:  # the ray camera -> HUA centre reflected about the HUA's normal, against the target
             rx = 2.0 * vn * nh[0] - v[i, 0]
             ry = 2.0 * vn * nh[1] - v[i, 1]
             rz = 2.0 * vn * nh[2] - v[i, 2]
