@@ -311,7 +311,8 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), *,
     plan_s = _time.perf_counter() - t0
     plan_record = {"time": settings.time, "seconds": round(plan_s, 3),
                    **{k: plan.summary[k] for k in ("passes", "feasible_passes", "waypoints", "images",
-                                                   "usable_images", "coverage", "flights")},
+                                                   "reflection_images", "usable_images", "coverage",
+                                                   "flights")},
                    "files": {k: str(v.relative_to(out)) for k, v in plan_files.items()}}
     candidates = pick_pairs(*_single_capture_pairs(field, settings.time))
     camera = CameraModel(width_px=settings.width_px, height_px=settings.height_px)

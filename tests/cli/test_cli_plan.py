@@ -66,7 +66,9 @@ def test_plan_files_read_by_third_party_readers(tmp_path, capsys):
     out = tmp_path / "plan"
     assert main(["plan", "--time", TIME, "--out", str(out)]) == 0
     err = capsys.readouterr().err
-    assert "coverage" in err and "heliostats of the field with at least one usable image" in err
+    cov = json.loads((out / "plan.json").read_text())["summary"]["coverage"]
+    assert (f"heliostats of the field imaged {100 * cov['planned']:.0f} %, with the reflection "
+            f"{100 * cov['reflection']:.0f} %, with a contrast edge {100 * cov['either']:.0f} %") in " ".join(err.split())
     assert f"to {out}" in err and len(err.strip().splitlines()) == 2
     for path in sorted(out.glob("flight_*.waypoints")):
         loader = mavwp.MAVWPLoader()

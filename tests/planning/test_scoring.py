@@ -28,6 +28,7 @@ from pihim.planning.scoring import (
     ShiftSearch,
     build_scene,
     coverage,
+    images_text,
     min_safe_altitude_m,
     predict_images,
     score_passes,
@@ -273,6 +274,19 @@ def test_pair_predictions_records(field, pose):
     cov = coverage(scored, len(field))
     assert cov["planned"] == pytest.approx(len(PAIRS) / len(field))
     assert cov["either"] <= cov["planned"] and max(cov["sky"], cov["ground"]) <= cov["either"]
+    with_reflection = {pr.hua for sp in scored for pr in sp.predictions if pr.reflection_dolp_ok}
+    assert cov["reflection"] == pytest.approx(len(with_reflection) / len(field))
+    assert cov["either"] <= cov["reflection"] <= cov["planned"]
+
+
+def test_images_text_separates_canting_from_contrast_edges():
+    summary = {"images": 534, "reflection_images": 530, "usable_images": 0,
+               "coverage": {"planned": 0.9, "reflection": 0.88, "either": 0.0}}
+    text = images_text(summary)
+    assert "534 captures, 530 showing the target's reflection with DoLP > 0.2" in text
+    assert "0 also an outline edge" in text and "none at this hour" in text
+    assert "imaged 90 %, with the reflection 88 %, with a contrast edge 0 %" in text
+    assert "none at this hour" not in images_text({**summary, "usable_images": 3})
 
 
 def test_capture_of_unknown_pair_is_refused(field, pose):

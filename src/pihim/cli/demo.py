@@ -54,9 +54,10 @@ def demo(
         emit_json(doc)
     else:
         sm, plan = doc["summary"], doc["plan"]
-        stderr_console.print(
-            f"[bold]pihim demo[/bold]: {plan['passes']} passes, {plan['usable_images']}/{plan['images']} captures "
-            f"predicted usable, {plan['flights']} flights -> {out / 'plan'}")
+        from pihim.planning.scoring import images_text
+
+        stderr_console.print(f"[bold]pihim demo[/bold]: {plan['passes']} passes, {images_text(plan)}; "
+                             f"{plan['flights']} flights -> {out / 'plan'}", highlight=False)
         for p in doc["pairs"]:
             if "score" not in p:
                 stderr_console.print(f"  {p['hua']}/{p['target']}: not inspected: {p.get('error')}")

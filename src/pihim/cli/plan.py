@@ -90,15 +90,15 @@ def plan(
 
 def _human_summary(summary: dict, files: dict[str, Path], out: Path) -> str:
     """Two lines for the console: what was planned, and what was written where."""
-    cov = summary["coverage"]
     missions = summary.get("missions", [])
     longest = max((m["duration_s"] for m in missions), default=0.0) / 60.0
     n_flight_files = sum(k.endswith("_plan") and k.startswith("flight_") for k in files)
+    from pihim.planning.scoring import images_text
+
     return (
-        f"pihim plan: {summary['passes']} passes, {summary['usable_images']}/{summary['images']} images predicted "
-        f"usable; coverage {100 * cov['either']:.0f} % (heliostats of the field with at least one usable image; "
-        f"{100 * cov['planned']:.0f} % imaged){_facet_text(summary)}; {summary['flights']} flights, "
-        f"{summary['distance_m'] / 1000:.2f} km, {summary['turns']} turns, longest {longest:.1f} min\n"
+        f"pihim plan: {summary['passes']} passes, {images_text(summary)}{_facet_text(summary)}; "
+        f"{summary['flights']} flights, {summary['distance_m'] / 1000:.2f} km, {summary['turns']} turns, "
+        f"longest {longest:.1f} min\n"
         f"wrote {len(files)} files to {out}: plan.json, plan.kml, plan.png and {n_flight_files} flight missions "
         f"(flight_NN.plan / .waypoints / _litchi*.csv)"
     )

@@ -137,11 +137,12 @@ def _pair_section(p: dict[str, Any]) -> str:
 
 def render_report(doc: dict[str, Any]) -> str:
     """The HTML text of the report for a ``pihim.demo/2`` document."""
+    from pihim.planning.scoring import images_text
+
     e = html.escape
     st = doc["settings"]
     plan = doc["plan"]
     sm = doc["summary"]
-    cov = plan.get("coverage", {})
     head = (
         "<!DOCTYPE html><html lang=en><head><meta charset=utf-8>"
         "<meta name=viewport content=\"width=device-width,initial-scale=1\">"
@@ -171,9 +172,7 @@ def render_report(doc: dict[str, Any]) -> str:
     plan_html = (
         "<h2>Flight plan</h2>"
         f"<p>{plan['passes']} UFACET passes ({plan['feasible_passes']} feasible), {plan['waypoints']} waypoints, "
-        f"{plan['usable_images']} of {plan['images']} captures predicted usable by the paper's edge-contrast "
-        f"criteria (sky-vs-sky or ground-vs-ground), {plan['flights']} flight(s); "
-        f"heliostats covered: {_f(100 * cov.get('either', 0.0), '.0f')} %. Planned in "
+        f"{e(images_text(plan))}; {plan['flights']} flight(s). Planned in "
         f"{_f(plan['seconds'], '.1f')} s. Autopilot files: "
         + ", ".join(f"<a href=\"{e(str(v))}\">{e(Path(str(v)).name)}</a>" for v in files.values()) + ".</p>"
         + (_img(str(map_png), "plan map", "wide") if map_png else "")

@@ -183,6 +183,7 @@ def build_plan(
         "feasible_passes": sum(p.feasible for p in scored),
         "waypoints": sum(len(p.waypoints) for p in scored),
         "images": sum(len(p.predictions) for p in scored),
+        "reflection_images": sum(sum(q.reflection_dolp_ok for q in p.predictions) for p in scored),
         "usable_images": sum(sum(q.usable for q in p.predictions) for p in scored),
         "coverage": coverage(scored, len(field.names)),
         "alignment": {"planned": alignment_summary(passes, field, pose),

@@ -143,7 +143,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -179,6 +179,7 @@ __all__ = [
     "ShiftSearch",
     "build_scene",
     "coverage",
+    "images_text",
     "min_safe_altitude_m",
     "predict_images",
     "score_passes",
@@ -1293,6 +1294,27 @@ def _search_shifts(
     return chosen
 
 
+def images_text(summary: Mapping[str, Any]) -> str:
+    """A plan summary's captures and coverage in words, as ``pihim plan``, ``pihim demo`` and the demo report say it.
+
+    Separates what the canting measurement needs (the target's reflection
+    with DoLP > 0.2, paper sec. 5) from the paper's edge-contrast scenarios
+    (sec. 4.1-4.2), which the paper finds at NSTTF mostly at 9:30-11:30 and
+    14:00-16:00: around noon a plan can have none without being useless.
+    """
+    n, u = int(summary["images"]), int(summary["usable_images"])
+    r = summary.get("reflection_images")
+    cov = summary.get("coverage", {})
+    text = (f"{n} captures, {'?' if r is None else r} showing the target's reflection with DoLP > 0.2 (for canting), "
+            f"{u} also an outline edge with the paper's polarimetric contrast (sky-vs-sky or ground-vs-ground)")
+    if n and not u:
+        text += ": none at this hour (pihim windows lists the hours that have them)"
+    if cov:
+        text += (f"; heliostats of the field imaged {100 * cov.get('planned', 0.0):.0f} %, with the reflection "
+                 f"{100 * cov.get('reflection', 0.0):.0f} %, with a contrast edge {100 * cov.get('either', 0.0):.0f} %")
+    return text
+
+
 def coverage(passes: Sequence[ScanPass], n_heliostats: int) -> dict[str, float]:
     """Fractions of a field's heliostats with at least one planned / usable image.
 
@@ -1306,14 +1328,19 @@ def coverage(passes: Sequence[ScanPass], n_heliostats: int) -> dict[str, float]:
     Returns
     -------
     dict
-        ``planned``: HUAs with at least one image; ``sky``: with an image whose
+        ``planned``: HUAs with at least one image; ``reflection``: with an
+        image whose target reflection has DoLP > 0.2 (what the canting
+        measurement needs, paper sec. 5); ``sky``: with an image whose
         reflection DoLP > 0.2 and sky-vs-sky usable; ``ground``: likewise
         ground-vs-ground; ``either``: with a usable image (either scenario).
     """
-    sets: dict[str, set[str]] = {"planned": set(), "sky": set(), "ground": set(), "either": set()}
+    sets: dict[str, set[str]] = {"planned": set(), "reflection": set(), "sky": set(), "ground": set(),
+                                 "either": set()}
     for sp in passes:
         for pr in sp.predictions:
             sets["planned"].add(pr.hua)
+            if pr.reflection_dolp_ok:
+                sets["reflection"].add(pr.hua)
             if pr.reflection_dolp_ok and pr.sky_vs_sky_ok:
                 sets["sky"].add(pr.hua)
             if pr.reflection_dolp_ok and pr.ground_vs_ground_ok:

@@ -8,8 +8,9 @@ waypoints ending in an arrow, coloured by its predicted usable fraction
 (colour bar; infeasible passes dashed), capture waypoints as small open
 circles, pass numbers in boxes placed next to the pass starts so that none
 overlap (with a leader line), the home position, and a title with the time,
-the counts and the coverage as ``pihim plan`` defines it (heliostats of the
-field with at least one usable image). Drawn with
+the counts and the coverage as ``pihim plan`` states it (heliostats of the
+field imaged, with the target's reflection at DoLP > 0.2, with a usable
+contrast edge). Drawn with
 matplotlib's object-oriented API on an Agg canvas: no ``pyplot``, no global
 state, safe in threads and servers [1]_.
 
@@ -124,7 +125,7 @@ def plan_figure(
 
     counts = plan_counts(plan)
     ax.set_title(f"pihim plan {plan.time_iso}\n{counts['passes']} passes ({counts['feasible_passes']} feasible), "
-                 f"{counts['flights']} flights, {counts['capture_waypoints']} images; {_coverage_text(plan)}",
+                 f"{counts['flights']} flights, {counts['capture_waypoints']} images\n{_coverage_text(plan)}",
                  fontsize=10)
     ax.set_xlabel("East (m)")
     ax.set_ylabel("North (m)")
@@ -133,7 +134,7 @@ def plan_figure(
     ax.legend(loc="lower right", fontsize=7, framealpha=0.9)
     sm = ScalarMappable(norm=norm, cmap=cmap)
     sm.set_array([])
-    fig.colorbar(sm, ax=ax, label="predicted usable fraction of the pass's images", shrink=0.8)
+    fig.colorbar(sm, ax=ax, label="share of the pass's images predicted with a usable contrast edge", shrink=0.8)
     _place_pass_labels(fig, ax, starts)
     return fig
 
@@ -143,8 +144,9 @@ def _coverage_text(plan: Plan) -> str:
     cov = plan.summary.get("coverage") if isinstance(plan.summary, dict) else None
     n = plan.summary.get("heliostats_in_field") if isinstance(plan.summary, dict) else None
     if isinstance(cov, dict) and "either" in cov and n:
-        return (f"coverage {100 * cov['either']:.0f} % of {n} heliostats have a usable image "
-                f"({100 * cov.get('planned', 0.0):.0f} % imaged)")
+        refl = f", {100 * cov['reflection']:.0f} % with the target's reflection (DoLP > 0.2)" if "reflection" in cov else ""
+        return (f"of {n} heliostats {100 * cov.get('planned', 0.0):.0f} % imaged{refl}, "
+                f"{100 * cov['either']:.0f} % with a contrast edge")
     counts = plan_counts(plan)
     return f"{100 * counts['usable_fraction']:.0f} % of the images predicted usable"
 
