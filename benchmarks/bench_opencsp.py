@@ -9,10 +9,11 @@ from take-off to landing over all flights, the turns (changes of horizontal
 direction of more than 30 deg), the captures, the share of the field's
 heliostats imaged (planned coverage) and with a usable image, and the share
 of the imaged HUAs' facets that show a heliostat's back (traced,
-``pihim.planning.facets``). Two older configurations are planned beside it
-for reference: one capture per HUA in the planner's order (the plan before
-issue 11's "every facet" and "shorter" parts) and the same single captures
-with the route optimiser.
+``pihim.planning.facets``). Three configurations are planned beside it
+for reference: the same plan routed for distance alone (no charge per turn,
+``RouteSettings(turn_cost_m=0)``), one capture per HUA in the planner's order
+(the plan before issue 11's "every facet" and "shorter" parts) and the same
+single captures with the route optimiser.
 
 OpenCSP's UFACET mission for this case (13:00 -06:00) flies 5,363 m from
 launch to return in 26 passes (the figure the issue quotes; OpenCSP was not
@@ -43,6 +44,7 @@ from bench_plan import nsttf_field
 
 from pihim.field.layout import UFACET_AIM_POINT
 from pihim.planning.pipeline import build_plan
+from pihim.planning.route import RouteSettings
 from pihim.sky.sun import NSTTF, parse_time
 
 COUNTS = harness.Counts(repeat=1, warmup=0, quick_repeat=1, quick_warmup=0, cap_quick=True)
@@ -53,6 +55,7 @@ HOURS = tuple(range(8, 17))
 OPENCSP = {"hour": 13, "distance_m": 5363.0, "passes": 26}
 CONFIGS = {
     "pihim": {},
+    "pihim, distance only (no charge per turn)": {"route": RouteSettings(turn_cost_m=0.0)},
     "single capture, route": {"facet_captures": False},
     "single capture, planner order": {"facet_captures": False, "route": False},
 }

@@ -300,6 +300,52 @@ def test_reverse_pass_and_turns():
     assert turns(square) == 2  # the 0.2 m leg is ignored; 90 deg twice; the last leg goes straight on
 
 
+def test_turn_charges_count_what_turns_counts():
+    """Each transit is charged the turns it makes out of one pass and into the next: summed over an order and
+    its directions they equal turns() of the path flown (straight passes, no home legs, no tower)."""
+    rng = np.random.default_rng(11)
+    home = Waypoint(0, -50, 0, 0, 0, 0, 0, 0, 0, kind="takeoff")
+    for trial in range(40):
+        n = int(rng.integers(2, 7))
+        passes = []
+        for k in range(n):
+            a = rng.uniform(0, 60, 2)
+            b = a + rng.uniform(1, 30) * np.array([math.cos(t := rng.uniform(0, 2 * math.pi)), math.sin(t)])
+            passes.append(_pass(k, a, b))
+        if trial % 4 == 0:  # a pass continuing straight on from the end of another (no transit, no turn)
+            w = passes[0].waypoints
+            tip = np.array([w[1].x_m, w[1].y_m])
+            passes[1] = _pass(1, tip, tip + 2.0 * (tip - np.array([w[0].x_m, w[0].y_m])))
+        costs = _Costs(passes, home, None, turn_cost_m=1.0)
+        plain = _Costs(passes, home, None)
+        order = list(rng.permutation(n))
+        dirs = list(rng.integers(0, 2, n))
+        path = [w for k, o in zip(order, dirs, strict=True)
+                for w in (reverse_pass(passes[k]) if o else passes[k]).waypoints]
+        charged = sum(costs.d(2 * order[i] + 1 - dirs[i], 2 * order[i + 1] + dirs[i + 1])
+                      - plain.d(2 * order[i] + 1 - dirs[i], 2 * order[i + 1] + dirs[i + 1]) for i in range(n - 1))
+        assert charged == pytest.approx(turns(path)), trial
+
+
+def test_turn_cost_trades_distance_for_turns():
+    """The route's default charge per turn flies fewer turns than distance alone, for a little more distance."""
+    from pihim.planning.route import RouteSettings
+
+    field_ = nsttf_like_field()
+    plan = build_plan(field_, parse_time(TIME), NSTTF, route=False, facet_report=False)
+    home = home_waypoint(field_, origin=NSTTF)
+    runs = {}
+    for cost in (0.0, RouteSettings().turn_cost_m):
+        _, flights = plan_flights(plan.passes, home, origin=NSTTF, tower=field_.tower,
+                                  settings=RouteSettings(turn_cost_m=cost))
+        runs[cost] = (sum(turns(f.waypoints) for f in flights), sum(f.distance_m for f in flights))
+    (t0, d0), (t1, d1) = runs.values()
+    assert RouteSettings().turn_cost_m > 0 and t1 < t0
+    assert d1 <= d0 + RouteSettings().turn_cost_m * (t0 - t1)  # each turn saved cost at most its charge
+    with pytest.raises(PihimInputError, match="turn_cost_m"):
+        RouteSettings(turn_cost_m=-1.0)
+
+
 def test_facet_capture_settings_are_checked():
     for bad in ({"step_m": 0}, {"max_captures": 0}, {"target_fraction": 1.5}, {"aim_offsets_m": ()},
                 {"min_planned_coverage": -0.1}):
