@@ -59,6 +59,9 @@ def test_demo_scores_against_the_truth_it_never_gave_the_estimator(demo_run):
         assert np.mean([r["true_rel_az_mrad"] for r in used]) == pytest.approx(0.0, abs=1e-9)
         for r in used:
             assert r["err_az_mrad"] == pytest.approx(r["est_az_mrad"] - r["true_rel_az_mrad"])
+    plan_aim = json.loads((out / "plan" / "plan.json").read_text())["aim_point"]
+    frame_aim = json.loads((out / pair["dir"] / "frame.json").read_text())["log"]["aim_point_m"]
+    assert frame_aim == pytest.approx(plan_aim)  # the frames track the aim point the plan was made for
     pose = pair["score"]["pose"]
     assert pose["prior_corner_error_px"] > 20  # the logged pose was really off (GPS 1.5 m, attitude 1 deg) ...
     assert pose["refined_corner_error_px"] < 2.0  # ... and the estimator found the true pose from the image

@@ -285,6 +285,27 @@ def test_waypoint_pose_reads_a_plan_json(field, pair, tmp_path):
         simulate_frame(field, TIME, camera=small_camera(64, 54), pose_request=WaypointPose(path, 2))
 
 
+def test_waypoint_pose_tracks_the_aim_point_its_plan_was_made_for(field, pair, tmp_path):
+    t = pair.truth["pose"]
+    wp = {"x_m": t["position_m"][0], "y_m": t["position_m"][1], "z_m": t["position_m"][2],
+          "heading_deg": t["heading_deg"], "gimbal_pitch_deg": t["pitch_deg"], "capture": True, "hua": "8E3"}
+    tower_aim = [0.0, 6.25, 63.55]
+    path = tmp_path / "plan.json"
+    path.write_text(json.dumps({"schema": "pihim.plan/1", "aim_point": tower_aim, "passes": [{"waypoints": [wp]}]}))
+    sim = simulate_frame(field, TIME, camera=small_camera(64, 54), pose_request=WaypointPose(path, 0), settings=FAST)
+    assert sim.log["aim_point_m"] == tower_aim  # the field tracks as the plan assumed
+    drives = {h["name"]: h for h in sim.log["heliostats"]}
+    default = {h["name"]: h for h in pair.log["heliostats"]}  # the pair was rendered at UFACET's aim point
+    common = set(drives) & set(default)
+    assert common and all(drives[n] != default[n] for n in common)
+    given = simulate_frame(field, TIME, aim_point=UFACET_AIM_POINT, camera=small_camera(64, 54),
+                           pose_request=WaypointPose(path, 0), settings=FAST)
+    assert given.log["aim_point_m"] == list(UFACET_AIM_POINT)  # an explicit aim point wins
+    path.write_text(json.dumps({"schema": "pihim.plan/1", "passes": [{"waypoints": [wp]}]}))
+    old = simulate_frame(field, TIME, camera=small_camera(64, 54), pose_request=WaypointPose(path, 0), settings=FAST)
+    assert old.log["aim_point_m"] == list(UFACET_AIM_POINT)  # a plan that does not say: UFACET's
+
+
 # -- refusals (all before rendering) ----------------------------------------------
 
 

@@ -21,7 +21,6 @@ from pihim._resources import require_memory
 from pihim.camera.model import camera_for_size
 from pihim.cli._common import check_out_dir, emit_json, load_field_option, parse_point, stderr_console
 from pihim.errors import PihimInputError
-from pihim.field import UFACET_AIM_POINT
 from pihim.sky.sun import parse_site
 
 if TYPE_CHECKING:
@@ -125,7 +124,7 @@ def simulate(
     field: Annotated[str, typer.Option("--field", help="nsttf-like (default) or an OpenCSP heliostat CSV.")] = "nsttf-like",
     facets: Annotated[Path | None, typer.Option(help="OpenCSP facet-centroid CSV (with --field CSV).")] = None,
     site: Annotated[str, typer.Option(help="nsttf (default) or LAT,LON,H (deg, deg, ellipsoidal m).")] = "nsttf",
-    aim: Annotated[str | None, typer.Option(help="Aim point X,Y,Z (m, ENU); default OpenCSP's UFACET aim 60,8.8,28.9.")] = None,
+    aim: Annotated[str | None, typer.Option(help="Aim point X,Y,Z (m, ENU); default the --waypoint plan's, else OpenCSP's UFACET aim 60,8.8,28.9.")] = None,
     hua: Annotated[str | None, typer.Option("--hua", help="Heliostat under assessment (with --target).")] = None,
     target: Annotated[str | None, typer.Option("--target", help="Heliostat seen reflected in the HUA.")] = None,
     waypoint: Annotated[str | None, typer.Option("--waypoint", help="PLAN.json:INDEX, a capture waypoint of pihim plan.")] = None,
@@ -157,7 +156,7 @@ def simulate(
     cam = camera_for_size(width, height)
     settings = RenderSettings(supersample=supersample)
     site_obj = parse_site(site)
-    aim_point = parse_point(aim, name="--aim") or list(UFACET_AIM_POINT)
+    aim_point = parse_point(aim, name="--aim")  # None: the --waypoint plan's aim point, else UFACET's
     fld = load_field_option(field, facets, nsttf_tower=site.strip().lower() == "nsttf")
     nsttf_like = field.strip().lower() in ("nsttf-like", "nsttf")
     with _render_progress(sys.stderr.isatty()) as bar:

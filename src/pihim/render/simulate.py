@@ -320,6 +320,16 @@ def _pair_pose(fld: Any, ts: Any, site: Site, aim: NDArray, req: PairPose) -> tu
     raise PihimInputError(refusal)
 
 
+def _plan_aim_point(path: Path) -> list[float] | None:
+    """The aim point a plan.json was made for, or None when it does not say (then the caller's default)."""
+    try:
+        aim = json.loads(path.read_text(encoding="utf-8"))["aim_point"]
+        out = [float(v) for v in aim]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return out if len(out) == 3 and all(math.isfinite(v) for v in out) else None
+
+
 def _waypoint_pair(path: Path, index: int) -> tuple[str | None, str | None]:
     """HUA and target of capture waypoint ``index`` of a plan.json, where the plan says (else None)."""
     try:
@@ -416,7 +426,7 @@ def simulate_frame(
     time: Any,
     *,
     site: Site = NSTTF,
-    aim_point: ArrayLike = UFACET_AIM_POINT,
+    aim_point: ArrayLike | None = None,
     camera: CameraModel = CameraModel(),
     pose_request: PoseRequest,
     canting_sigma_mrad: float = 0.0,
@@ -445,9 +455,11 @@ def simulate_frame(
         Timezone-aware instant (ISO 8601 with an offset).
     site : Site
         Where the field origin is (sun position, WGS84 of the logged pose).
-    aim_point : array_like, shape (3,)
-        Tracking (and canting) aim point, ENU metres, above the ground;
-        default OpenCSP's UFACET aim point.
+    aim_point : array_like, shape (3,), optional
+        Tracking (and canting) aim point, ENU metres, above the ground.
+        Default: with a :class:`WaypointPose`, the aim point the plan was
+        made for (``plan.json``'s ``aim_point``, so that the field tracks as
+        the plan assumed); otherwise OpenCSP's UFACET aim point.
     camera : CameraModel
         Intrinsics and distortion (even width and height).
     pose_request : PairPose, WaypointPose or LookAtPose
@@ -530,7 +542,9 @@ def simulate_frame(
     if not isinstance(site, Site):
         raise PihimInputError(f"site must be a Site, got {type(site).__name__}")
     _check_request(pose_request)
-    aim = _point("aim point", aim_point)
+    if aim_point is None:
+        aim_point = _plan_aim_point(Path(pose_request.plan_path)) if isinstance(pose_request, WaypointPose) else None
+    aim = _point("aim point", UFACET_AIM_POINT if aim_point is None else aim_point)
     if aim[2] <= 0:
         raise PihimInputError(f"the aim point must be above the ground (z > 0), got z = {aim[2]:g}")
     if not hasattr(field, "names") or not hasattr(field, "pivots") or not hasattr(field, "spec"):
