@@ -285,6 +285,25 @@ def test_waypoint_pose_reads_a_plan_json(field, pair, tmp_path):
         simulate_frame(field, TIME, camera=small_camera(64, 54), pose_request=WaypointPose(path, 2))
 
 
+def test_pair_pose_falls_back_to_the_whole_field_plan(field):
+    """9W7 alone gets a line of its own that shows another target; in the whole field's one-capture-per-HUA plan
+    (tower aim) it shows 8W6 from a neighbour's line: that pair renders from that plan's capture point."""
+    from pihim.planning.pipeline import build_plan
+    from pihim.sky.sun import NSTTF, parse_time
+
+    aim = field.default_aim_point
+    kw = dict(aim_point=aim, shift=False, facet_captures=False, route=False, facet_report=False)
+    alone = build_plan(field, parse_time(TIME), NSTTF, heliostats=["9W7"], **kw)
+    assert ("9W7", "8W6") not in {(q.hua, q.target) for p in alone.passes for q in p.predictions}
+    whole = build_plan(field, parse_time(TIME), NSTTF, **kw)
+    (w,) = [p.waypoints[q.waypoint_index] for p in whole.passes if p.feasible for q in p.predictions
+            if (q.hua, q.target) == ("9W7", "8W6")]
+    sim = simulate_frame(field, TIME, aim_point=aim, camera=small_camera(64, 54),
+                         pose_request=PairPose("9W7", "8W6"), settings=FAST)
+    np.testing.assert_allclose(sim.camera_pose.position_m, (w.x_m, w.y_m, w.z_m), atol=1e-9)
+    assert sim.log["hua"] == "9W7" and sim.log["target"] == "8W6"
+
+
 def test_waypoint_pose_tracks_the_aim_point_its_plan_was_made_for(field, pair, tmp_path):
     t = pair.truth["pose"]
     wp = {"x_m": t["position_m"][0], "y_m": t["position_m"][1], "z_m": t["position_m"][2],

@@ -108,8 +108,13 @@ class PairPose:
     this HUA only, no contrast shift, one capture per HUA -- no facet
     captures -- and the planner's default camera, the Triton with a 35 mm
     lens) places the imaging waypoint of the pair, in a feasible pass: the
-    point of the pass line from which the HUA's centre shows the target. The planner chooses targets for that camera's framing, so
-    the pose does not depend on the simulated image size.
+    point of the pass line from which the HUA's centre shows the target.
+    When that plan has no such capture (the HUA alone gets a line of its
+    own; in the whole field it can be imaged from a neighbour's line, with
+    another target), the capture of the pair in the same plan of the whole
+    field is used, so every pair of a one-capture-per-HUA plan of the field
+    can be rendered. The planner chooses targets for that camera's framing,
+    so the pose does not depend on the simulated image size.
     """
 
     hua: str
@@ -306,18 +311,21 @@ def _pair_pose(fld: Any, ts: Any, site: Site, aim: NDArray, req: PairPose) -> tu
     if hua == target:
         raise PihimInputError(f"the target must differ from the HUA (both {hua})")
     refusal = f"target {target} is not visible in HUA {hua} from any feasible pose"
-    try:
-        plan = build_plan(fld, ts, site, aim_point=aim, heliostats=[hua], shift=False, facet_captures=False,
-                          route=False, facet_report=False)
-    except PihimInputError as exc:
-        raise PihimInputError(f"{refusal} ({exc})") from None
-    for p in plan.passes:
-        if not p.feasible:
+    why = ""
+    for only in ([hua], None):  # this HUA alone; else the whole field (where its line can differ)
+        try:
+            plan = build_plan(fld, ts, site, aim_point=aim, heliostats=only, shift=False, facet_captures=False,
+                              route=False, facet_report=False)
+        except PihimInputError as exc:
+            why = f" ({exc})"
             continue
-        for pred in p.predictions:
-            if pred.hua == hua and pred.target == target:
-                return CameraPose.from_waypoint(p.waypoints[pred.waypoint_index]), hua, target
-    raise PihimInputError(refusal)
+        for p in plan.passes:
+            if not p.feasible:
+                continue
+            for pred in p.predictions:
+                if pred.hua == hua and pred.target == target:
+                    return CameraPose.from_waypoint(p.waypoints[pred.waypoint_index]), hua, target
+    raise PihimInputError(refusal + why)
 
 
 def _plan_aim_point(path: Path) -> list[float] | None:
