@@ -549,3 +549,36 @@ def test_summary_counts_processed_resumed_and_failed(frame, tmp_path, capsys):
     err = [ln for ln in capsys.readouterr().err.strip().splitlines() if ln.startswith("pihim")]
     assert err == [f"pihim polar: no frame processed in {out}; 2 of 2 already complete from an earlier run, "
                    "skipped (--overwrite redoes them)"]
+
+
+def test_frames_are_reported_in_input_order_when_a_later_write_finishes_first(frame, tmp_path, capsys, monkeypatch):
+    """Two writer threads: the first frame's write is held until the second frame is written."""
+    import threading
+
+    import pihim.cli.polar as polar_cli
+
+    assert polar_cli.WRITERS >= 2
+    frames = []
+    for k in range(3):
+        p = tmp_path / "in" / f"f{k}.tiff"
+        p.write_bytes(frame.read_bytes())
+        frames.append(p)
+    second_written = threading.Event()
+    real = polar_cli.write_polar_outputs
+    finished: list[str] = []
+
+    def write(result, out_dir, stem, **kw):
+        if stem == "f0":
+            assert second_written.wait(10), "the second writer never ran"
+        paths = real(result, out_dir, stem, **kw)
+        finished.append(stem)
+        if stem == "f1":
+            second_written.set()
+        return paths
+
+    monkeypatch.setattr(polar_cli, "write_polar_outputs", write)
+    assert main(["polar", *map(str, frames), "--out", str(tmp_path / "o"), "--json"]) == 0
+    recs, _ = _records(capsys)
+    assert finished[0] == "f1" and sorted(finished) == ["f0", "f1", "f2"]  # written out of order ...
+    assert [r["file"] for r in recs] == [str(p) for p in frames]  # ... reported in input order
+    assert all((tmp_path / "o" / f"f{k}.S0.tiff").is_file() for k in range(3))

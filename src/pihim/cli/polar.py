@@ -75,8 +75,11 @@ FIGURE_BYTES = 8_000_000
 _IMAGE_KEYS = ("S0", "DoLP", "AoP")
 #: Frames read ahead of the one being computed.
 READ_AHEAD = 2
-#: Computed frames that may wait for (or be in) the writer before the next frame is computed.
+#: Computed frames that may wait for (or be in) the writers before the next frame is computed.
 WRITES_IN_FLIGHT = 2
+#: Writer threads: each writes whole frames (their files atomically as a group); frames are reported in input
+#: order whatever order they finish in.
+WRITERS = 2
 
 
 @dataclass(frozen=True)
@@ -618,7 +621,7 @@ class _Batch:
         reads: deque[tuple[int, Future]] = deque()
         next_read = 0
         with ThreadPoolExecutor(1, thread_name_prefix="pihim-read") as reader, \
-                ThreadPoolExecutor(1, thread_name_prefix="pihim-write") as writer:
+                ThreadPoolExecutor(WRITERS, thread_name_prefix="pihim-write") as writer:
             try:
                 bar = progress(range(len(batch)), "polar")
                 for k in bar:
