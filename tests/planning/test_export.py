@@ -710,3 +710,58 @@ def test_geoid_undulation_needed_away_from_the_nsttf(plan, tmp_path):
     with pytest.raises(PihimInputError, match="plan.site needs"):
         write_kml(moved, tmp_path / "m.kml", field=make_field())
     assert list(tmp_path.iterdir()) == []
+
+
+def test_litchi_files_read_by_litchi_wp(plan, tmp_path, capsys):
+    """Every data row of every flight's Litchi mission parses with the litchi-wp reader, with our values."""
+    waypoint = pytest.importorskip("litchi_wp.waypoint")
+    multi = _several_flights(plan)
+    out = export_all(multi, tmp_path / "out")
+    paths = sorted(v for k, v in out.items() if "litchi" in k)
+    assert paths
+    for path in paths:
+        rows = list(csv.DictReader(path.read_text().splitlines()))
+        parsed = waypoint.Waypoint.from_file(str(path))
+        ignored = [ln for ln in capsys.readouterr().out.splitlines()[1:] if not ln.rstrip().endswith(":")]
+        assert ignored == [ln for ln in ignored if ln.startswith("0: latitude")]  # only the header line
+        assert 1 <= len(parsed) == len(rows) <= 99
+        for wp, row in zip(parsed, rows, strict=True):
+            assert (wp.lat, wp.lon) == (float(row["latitude"]), float(row["longitude"]))
+            assert wp.altitude.value == float(row["altitude(m)"]) and wp.heading == float(row["heading(deg)"])
+            assert wp.gimbal.pitchangle == float(row["gimbalpitchangle"])
+            photo = any(a.type == waypoint.ActionType.TAKE_PHOTO for a in wp.actions)
+            assert photo == any(row[f"actiontype{k}"] == "1" for k in range(1, 16))
+
+
+def test_qgc_plans_read_by_mavsdk(plan, tmp_path):
+    """MAVSDK's QGroundControl importer (MissionRaw.import_qgroundcontrol_mission) reads every flight's .plan
+    into the same mission items. It needs a System: a MAVSDK autopilot on a loopback UDP port provides one."""
+    pytest.importorskip("mavsdk")
+    import socket
+
+    from mavsdk import ComponentType, Configuration, Mavsdk
+    from mavsdk.plugins.mission_raw import MissionRaw
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    autopilot = Mavsdk(Configuration.create_with_component_type(ComponentType.AUTOPILOT))
+    station = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
+    station.add_any_connection(f"udpin://127.0.0.1:{port}")
+    autopilot.add_any_connection(f"udpout://127.0.0.1:{port}")
+    system = station.first_autopilot(timeout_s=10.0)
+    if system is None:
+        pytest.skip("no MAVSDK system over loopback UDP within 10 s")
+    mission = MissionRaw(system)
+    multi = _several_flights(plan)
+    out = export_all(multi, tmp_path / "out")
+    for f in multi.flights:
+        path = out[f"{flight_file_stem(f.index)}_plan"]
+        items = json.loads(path.read_text())["mission"]["items"]
+        got = mission.import_qgroundcontrol_mission(str(path)).mission_items
+        assert [(m.command, m.frame) for m in got] == [(it["command"], it["frame"]) for it in items]
+        for m, it in zip(got, items, strict=True):
+            lat, lon = it["params"][4:6]
+            if m.frame != 2:  # MAV_FRAME_MISSION items carry no position
+                assert (m.x, m.y) == (round(lat * 1e7), round(lon * 1e7))
+            assert m.z == pytest.approx(it["params"][6], abs=1e-4)
