@@ -123,3 +123,10 @@ def test_compiled_colourings_equal_the_numpy_formulation(dtype):
     assert np.array_equal(aop_to_rgb(a), aop_to_rgb(a[None])[0])
     assert np.array_equal(dolp_to_rgb(d, vmax=0.5), dolp_to_rgb(d[None], vmax=0.5)[0])
     assert np.array_equal(s0_to_gray(s), s0_to_gray(s.ravel()).reshape(s.shape))
+
+
+def test_ordinal_suffixes():
+    from pihim.visualize import _ordinal
+
+    assert [_ordinal(n) for n in (1, 2, 3, 4, 11, 12, 13, 21, 22, 102, 111)] == [
+        "1st", "2nd", "3rd", "4th", "11th", "12th", "13th", "21st", "22nd", "102nd", "111th"]

@@ -28,12 +28,6 @@ def _mod1(h):  # pragma: no cover - compiled
 
 
 @njit(inline="always", cache=True)
-def _mod2_nonneg(x):  # pragma: no cover - compiled
-    """``numpy.mod(x, 2.0)`` of a finite ``x >= 0`` (``x - 2 floor(x / 2)`` is exact there)."""
-    return x - 2.0 * np.floor(0.5 * x)
-
-
-@njit(inline="always", cache=True)
 def _to_u8(x):  # pragma: no cover - compiled
     """``clip(rint(x * 255), 0, 255)`` as uint8 (NaN is not expected here)."""
     v = np.rint(x * 255.0)
@@ -84,7 +78,8 @@ def lut_colour(d, vmax, lut_u8, out):  # pragma: no cover - compiled
 def hue_colour(aop, dolp, use_dolp, dolp_max, out):  # pragma: no cover - compiled
     """AoP as HSV hue (saturation 1), value 1 or ``clip(dolp / dolp_max, 0, 1)``; black where not finite.
 
-    ``dolp`` is read only when ``use_dolp``.
+    ``dolp`` is read only when ``use_dolp``. The branch-free sextant formulas
+    of :func:`pihim.visualize._hsv_to_rgb`, operation for operation.
     """
     n_rows, n_cols = aop.shape
     for i in prange(n_rows):
@@ -103,22 +98,9 @@ def hue_colour(aop, dolp, use_dolp, dolp_max, out):  # pragma: no cover - compil
                 out[i, j, 2] = 0
                 continue
             h6 = _mod1(a / 180.0) * 6.0
-            c = v * 1.0
-            x = c * (1.0 - abs(_mod2_nonneg(h6) - 1.0))
-            m = v - c
-            sector = int(math.floor(h6)) % 6
-            if sector == 0:
-                r, g, b = c, x, 0.0
-            elif sector == 1:
-                r, g, b = x, c, 0.0
-            elif sector == 2:
-                r, g, b = 0.0, c, x
-            elif sector == 3:
-                r, g, b = 0.0, x, c
-            elif sector == 4:
-                r, g, b = x, 0.0, c
-            else:
-                r, g, b = c, 0.0, x
-            out[i, j, 0] = _to_u8(r + m)
-            out[i, j, 1] = _to_u8(g + m)
-            out[i, j, 2] = _to_u8(b + m)
+            r = min(max(abs(h6 - 3.0) - 1.0, 0.0), 1.0)
+            g = min(max(2.0 - abs(h6 - 2.0), 0.0), 1.0)
+            b = min(max(2.0 - abs(h6 - 4.0), 0.0), 1.0)
+            out[i, j, 0] = _to_u8(v * r)
+            out[i, j, 1] = _to_u8(v * g)
+            out[i, j, 2] = _to_u8(v * b)

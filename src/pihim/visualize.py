@@ -28,18 +28,26 @@ from pihim._atomic import atomic_path
 from pihim.errors import PihimInputError
 
 
-def _hsv_to_rgb(h: NDArray, s: NDArray, v: NDArray) -> NDArray[np.float64]:
-    """Vectorised HSV -> RGB, all inputs in [0, 1]."""
+def _ordinal(n: int) -> str:
+    """``2nd``, ``3rd``, ``4th``, ``11th``, ``21st`` ..."""
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
+
+
+def _hsv_to_rgb(h: NDArray, v: NDArray) -> NDArray[np.float64]:
+    """Vectorised HSV -> RGB at full saturation, ``h`` and ``v`` in [0, 1].
+
+    With ``h6 = mod(h, 1) * 6``: ``R = v clip(|h6 - 3| - 1, 0, 1)``, ``G = v
+    clip(2 - |h6 - 2|, 0, 1)``, ``B = v clip(2 - |h6 - 4|, 0, 1)`` -- the
+    sextant formulas of the HSV model (A. R. Smith, "Color gamut transform
+    pairs", SIGGRAPH 1978) written without branches, as the compiled kernel
+    :func:`pihim._colour_kernels.hue_colour` evaluates them.
+    """
     h6 = np.mod(h, 1.0) * 6.0
-    c = v * s
-    x = c * (1.0 - np.abs(np.mod(h6, 2.0) - 1.0))
-    z = np.zeros_like(c)
-    sector = np.floor(h6).astype(int) % 6
-    r = np.choose(sector, [c, x, z, z, x, c])
-    g = np.choose(sector, [x, c, c, x, z, z])
-    b = np.choose(sector, [z, z, x, c, c, x])
-    m = v - c
-    return np.stack([r + m, g + m, b + m], axis=-1)
+    r = np.clip(np.abs(h6 - 3.0) - 1.0, 0.0, 1.0)
+    g = np.clip(2.0 - np.abs(h6 - 2.0), 0.0, 1.0)
+    b = np.clip(2.0 - np.abs(h6 - 4.0), 0.0, 1.0)
+    return np.stack([v * r, v * g, v * b], axis=-1)
 
 
 def _to_u8(x: NDArray) -> NDArray[np.uint8]:
@@ -66,7 +74,8 @@ def aop_to_rgb(
     Notes
     -----
     In float64: hue ``h = mod(aop / 180, 1)``, value ``v`` as above,
-    saturation 1, converted by the standard HSV sextant formulas and rounded
+    saturation 1, converted by the HSV sextant formulas (branch-free form,
+    ``_hsv_to_rgb``) and rounded
     (``rint(255 x)``); black where AoP (or DoLP) is not finite. 2-D images
     are computed by one compiled pass (:mod:`pihim._colour_kernels`), other
     shapes with numpy; both give the same pixels.
@@ -89,7 +98,7 @@ def aop_to_rgb(
         d = d.astype(np.float64)
         valid &= np.isfinite(d)
         v = np.clip(np.nan_to_num(d) / dolp_max, 0.0, 1.0)
-    rgb = _hsv_to_rgb(np.nan_to_num(a) / 180.0, np.ones_like(a), v)
+    rgb = _hsv_to_rgb(np.nan_to_num(a) / 180.0, v)
     rgb[~valid] = 0.0
     return _to_u8(rgb)
 
@@ -272,7 +281,7 @@ def _aop_wheel(ax: object, dolp_weighted: bool) -> None:
     r = np.hypot(x, y)
     ang = np.mod(np.degrees(np.arctan2(y, x)), 180.0)  # image up = +y: counter-clockwise from the right
     v = np.clip(r, 0.0, 1.0) if dolp_weighted else np.ones_like(r)
-    rgb = _hsv_to_rgb(ang / 180.0, np.ones_like(r), v)
+    rgb = _hsv_to_rgb(ang / 180.0, v)
     rgba = np.concatenate([rgb, (r <= 1.0)[..., None].astype(float)], axis=-1)
     ax.imshow(rgba, origin="lower", extent=(-1, 1, -1, 1))  # type: ignore[attr-defined]
     for deg in (0, 45, 90, 135):
@@ -341,7 +350,7 @@ class PolarFigure:
         ax2.set_title("AoP: angle of polarization", fontsize=10)
         # the hue wheel beside it is the key: a linear colour bar would hide that 0 and 180 deg meet
         for ax in self._axes:
-            ax.set_xlabel("x (px)" + (f", every {self.step}th" if self.step > 1 else ""), fontsize=8)
+            ax.set_xlabel("x (px)" + (f", every {_ordinal(self.step)} pixel" if self.step > 1 else ""), fontsize=8)
             ax.tick_params(labelsize=7)
         _aop_wheel(fig.add_subplot(grid[0, 3]), dolp_weighted=True)
         self._title = fig.suptitle("placeholder" if titled else "", fontsize=11)
