@@ -1,64 +1,18 @@
 """Per-facet canting from the target's reflection, scored against rendered truth.
 
-The frame is rendered by the ray tracer (:mod:`pihim.render`); the estimator
-projects the target's outlines mirrored in each facet's plane (an independent
-forward model: plane mirroring and ``project_points``, held to OpenCV).
+The frame is rendered by the ray tracer (:mod:`pihim.render`, fixture ``ufacet``
+in ``conftest.py``); the estimator projects the target's outlines mirrored in
+each facet's plane (an independent forward model: plane mirroring and
+``project_points``, held to OpenCV). The forward model's parts are tested in
+``test_reflection.py``, the orientation searches and solves in
+``test_orientation.py``.
 """
 
 import numpy as np
 import pytest
 
-from pihim.camera.model import CameraModel
-from pihim.camera.pose import CameraPose, project_points
-from pihim.field import UFACET_AIM_POINT, apply_canting_deviation, nsttf_like_field, track_field
-from pihim.inspection.canting import (
-    PAPER_GRID_STEP_MRAD,
-    PAPER_ORIENTATION_SPAN_MRAD,
-    drive_correction,
-    estimate_canting,
-    hua_turn_transform,
-    refine_orientations,
-    target_outline_segments,
-)
+from pihim.inspection.canting import PAPER_GRID_STEP_MRAD, estimate_canting
 from pihim.inspection.features import edge_points
-from pihim.inspection.pose import facet_outline_segments, line_normals, refine_pose, sample_segments
-from pihim.planning.pipeline import build_plan
-from pihim.render.frame import render_frame
-from pihim.render.scene import field_scene
-from pihim.render.shading import Environment
-from pihim.sky.sun import NSTTF, parse_time, sun_position
-
-
-@pytest.fixture(scope="module")
-def ufacet():
-    field = nsttf_like_field()
-    t = parse_time("2021-05-13T13:00-06:00")
-    sun = sun_position(NSTTF, t).vector
-    plan = build_plan(field, t, NSTTF, aim_point=UFACET_AIM_POINT, heliostats=["8E3"], shift=False)
-    wp = next(p.waypoints[q.waypoint_index] for p in plan.passes for q in p.predictions
-              if (q.hua, q.target) == ("8E3", "7E3"))
-    pose = track_field(field, sun, UFACET_AIM_POINT)
-    h = field.index("8E3")
-    rng = np.random.default_rng(2)
-    az, el = rng.normal(0.0, 3.0, 25), rng.normal(0.0, 3.0, 25)
-    normals = pose.facet_normals_local.copy()
-    normals[h] = apply_canting_deviation(pose.facet_normals_local[h], az, el)
-    # the Triton + 35 mm, cropped to the middle 1224 x 1024 px (facets 7-8, 12-13, 17-18 and parts of others)
-    cam = CameraModel(width_px=1224, height_px=1024)
-    cp = CameraPose.from_waypoint(wp)
-    fr = render_frame(field_scene(pose, normals), cam, cp, Environment.clear_sky(sun))
-    return field, pose, h, az, el, cam, cp, fr
-
-
-def test_target_outline_includes_facets_and_members(ufacet):
-    field, pose, h, *_ = ufacet
-    segs = target_outline_segments(pose, field.index("7E3"))
-    # 25 facets x 4 edges, and 4 long edges for each of 1 torque tube + 5 ribs + 5 crossbars
-    assert segs.shape == (100 + 4 * 11, 2, 3)
-    # the member edges run behind the mirror (on the target's back side)
-    t = field.index("7E3")
-    depth = (segs[100:].reshape(-1, 3) - pose.mirror_centres[t]) @ pose.normals[t]
-    assert np.all(depth < -0.05) and np.all(depth > -0.35)
 
 
 def test_canting_recovered_to_a_fraction_of_the_paper_grid_step(ufacet):
@@ -90,148 +44,3 @@ def test_canting_recovered_to_a_fraction_of_the_paper_grid_step(ufacet):
     assert all(f.reason for f in res.facets if not f.used)
     assert not res.facets[12].used and "alike" in res.facets[12].reason
     assert res.to_dict()["facets"][0]["id"] == 1
-
-
-#: 8E3's true drive angles minus its logged ones, degrees: beyond a facet's own +-1 deg grid
-TURN_DEG = (1.4, -1.1)
-
-
-@pytest.fixture(scope="module")
-def turned(ufacet):
-    """8E3 really stands 1.4 deg further in azimuth and 1.1 deg lower than the log says; the camera pose is
-    refined on its outline at the logged angles, as the pipeline does (so it is right relative to the HUA
-    and the target appears turned back about the HUA's pivot)."""
-    field, pose, h, az, el, cam, cp, _ = ufacet
-    d = pose.drive
-    a, e = np.array(d.azimuth_deg, float), np.array(d.elevation_deg, float)
-    a[h] += TURN_DEG[0]
-    e[h] += TURN_DEG[1]
-    true_pose = pose.with_drive(a, e)
-    normals = true_pose.facet_normals_local.copy()
-    normals[h] = apply_canting_deviation(true_pose.facet_normals_local[h], az, el)
-    sun = sun_position(NSTTF, parse_time("2021-05-13T13:00-06:00")).vector
-    fr = render_frame(field_scene(true_pose, normals), cam, cp, Environment.clear_sky(sun))
-    z = np.zeros_like(fr.s0)
-    ep = edge_points(fr.s0, z, z)
-    fit = refine_pose(cam, cp, facet_outline_segments(pose.facet_corners()[h]), ep)
-    return pose, h, az, el, cam, fit.pose, ep
-
-
-def test_orientation_search_finds_a_heliostat_turned_beyond_the_facet_grids(turned):
-    pose, h, az, el, cam, cp, ep = turned
-    # without the search every facet's +-17.5 mrad grid misses its reflection
-    alone = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, min_dolp=None, orientation_span_mrad=None)
-    assert not any(f.used for f in alone.facets)
-    res = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, min_dolp=None, target_orientation=True)
-    assert res.search is not None and res.search.step_mrad == pytest.approx(PAPER_GRID_STEP_MRAD)
-    assert res.search.span_mrad == pytest.approx(PAPER_ORIENTATION_SPAN_MRAD)
-    used = [f for f in res.facets if f.used]
-    assert len(used) >= 3
-    ta = np.array([az[f.id - 1] for f in used])
-    te = np.array([el[f.id - 1] for f in used])
-    # what the HUA's drive-angle correction should be: its true error plus the facets' mean canting as a
-    # drive-angle change (a common tilt of the facets is a turn of the HUA)
-    want = np.array(TURN_DEG) + np.array(drive_correction(pose, h, ta.mean(), te.mean()))
-    # the search's count score finds the turn coarsely (measured 0.22 / 0.37 deg off: a common tilt of the
-    # facets nearly mimics a turn, and the facets' canting blurs the score) ...
-    node = np.degrees(np.array([res.search.az_mrad, res.search.el_mrad]) * 1e-3)
-    np.testing.assert_array_less(np.abs(node - want), 0.5)
-    # ... the joint least squares of the HUA's turn, the target's angles and the facets' canting to a tenth
-    # of a degree (measured 0.04 / 0.09 deg: the turn and a common tilt of the facets nearly trade off, and
-    # the camera pose refined on this crop's partial view of the turned HUA is 2.2 px off at its corners)
-    np.testing.assert_allclose(res.drive_correction_deg, want, atol=0.1)
-    assert any("HUA's turn" in n for n in res.notes)
-    # relative canting as on the logged view (measured 0.02 / 0.05 mrad RMS)
-    err_az = np.array([f.az_mrad for f in used]) - (ta - ta.mean())
-    err_el = np.array([f.el_mrad for f in used]) - (te - te.mean())
-    assert np.sqrt(np.mean(err_az**2)) < 0.6
-    assert np.sqrt(np.mean(err_el**2)) < 0.6
-
-
-def test_hua_turn_transform_maps_the_turned_heliostat_onto_the_logged_one(ufacet):
-    """A camera pose fitted on the HUA at its logged angles sees a point fixed to the really turned HUA where
-    the logged HUA has it: the transform takes the turned HUA's corners (FieldPose.with_drive) onto the
-    logged ones, and leaves its pivot in place."""
-    _, pose, h, *_ = ufacet
-    d = pose.drive
-    a, e = np.array(d.azimuth_deg, float), np.array(d.elevation_deg, float)
-    a[h] += 0.7
-    e[h] -= 0.4
-    turned_corners = pose.with_drive(a, e).facet_corners()[h].reshape(-1, 3)
-    pivot, m = hua_turn_transform(pose, h, 0.7, -0.4)
-    np.testing.assert_allclose(pivot + (turned_corners - pivot) @ m.T, pose.facet_corners()[h].reshape(-1, 3),
-                               atol=1e-9)
-    np.testing.assert_allclose(m @ m.T, np.eye(3), atol=1e-12)
-    np.testing.assert_allclose(hua_turn_transform(pose, h, 0.0, 0.0)[1], np.eye(3), atol=1e-12)
-
-
-def test_refine_orientations_recovers_the_target_and_hua_turns_from_exact_matches(ufacet):
-    """Matches made on the logged outline of a view whose target and HUA are both off their logged angles
-    (built with FieldPose.with_drive and plane mirroring, not with the solver's own parametrisation):
-    the joint solve returns both corrections."""
-    field, pose, h, _, _, cam, cp, _ = ufacet
-    t = field.index("7E3")
-    d = pose.drive
-    a, e = np.array(d.azimuth_deg, float), np.array(d.elevation_deg, float)
-    a[t] += 0.12
-    e[t] -= 0.08
-    hua_turn = (0.05, -0.03)
-    facets_ = [7, 8, 12, 17, 18]
-    rng = np.random.default_rng(5)
-    cant = rng.normal(0.0, 2.0, (len(facets_), 2))
-    cant -= cant.mean(axis=0)  # the solver holds the facets' mean canting at zero
-    pts, seg = sample_segments(target_outline_segments(pose, t), 0.05)
-    true_pts, _ = sample_segments(target_outline_segments(pose.with_drive(a, e), t), 0.05)
-    pivot, m = hua_turn_transform(pose, h, *hua_turn)
-    seen = pivot + (true_pts - pivot) @ m.T
-    matches = []
-    for (f, (ca, ce)) in zip(facets_, cant, strict=True):
-        n = pose.rotations[h] @ apply_canting_deviation(pose.facet_normals_local[h, f - 1], ca, ce)
-        c = pose.facet_centres[h, f - 1]
-        virt = seen - 2.0 * ((seen - c) @ n)[:, None] * n
-        uv = project_points(cam, cp, virt)
-        nrm = line_normals(uv, seg)
-        ok = np.all(np.isfinite(uv), axis=1) & np.all(np.isfinite(nrm), axis=1)
-        matches.append((f - 1, 0.0, 0.0, (pts[ok], uv[ok], nrm[ok])))
-    (t_az, t_el), (h_az, h_el) = refine_orientations(cam, cp, pose, h, t, matches)
-    assert t_az == pytest.approx(0.12, abs=0.01) and t_el == pytest.approx(-0.08, abs=0.01)
-    assert h_az == pytest.approx(hua_turn[0], abs=0.01) and h_el == pytest.approx(hua_turn[1], abs=0.01)
-
-
-def test_drive_correction_turns_the_normal_like_the_orientation(ufacet):
-    _, pose, h, *_ = ufacet
-    d = pose.drive
-    for a, e in [(25.0, -20.0), (-60.0, 10.0), (0.0, 0.0), (3.0, 80.0)]:
-        d_az, d_el = drive_correction(pose, h, a, e)
-        az = np.array(d.azimuth_deg, float)
-        el = np.array(d.elevation_deg, float)
-        az[h] += d_az
-        el[h] += d_el
-        moved = pose.with_drive(az, el)  # normals from drive angles: independent of drive_correction's inverse
-        want = pose.rotations[h] @ apply_canting_deviation(np.array([0.0, 0.0, 1.0]), a, e)
-        np.testing.assert_allclose(moved.normals[h], want, atol=1e-12)
-
-
-def test_target_orientation_is_corrected_from_its_reflection(ufacet):
-    """The target 7E3 really stands 0.15 deg further in azimuth and 0.10 deg higher than logged."""
-    field, pose, h, az, el, cam, cp, _ = ufacet
-    t = field.index("7E3")
-    d = pose.drive
-    t_az, t_el = np.array(d.azimuth_deg, float), np.array(d.elevation_deg, float)
-    t_az[t] -= 0.15
-    t_el[t] += 0.10
-    normals = pose.facet_normals_local.copy()
-    normals[h] = apply_canting_deviation(pose.facet_normals_local[h], az, el)
-    sun = sun_position(NSTTF, parse_time("2021-05-13T13:00-06:00")).vector
-    fr = render_frame(field_scene(pose.with_drive(t_az, t_el), normals), cam, cp, Environment.clear_sky(sun))
-    z = np.zeros_like(fr.s0)
-    ep = edge_points(fr.s0, z, z)
-    logged = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, min_dolp=None, target_orientation=False)
-    res = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, min_dolp=None, target_orientation=True)
-    assert res.target_correction_deg is not None
-    # measured -0.128 / +0.106 deg
-    assert res.target_correction_deg[0] == pytest.approx(-0.15, abs=0.05)
-    assert res.target_correction_deg[1] == pytest.approx(0.10, abs=0.05)
-    # on the corrected outline more facets pass the residual gate (measured 4 against 3)
-    assert sum(f.used for f in res.facets) > sum(f.used for f in logged.facets)
-    assert any("corrected" in n for n in res.notes)

@@ -1,0 +1,34 @@
+"""The reflection forward model of :mod:`pihim.inspection.reflection`: the target's outline as the HUA mirrors
+it, and the view of a HUA turned off its logged drive angles."""
+
+import numpy as np
+
+from pihim.inspection.reflection import hua_turn_transform, target_outline_segments
+
+
+def test_target_outline_includes_facets_and_members(ufacet):
+    field, pose, h, *_ = ufacet
+    segs = target_outline_segments(pose, field.index("7E3"))
+    # 25 facets x 4 edges, and 4 long edges for each of 1 torque tube + 5 ribs + 5 crossbars
+    assert segs.shape == (100 + 4 * 11, 2, 3)
+    # the member edges run behind the mirror (on the target's back side)
+    t = field.index("7E3")
+    depth = (segs[100:].reshape(-1, 3) - pose.mirror_centres[t]) @ pose.normals[t]
+    assert np.all(depth < -0.05) and np.all(depth > -0.35)
+
+
+def test_hua_turn_transform_maps_the_turned_heliostat_onto_the_logged_one(ufacet):
+    """A camera pose fitted on the HUA at its logged angles sees a point fixed to the really turned HUA where
+    the logged HUA has it: the transform takes the turned HUA's corners (FieldPose.with_drive) onto the
+    logged ones, and leaves its pivot in place."""
+    _, pose, h, *_ = ufacet
+    d = pose.drive
+    a, e = np.array(d.azimuth_deg, float), np.array(d.elevation_deg, float)
+    a[h] += 0.7
+    e[h] -= 0.4
+    turned_corners = pose.with_drive(a, e).facet_corners()[h].reshape(-1, 3)
+    pivot, m = hua_turn_transform(pose, h, 0.7, -0.4)
+    np.testing.assert_allclose(pivot + (turned_corners - pivot) @ m.T, pose.facet_corners()[h].reshape(-1, 3),
+                               atol=1e-9)
+    np.testing.assert_allclose(m @ m.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(hua_turn_transform(pose, h, 0.0, 0.0)[1], np.eye(3), atol=1e-12)
