@@ -22,6 +22,7 @@ from pihim.sky.sun import (
     parse_site,
     parse_time,
     require_daylight,
+    standard_pressure_pa,
     sun_position,
 )
 
@@ -57,6 +58,36 @@ def test_nrel_spa_reference_value():
     assert pos.zenith_deg == pytest.approx(50.11162, abs=2e-5)
     assert pos.azimuth_deg == pytest.approx(194.34024, abs=2e-5)
     assert pos.elevation_deg == pytest.approx(90.0 - 50.11162, abs=2e-5)
+
+
+def test_sun_position_is_pvlib_spa_python_exactly():
+    """pvlib's SPA module loaded on its own and called as spa_python calls it: the same numbers, to the bit."""
+    pvlib = pytest.importorskip("pvlib")
+    rng = np.random.default_rng(0)
+    seconds = pd.to_timedelta(rng.uniform(0, 3 * 365 * 86400, 200), unit="s")
+    times = pd.DatetimeIndex(pd.Timestamp("2020-01-01", tz="UTC") + seconds)
+    for site in (NSTTF, Site("Almeria", 37.09, -2.36, 550.0), Site("Alice Springs", -23.7, 133.87, 600.0)):
+        pressure = pvlib.atmosphere.alt2pres(site.height_m)
+        assert standard_pressure_pa(site.height_m) == pressure
+        for dt in (None, 69.2):
+            ref = pvlib.solarposition.spa_python(times, site.latitude_deg, site.longitude_deg, altitude=site.height_m,
+                                                 pressure=pressure, temperature=12.0, delta_t=dt, how="numpy")
+            got = sun_position(site, times, delta_t_s=dt)
+            assert np.array_equal(got.zenith_deg, ref["apparent_zenith"].to_numpy())
+            assert np.array_equal(got.azimuth_deg, ref["azimuth"].to_numpy())
+            true = sun_position(site, times, delta_t_s=dt, refraction=False)
+            assert np.array_equal(true.zenith_deg, ref["zenith"].to_numpy())
+
+
+def test_sun_position_does_not_import_the_pvlib_package():
+    """Importing pvlib costs about half a second of CPU: the SPA module alone is loaded."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from pihim.sky.sun import sun_position; sun_position('nsttf', '2021-05-13T13:00-06:00'); "
+            "print('pvlib' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
 
 
 def test_equinox_solar_noon_at_nsttf():

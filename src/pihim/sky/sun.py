@@ -13,8 +13,13 @@ Conventions (``docs/conventions.md``; each one is pinned by a test in
   :class:`~pihim.errors.PihimInputError`.
 
 The sun position comes from pvlib's implementation of the NREL Solar Position
-Algorithm (SPA, ``pvlib.solarposition.spa_python``, quoted uncertainty
-+/-0.0003 deg over -2000..6000) [1]_. By default the **apparent** (refraction
+Algorithm (SPA, ``pvlib.spa``, the module behind
+``pvlib.solarposition.spa_python``, quoted uncertainty +/-0.0003 deg over
+-2000..6000) [1]_, called as ``spa_python`` calls it (numpy mode, pressure in
+millibars, refraction 0.5667 deg at the horizon, pvlib's Delta T estimate) and
+held to ``spa_python`` by a test; the module is loaded on its own because
+importing the ``pvlib`` package costs about half a second of CPU (its other
+submodules, scipy) that a command computing a sun position need not pay. By default the **apparent** (refraction
 corrected) position is returned, because that is the direction from which
 sunlight -- and the sky polarization pattern centred on it -- actually
 arrives at the site; pass ``refraction=False`` for the true (geometric)
@@ -33,10 +38,14 @@ References
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
+from pathlib import Path
+from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -58,6 +67,7 @@ __all__ = [
     "parse_site",
     "parse_time",
     "require_daylight",
+    "standard_pressure_pa",
     "sun_position",
 ]
 
@@ -343,6 +353,41 @@ def _as_index(time: Any) -> tuple[pd.DatetimeIndex, bool]:
     )
 
 
+def standard_pressure_pa(height_m: ArrayLike) -> Any:
+    """Air pressure of the standard atmosphere at a height, Pa.
+
+    ``100 ((44331.514 - h) / 11880.516) ** (1 / 0.1902632)`` with ``h`` in
+    metres: the relation pvlib's ``atmosphere.alt2pres`` documents (sea-level
+    101,325 Pa and 288.15 K, lapse rate -6.5e-3 K/m, dry air), from
+    "A Quick Derivation relating altitude to air pressure", Portland State
+    Aerospace Society, version 1.03 (2004).
+    """
+    return 100.0 * ((44331.514 - np.asarray(height_m, dtype=float)) / 11880.516) ** (1.0 / 0.1902632)
+
+
+@functools.cache
+def _spa() -> ModuleType:
+    """pvlib's SPA module, loaded without importing the ``pvlib`` package (it needs numpy only).
+
+    Falls back to ``import pvlib.spa`` if pvlib ever lays the module out
+    differently. ``PVLIB_USE_NUMBA`` unset: the numpy implementation, as
+    ``spa_python(how="numpy")`` uses.
+    """
+    try:
+        spec = importlib.util.find_spec("pvlib")  # finds the package without running its __init__
+        origin = Path(next(iter(spec.submodule_search_locations or []))) / "spa.py"  # type: ignore[union-attr]
+        mod_spec = importlib.util.spec_from_file_location("pihim._pvlib_spa", origin)
+        module = importlib.util.module_from_spec(mod_spec)  # type: ignore[arg-type]
+        mod_spec.loader.exec_module(module)  # type: ignore[union-attr]
+        if getattr(module, "USE_NUMBA", False) or not hasattr(module, "solar_position"):
+            raise ImportError("unexpected pvlib.spa")
+        return module
+    except Exception:  # noqa: BLE001 - any surprise: the ordinary, slower import
+        from pvlib import spa
+
+        return spa
+
+
 def sun_position(
     site: Site | str,
     time: Any,
@@ -377,26 +422,24 @@ def sun_position(
     SunPosition
         Scalars for a single time, arrays for a sequence.
     """
-    import pvlib  # local: importing pvlib costs ~0.5 s and is needed only here
+    import pandas as pd
 
     site = parse_site(site)
     index, single = _as_index(time)
     if pressure_pa is None:
-        pressure_pa = float(pvlib.atmosphere.alt2pres(site.height_m))
+        pressure_pa = float(standard_pressure_pa(site.height_m))
     if not (math.isfinite(pressure_pa) and pressure_pa > 0 and math.isfinite(temperature_c)):
         raise PihimInputError("pressure must be positive and temperature finite")
-    df = pvlib.solarposition.spa_python(
-        index,
-        site.latitude_deg,
-        site.longitude_deg,
-        altitude=site.height_m,
-        pressure=pressure_pa,
-        temperature=temperature_c,
-        delta_t=delta_t_s,
-        how="numpy",
-    )
-    zen = df["apparent_zenith" if refraction else "zenith"].to_numpy(dtype=float)
-    az = df["azimuth"].to_numpy(dtype=float)
+    spa = _spa()
+    unixtime = np.asarray((index - pd.Timestamp("1970-01-01", tz="UTC")) / pd.Timedelta("1s"), dtype=float)
+    delta_t = (spa.calculate_deltat(index.year.to_numpy(), index.month.to_numpy())
+               if delta_t_s is None else delta_t_s)
+    # as spa_python calls it: pressure in millibars, 0.5667 deg refraction at the horizon, numpy mode
+    app_zenith, zenith, _, _, azimuth, _ = spa.solar_position(
+        unixtime, site.latitude_deg, site.longitude_deg, site.height_m, pressure_pa / 100.0, temperature_c,
+        delta_t, 0.5667, 4)
+    zen = np.asarray(app_zenith if refraction else zenith, dtype=float)
+    az = np.asarray(azimuth, dtype=float)
     if single:
         return SunPosition.from_angles(zen[0], az[0])
     return SunPosition.from_angles(zen, az)
