@@ -64,7 +64,7 @@ def test_sun_position_is_pvlib_spa_python_exactly():
     """pvlib's SPA module loaded on its own and called as spa_python calls it: the same numbers, to the bit."""
     pvlib = pytest.importorskip("pvlib")
     rng = np.random.default_rng(0)
-    seconds = pd.to_timedelta(rng.uniform(0, 3 * 365 * 86400, 200), unit="s")
+    seconds = pd.to_timedelta(np.round(rng.uniform(0, 3 * 365 * 86400, 200), 3), unit="s")  # to the millisecond
     times = pd.DatetimeIndex(pd.Timestamp("2020-01-01", tz="UTC") + seconds)
     for site in (NSTTF, Site("Almeria", 37.09, -2.36, 550.0), Site("Alice Springs", -23.7, 133.87, 600.0)):
         pressure = pvlib.atmosphere.alt2pres(site.height_m)
@@ -77,17 +77,27 @@ def test_sun_position_is_pvlib_spa_python_exactly():
             assert np.array_equal(got.azimuth_deg, ref["azimuth"].to_numpy())
             true = sun_position(site, times, delta_t_s=dt, refraction=False)
             assert np.array_equal(true.zenith_deg, ref["zenith"].to_numpy())
+    # strings and datetimes (no pandas on that path) give the same bits as the DatetimeIndex
+    local = [t.tz_convert("America/Denver") for t in times[:20]]
+    by_text = sun_position(NSTTF, [t.isoformat() for t in local])
+    by_index = sun_position(NSTTF, times[:20])
+    assert np.array_equal(by_text.zenith_deg, by_index.zenith_deg)
+    assert np.array_equal(by_text.azimuth_deg, by_index.azimuth_deg)
+    one = sun_position(NSTTF, local[3].to_pydatetime())
+    assert (one.zenith_deg, one.azimuth_deg) == (by_index.zenith_deg[3], by_index.azimuth_deg[3])
 
 
-def test_sun_position_does_not_import_the_pvlib_package():
-    """Importing pvlib costs about half a second of CPU: the SPA module alone is loaded."""
+def test_sun_position_imports_neither_pvlib_nor_pandas():
+    """Importing pvlib costs about half a second of CPU and pandas most of another: the SPA module alone is
+    loaded, and a time given as text or a datetime needs no pandas."""
     import subprocess
     import sys
 
-    code = ("import sys; from pihim.sky.sun import sun_position; sun_position('nsttf', '2021-05-13T13:00-06:00'); "
-            "print('pvlib' in sys.modules)")
+    code = ("import sys; from pihim.sky.sun import parse_time, sun_position; "
+            "t = parse_time('2021-05-13T13:00-06:00'); sun_position('nsttf', t); sun_position('nsttf', [t, t]); "
+            "print(type(t).__name__, 'pvlib' in sys.modules, 'pandas' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "False"
+    assert out.stdout.split() == ["datetime", "False", "False"]
 
 
 def test_equinox_solar_noon_at_nsttf():

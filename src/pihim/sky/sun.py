@@ -41,20 +41,18 @@ from __future__ import annotations
 import functools
 import importlib.util
 import math
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from datetime import datetime
+from datetime import datetime, timezone
 from pathlib import Path
 from types import ModuleType
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from pihim.errors import PihimInputError
-
-if TYPE_CHECKING:
-    import pandas as pd
 
 __all__ = [
     "NSTTF",
@@ -207,44 +205,44 @@ def parse_site(text: str | Site) -> Site:
     return Site(name="custom", latitude_deg=lat, longitude_deg=lon, height_m=h, timezone="UTC")
 
 
-def parse_time(time: str | datetime | pd.Timestamp) -> pd.Timestamp:
-    """A timezone-aware :class:`pandas.Timestamp` from an ISO 8601 string or datetime.
+def parse_time(time: str | datetime) -> datetime:
+    """A timezone-aware :class:`datetime.datetime` from an ISO 8601 string or a datetime.
 
     Parameters
     ----------
-    time : str, datetime.datetime or pandas.Timestamp
-        E.g. ``"2024-06-21T10:30:00-06:00"`` or ``"2024-06-21T16:30Z"``.
+    time : str or datetime.datetime
+        E.g. ``"2024-06-21T10:30:00-06:00"`` or ``"2024-06-21T16:30Z"``; a
+        :class:`pandas.Timestamp` (a datetime) is taken to the microsecond.
+
+    Returns
+    -------
+    datetime.datetime
+        With its UTC offset (``tzinfo``) as given. pandas is not needed, so
+        commands that only parse a time do not pay for importing it.
 
     Raises
     ------
     PihimInputError
-        Malformed text, or a time without a UTC offset (naive): pihim never
-        guesses a time zone.
+        Malformed text, a year outside :data:`YEAR_RANGE`, or a time without
+        a UTC offset (naive): pihim never guesses a time zone.
     """
-    import pandas as pd  # local: pandas costs a few tenths of a second to import
-
     if isinstance(time, str):
-        text = time.strip()
         try:
-            parsed = datetime.fromisoformat(text)
-        except ValueError:
-            parsed = None
-        if parsed is not None:
-            check_year(parsed.year, time)
-        try:
-            if parsed is None:
-                raise ValueError
-            ts = pd.Timestamp(parsed)
+            ts = datetime.fromisoformat(time.strip())
         except ValueError:
             raise PihimInputError(
                 f"time {time!r} is not an ISO 8601 date-time (e.g. 2024-06-21T10:30:00-06:00)"
             ) from None
-    elif isinstance(time, datetime):  # includes pandas.Timestamp
+        check_year(ts.year, time)
+    elif isinstance(time, datetime):
         check_year(time.year, str(time))
-        ts = pd.Timestamp(time)
+        ts = time
+        if type(ts) is not datetime:  # a pandas.Timestamp or another subclass: the plain datetime it stands for
+            ts = datetime(ts.year, ts.month, ts.day, ts.hour, ts.minute, ts.second, ts.microsecond, ts.tzinfo,
+                          fold=ts.fold)
     else:
         raise PihimInputError(f"time must be an ISO 8601 string or a datetime, got {type(time).__name__}")
-    if ts.tzinfo is None or ts.tzinfo.utcoffset(ts.to_pydatetime()) is None:
+    if ts.tzinfo is None or ts.utcoffset() is None:
         raise PihimInputError(
             f"time {str(time)!r} has no UTC offset; give one, e.g. 2024-06-21T10:30:00-06:00 or ...Z"
         )
@@ -333,24 +331,31 @@ class SunPosition:
         }
 
 
-def _as_index(time: Any) -> tuple[pd.DatetimeIndex, bool]:
-    """Times as a UTC DatetimeIndex, and whether the input was a single time."""
-    import pandas as pd
+def _instants(time: Any) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.int64], bool]:
+    """Unix times (s), UTC years and UTC months of one or many times, and whether a single time was given.
 
+    pandas objects are handled only when pandas is already loaded (they cannot exist otherwise).
+    """
+    pd = sys.modules.get("pandas")
     if isinstance(time, str | datetime):
-        return pd.DatetimeIndex([parse_time(time)]).tz_convert("UTC"), True
-    if isinstance(time, pd.DatetimeIndex):
+        stamps, single = [parse_time(time)], True
+    elif pd is not None and isinstance(time, pd.DatetimeIndex):
         if time.tz is None:
             raise PihimInputError("times have no UTC offset (naive DatetimeIndex); localise them first")
-        return time.tz_convert("UTC"), False
-    if isinstance(time, Sequence | np.ndarray | pd.Series):
-        stamps = [parse_time(t) for t in time]
+        utc = time.tz_convert("UTC")
+        unix = np.asarray((utc - pd.Timestamp("1970-01-01", tz="UTC")) / pd.Timedelta("1s"), dtype=float)
+        return unix, utc.year.to_numpy(), utc.month.to_numpy(), False
+    elif isinstance(time, Sequence | np.ndarray) or (pd is not None and isinstance(time, pd.Series)):
+        stamps, single = [parse_time(t) for t in time], False
         if not stamps:
             raise PihimInputError("no times given")
-        return pd.DatetimeIndex([t.tz_convert("UTC") for t in stamps]), False
-    raise PihimInputError(
-        f"time must be an ISO 8601 string, a datetime or a sequence of them, got {type(time).__name__}"
-    )
+    else:
+        raise PihimInputError(
+            f"time must be an ISO 8601 string, a datetime or a sequence of them, got {type(time).__name__}"
+        )
+    utc = [t.astimezone(timezone.utc) for t in stamps]
+    unix = np.array([t.timestamp() for t in stamps], dtype=float)  # exact microseconds / 1e6, correctly rounded
+    return unix, np.array([t.year for t in utc]), np.array([t.month for t in utc]), single
 
 
 def standard_pressure_pa(height_m: ArrayLike) -> Any:
@@ -422,18 +427,14 @@ def sun_position(
     SunPosition
         Scalars for a single time, arrays for a sequence.
     """
-    import pandas as pd
-
     site = parse_site(site)
-    index, single = _as_index(time)
+    unixtime, years, months, single = _instants(time)
     if pressure_pa is None:
         pressure_pa = float(standard_pressure_pa(site.height_m))
     if not (math.isfinite(pressure_pa) and pressure_pa > 0 and math.isfinite(temperature_c)):
         raise PihimInputError("pressure must be positive and temperature finite")
     spa = _spa()
-    unixtime = np.asarray((index - pd.Timestamp("1970-01-01", tz="UTC")) / pd.Timedelta("1s"), dtype=float)
-    delta_t = (spa.calculate_deltat(index.year.to_numpy(), index.month.to_numpy())
-               if delta_t_s is None else delta_t_s)
+    delta_t = spa.calculate_deltat(years, months) if delta_t_s is None else delta_t_s
     # as spa_python calls it: pressure in millibars, 0.5667 deg refraction at the horizon, numpy mode
     app_zenith, zenith, _, _, azimuth, _ = spa.solar_position(
         unixtime, site.latitude_deg, site.longitude_deg, site.height_m, pressure_pa / 100.0, temperature_c,
