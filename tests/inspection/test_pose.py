@@ -87,3 +87,23 @@ def test_refine_pose_converges_from_a_nearby_prior_on_a_rendered_frame():
     assert before > 15.0
     assert after < 0.3
     assert fit.rms_px < 0.5
+
+
+def test_search_does_not_stop_at_a_neighbours_outline():
+    """Frame 15 of benchmarks/canting_quality.py (12E10 seen showing 11E11 at 10:00, GPS prior 4.3 m off): the
+    first start that fits aligns the model onto a neighbouring heliostat at support 0.85. The search must go on
+    to the right pose (support 0.98), not accept that one."""
+    from pihim.camera import polar_image
+    from pihim.inspection.pipeline import field_pose_from_log
+    from pihim.render.simulate import PairPose, simulate_frame
+
+    field = nsttf_like_field()
+    sim = simulate_frame(field, "2021-05-13T10:00-06:00", camera=CameraModel(), pose_request=PairPose("12E10", "11E11"),
+                         canting_sigma_mrad=3.0, gps_sigma_m=1.5, attitude_sigma_deg=1.0, seed=15)
+    prior, true = CameraPose.from_dict(sim.log["pose"]), CameraPose.from_dict(sim.truth["pose"])
+    assert np.linalg.norm(prior.position_m - true.position_m) > 4.0  # the case: a prior far off
+    edges = edge_points(polar_image(sim.raw, demosaic="full", bit_depth=12).s0)
+    corners = field_pose_from_log(field, sim.log).facet_corners()[field.index("12E10")]
+    fit = refine_pose(CameraModel.from_dict(sim.log["camera"]), prior, facet_outline_segments(corners), edges)
+    assert fit.support > 0.95
+    assert np.linalg.norm(fit.pose.position_m - true.position_m) < 0.05
