@@ -26,9 +26,9 @@ facet fits decide: clutter can raise a false peak).
 Optionally (``target_orientation=True``) the **target's** logged drive
 angles are corrected too, as the paper does: a target off its logged
 orientation has a distorted outline in the model, and the facets' fits miss
-by a few pixels; :func:`refine_target_orientation` solves the target's two
-angles with every facet's canting, and the facets are fitted again on the
-corrected outline.
+by a few pixels; :func:`refine_orientations` solves the target's two
+angles with every facet's canting (and the HUA's turn), and the facets are
+fitted again on the corrected outline.
 
 Then for each facet:
 
@@ -96,7 +96,6 @@ from pihim.inspection.orientation import (
     OrientationSearch,
     drive_correction,
     refine_orientations,
-    refine_target_orientation,
     search_orientation,
 )
 from pihim.inspection.reflection import (
@@ -114,7 +113,7 @@ from pihim.render.scene import StructureSizes
 
 __all__ = ["CantingResult", "FacetCanting", "OrientationSearch", "PAPER_GRID_STEP_MRAD", "PAPER_ORIENTATION_SPAN_MRAD",
            "drive_correction", "estimate_canting", "hua_turn_transform", "refine_orientations",
-           "refine_target_orientation", "search_orientation", "target_outline_segments"]
+           "search_orientation", "target_outline_segments"]
 
 #: Scale of the two canting angles in the refinement, mrad.
 _X_SCALE = np.array([0.1, 0.1])
@@ -169,7 +168,7 @@ class CantingResult:
     target_correction_deg : (float, float) or None
         Correction of the target's logged drive angles (azimuth, elevation),
         degrees, when the facets were measured on the target's corrected
-        outline (:func:`refine_target_orientation`); None when its logged
+        outline (:func:`refine_orientations`); None when its logged
         angles were kept.
     """
 
@@ -224,7 +223,7 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     are within ``support_margin`` of each other leave the facet ambiguous:
     it is skipped (raises). Given a list ``matches``, the
     last round's matched model points (world), image points and line normals
-    are appended to it as one tuple (for :func:`refine_target_orientation`).
+    are appended to it as one tuple (for :func:`refine_orientations`).
 
     The refinement rounds solve the two angles by trust-region least squares with a soft-L1
     loss (scale 0.5 px) and the analytic Jacobian of the mirrored projection

@@ -28,7 +28,7 @@ from pihim.field.kinematics import FieldPose, apply_canting_deviation
 from pihim.inspection.reflection import _apply, _FacetModel, _Mask, hua_turn_transform
 
 __all__ = ["OrientationSearch", "PAPER_GRID_STEP_MRAD", "PAPER_ORIENTATION_SPAN_MRAD", "drive_correction",
-           "refine_orientations", "refine_target_orientation", "search_orientation"]
+           "refine_orientations", "search_orientation"]
 
 #: The paper's grid step, 0.1 deg, in mrad.
 PAPER_GRID_STEP_MRAD = float(np.radians(0.1) * 1e3)
@@ -164,29 +164,6 @@ def search_orientation(
                          for a, b in (divmod(int(q), n) for q in order))
     return OrientationSearch(float(grid[i]), float(grid[j]), float(total[i, j] / scored), scored, float(span_mrad),
                              float(step_mrad), float(tol_px), time.perf_counter() - t0, alternatives)
-
-
-def refine_target_orientation(
-    camera: CameraModel,
-    pose: CameraPose,
-    field_pose: FieldPose,
-    hua: int,
-    target: int,
-    facets: list[tuple[int, float, float, tuple[NDArray, NDArray, NDArray]]],
-    *,
-    max_deg: float = 5.0,
-    hua_turn_deg: tuple[float, float] = (0.0, 0.0),
-) -> tuple[float, float]:
-    """The target's drive-angle correction that best explains its reflections in the HUA's facets, degrees.
-
-    :func:`refine_orientations` with the HUA's turn held at ``hua_turn_deg``.
-
-    Returns
-    -------
-    (d_azimuth_deg, d_elevation_deg)
-    """
-    return refine_orientations(camera, pose, field_pose, hua, target, facets, max_deg=max_deg,
-                               hua_turn_deg=hua_turn_deg, solve_hua=False)[0]
 
 
 def refine_orientations(
