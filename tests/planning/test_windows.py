@@ -34,7 +34,8 @@ def sweep() -> DaySweep:
 
 def synthetic(fractions, step_min=30.0, start="2021-05-13T07:00", site=NSTTF) -> DaySweep:
     f = np.asarray(fractions, dtype=float)
-    times = pd.date_range(pd.Timestamp(start).tz_localize("America/Denver"), periods=len(f), freq=f"{step_min}min")
+    times = tuple(pd.date_range(pd.Timestamp(start).tz_localize("America/Denver"), periods=len(f),
+                                freq=f"{step_min}min").to_pydatetime())
     z = np.full(len(f), 40.0)
     return DaySweep(date=dt.date(2021, 5, 13), site=site, timezone="America/Denver", times=times, sun_zenith_deg=z,
                     sun_azimuth_deg=z, fraction_planned=np.ones(len(f)), fraction_sky=np.zeros(len(f)),
@@ -48,7 +49,7 @@ def synthetic(fractions, step_min=30.0, start="2021-05-13T07:00", site=NSTTF) ->
 
 def test_sweep_times_daylight_only(sweep):
     assert len(sweep) > 8
-    assert sweep.times.tz is not None and str(sweep.times.tz) == "America/Denver"
+    assert all(isinstance(t, dt.datetime) and str(t.tzinfo) == "America/Denver" for t in sweep.times)
     assert np.all(sweep.sun_elevation_deg >= 10.0)
     assert all(t.date() == dt.date(2021, 5, 13) for t in sweep.times)
     # every excluded hour of the day has the sun below 10 deg (night included)
@@ -56,7 +57,32 @@ def test_sweep_times_daylight_only(sweep):
     elev = np.asarray(sun_position(NSTTF, hours).elevation_deg)
     assert sorted(hours[elev >= 10.0]) == list(sweep.times)
     assert (elev < 0).any()
-    assert set(sweep.times[1:] - sweep.times[:-1]) == {pd.Timedelta(minutes=60)}
+    assert {b - a for a, b in zip(sweep.times[:-1], sweep.times[1:])} == {dt.timedelta(minutes=60)}
+
+
+@pytest.mark.parametrize("day", ["2021-03-14", "2021-05-13", "2021-11-07"])
+def test_day_times_follow_elapsed_time_across_dst(day):
+    """Oracle: pandas' date_range from local midnight to the next, in elapsed time: the DST days have 23 and 25
+    hours (America/Denver), and the times agree instant for instant and in their UTC offsets."""
+    from pihim.planning.windows import _day_times
+
+    tz = "America/Denver"
+    start = pd.Timestamp(day).tz_localize(tz)
+    expect = pd.date_range(start, (pd.Timestamp(day) + pd.Timedelta(days=1)).tz_localize(tz), freq="30min",
+                           inclusive="left")
+    got = _day_times(dt.date.fromisoformat(day), tz, 30.0)
+    assert len(got) == len(expect) == {"2021-03-14": 46, "2021-05-13": 48, "2021-11-07": 50}[day]
+    assert [t.isoformat() for t in got] == [t.isoformat() for t in expect]
+
+
+def test_window_duration_is_elapsed_time_across_dst():
+    """01:00 MDT to 01:30 MST on 2021-11-07 is 90 min elapsed, though the wall clocks read 30 min apart."""
+    from pihim.planning.windows import Window, _day_times
+
+    times = _day_times(dt.date(2021, 11, 7), "America/Denver", 30.0)
+    a, b = times[2], times[5]  # 01:00-06:00 and 01:30-07:00
+    assert (a.strftime("%H:%M%z"), b.strftime("%H:%M%z")) == ("01:00-0600", "01:30-0700")
+    assert Window(a, b, 1.0, 1.0).duration_min == pytest.approx(90.0)
 
 
 def test_sweep_fractions(sweep):
@@ -170,7 +196,7 @@ def test_field_without_tower_needs_an_aim_point():
 
 def test_windows_break_at_gaps():
     sw = synthetic([0.8, 0.8, 0.8, 0.8])
-    sw = DaySweep(**{**sw.__dict__, "times": sw.times[[0, 1, 2]].append(sw.times[[3]] + pd.Timedelta(hours=2))})
+    sw = DaySweep(**{**sw.__dict__, "times": (*sw.times[:3], sw.times[3] + dt.timedelta(hours=2))})
     assert len(sw.windows(0.5)) == 2
 
 
@@ -287,3 +313,14 @@ def test_cli_with_the_shared_nsttf_csv(tmp_path, capsys):
     assert rc == 0
     rec = json.loads(capsys.readouterr().out)
     assert rec["n_heliostats"] == rec["settings"]["field_heliostats"] > 200 and rec["settings"]["shift_search"] is None
+
+
+def test_windows_module_does_not_import_pandas():
+    """pandas (with pyarrow, ~0.45 s of CPU) is not needed for a day's times: ``pihim windows`` starts without it."""
+    import subprocess
+    import sys
+
+    code = ("import sys, datetime; from pihim.planning.windows import _day_times, sweep_day; "
+            "_day_times(datetime.date(2021, 5, 13), 'America/Denver', 60.0); print('pandas' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False"]

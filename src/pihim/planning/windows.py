@@ -137,7 +137,6 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from pihim._atomic import atomic_path, write_text_atomic
@@ -226,15 +225,15 @@ class Window:
     (local, timezone-aware); a run of one sample has zero duration.
     """
 
-    start: pd.Timestamp
-    end: pd.Timestamp
+    start: _dt.datetime
+    end: _dt.datetime
     peak_fraction: float
     mean_fraction: float
 
     @property
     def duration_min(self) -> float:
-        """``end - start`` in minutes."""
-        return (self.end - self.start).total_seconds() / 60.0
+        """``end - start`` in minutes (elapsed time, also across a DST change)."""
+        return _elapsed_s(self.start, self.end) / 60.0
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-friendly record (ISO 8601 times with offsets)."""
@@ -255,8 +254,9 @@ class DaySweep:
     site : Site
     timezone : str or datetime.tzinfo
         Local time zone of ``times``.
-    times : pandas.DatetimeIndex
-        Sample times, local and timezone-aware.
+    times : tuple of datetime.datetime
+        Sample times, local and timezone-aware (pandas is not needed: the
+        sweep's command starts without importing it).
     sun_zenith_deg, sun_azimuth_deg : ndarray
         Apparent sun position, degrees (azimuth clockwise from North).
     fraction_planned, fraction_sky, fraction_ground, fraction_either : ndarray
@@ -278,7 +278,7 @@ class DaySweep:
     date: _dt.date
     site: Site
     timezone: Any
-    times: pd.DatetimeIndex
+    times: tuple[_dt.datetime, ...]
     sun_zenith_deg: NDArray[np.float64]
     sun_azimuth_deg: NDArray[np.float64]
     fraction_planned: NDArray[np.float64]
@@ -334,13 +334,13 @@ class DaySweep:
         good = (f >= level - 1e-12) & (f > 0.0 if relative else True)
         out: list[Window] = []
         i, n = 0, len(f)
-        gap = pd.Timedelta(minutes=1.5 * self.step_min)
+        gap_s = 1.5 * self.step_min * 60.0
         while i < n:
             if not good[i]:
                 i += 1
                 continue
             j = i
-            while j + 1 < n and good[j + 1] and self.times[j + 1] - self.times[j] <= gap:
+            while j + 1 < n and good[j + 1] and _elapsed_s(self.times[j], self.times[j + 1]) <= gap_s:
                 j += 1
             w = Window(self.times[i], self.times[j], float(np.max(f[i : j + 1])), float(np.mean(f[i : j + 1])))
             if w.duration_min >= min_duration_min:
@@ -438,11 +438,37 @@ def paper_agreement(sweep: DaySweep, threshold: float = 0.5, which: str = "eithe
     }
 
 
-def _day_times(date: _dt.date, tz: Any, step_min: float) -> pd.DatetimeIndex:
-    start = pd.Timestamp(date.isoformat()).tz_localize(tz)
-    end = (pd.Timestamp(date.isoformat()) + pd.Timedelta(days=1)).tz_localize(tz)
+def _tzinfo(tz: Any) -> _dt.tzinfo:
+    """``tz`` as a :class:`datetime.tzinfo`: an IANA name (``zoneinfo``), ``"UTC"`` or a tzinfo."""
+    if isinstance(tz, _dt.tzinfo):
+        return tz
+    if str(tz).upper() == "UTC":
+        return _dt.UTC
+    from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
+
+    try:
+        return ZoneInfo(str(tz))
+    except (ZoneInfoNotFoundError, ValueError):
+        raise PihimInputError(f"unknown time zone {tz!r} (an IANA name such as America/Denver)") from None
+
+
+def _elapsed_s(a: _dt.datetime, b: _dt.datetime) -> float:
+    """``b - a`` in seconds of elapsed time (Python subtracts aware times of one zone as wall clock times)."""
+    return (b.astimezone(_dt.UTC) - a.astimezone(_dt.UTC)).total_seconds()
+
+
+def _midnight(date: _dt.date, tz: Any) -> _dt.datetime:
+    """Local midnight starting ``date`` in ``tz``, timezone-aware."""
+    return _dt.datetime.combine(date, _dt.time(0), tzinfo=_tzinfo(tz))
+
+
+def _day_times(date: _dt.date, tz: Any, step_min: float) -> tuple[_dt.datetime, ...]:
+    """Times every ``step_min`` minutes of elapsed time from local midnight to the next (23 or 25 h on DST days)."""
+    zone = _tzinfo(tz)
+    start = _midnight(date, zone).astimezone(_dt.UTC)
+    end = _midnight(date + _dt.timedelta(days=1), zone).astimezone(_dt.UTC)
     n = math.floor((end - start).total_seconds() / (step_min * 60.0) + 1e-9)
-    return pd.DatetimeIndex([start + pd.Timedelta(minutes=step_min * k) for k in range(n)])
+    return tuple((start + _dt.timedelta(minutes=step_min * k)).astimezone(zone) for k in range(n))
 
 
 def sweep_day(
@@ -541,7 +567,7 @@ def sweep_day(
     times = _day_times(day, tz, float(step_min))
     sun = sun_position(site, times)
     keep = np.asarray(sun.elevation_deg, dtype=float) >= float(min_elevation_deg)
-    times = times[keep]
+    times = tuple(t for t, k in zip(times, keep, strict=True) if k)
     zen = np.asarray(sun.zenith_deg, dtype=float)[keep]
     azi = np.asarray(sun.azimuth_deg, dtype=float)[keep]
     vecs = np.asarray(sun.vector, dtype=float).reshape(-1, 3)[keep]
@@ -599,9 +625,9 @@ def write_windows_csv(sweep: DaySweep, path: str | Path) -> Path:
     return write_text_atomic(path, "\n".join(lines) + "\n")
 
 
-def _hours(sweep: DaySweep, ts: Sequence[pd.Timestamp]) -> NDArray[np.float64]:
-    day0 = pd.Timestamp(sweep.date.isoformat()).tz_localize(sweep.timezone)
-    return np.array([(t - day0).total_seconds() / 3600.0 for t in ts], dtype=float)
+def _hours(sweep: DaySweep, ts: Sequence[_dt.datetime]) -> NDArray[np.float64]:
+    day0 = _midnight(sweep.date, sweep.timezone)
+    return np.array([_elapsed_s(day0, t) / 3600.0 for t in ts], dtype=float)
 
 
 def write_windows_png(sweep: DaySweep, path: str | Path, *, threshold: float = 0.5, which: str = "either",
