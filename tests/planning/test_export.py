@@ -547,6 +547,47 @@ def test_plan_figure_png(plan, field, tmp_path):
     assert _png_size(small) == (200, 150)
 
 
+def test_plan_figure_pass_labels_never_overlap_when_drawn(monkeypatch):
+    """Twelve passes starting 2-4 m apart: each pass number is moved to a free spot. The spots are chosen before
+    the figure is drawn (limits and aspect fixed without a draw) at the scale the drawn figure has; the label
+    boxes matplotlib draws overlap none of the others, and each stays within 25 m of its pass start."""
+    import dataclasses
+
+    import pihim.planning.export.figure as figure_module
+    from pihim.planning.export.figure import plan_figure
+
+    def metres_per_pixel(ax):
+        inv = ax.transData.inverted()
+        return np.abs(inv.transform((1.0, 1.0)) - inv.transform((0.0, 0.0)))
+
+    seen, place = [], figure_module._place_pass_labels
+
+    def spy(fig, ax, starts, *args, **kwargs):
+        place(fig, ax, starts, *args, **kwargs)
+        seen.append(metres_per_pixel(ax))  # the scale the spots were chosen at (placing does not draw)
+
+    monkeypatch.setattr(figure_module, "_place_pass_labels", spy)
+
+    base = make_plan(with_flight=False)
+    passes = tuple(_pass(k, 30.0 + 2.0 * k + (k % 3), 35.0, k % 2 == 0, -30.0, ("5E3", "6E3", "7E3"),
+                         ("5E2", "6E2", "7E2")) for k in range(12))
+    plan = dataclasses.replace(base, passes=passes)
+    fig = plan_figure(plan, field=make_field())
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    np.testing.assert_allclose(seen[0], metres_per_pixel(ax), rtol=1e-9)
+    labels = [t for t in ax.texts if t.get_text().isdigit()]
+    assert sorted(int(t.get_text()) for t in labels) == list(range(12))
+    renderer = fig.canvas.get_renderer()
+    boxes = [t.get_bbox_patch().get_window_extent(renderer) for t in labels]
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:
+            assert not a.overlaps(b), (a, b)
+    for t in labels:
+        start, spot = np.asarray(t.xy), np.asarray(t.xyann)
+        assert np.hypot(*(spot - start)) < 25.0
+
+
 # --------------------------------------------------------------------------- export_all and bad input
 
 

@@ -76,6 +76,7 @@ def plan_figure(
     from matplotlib import colormaps
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.cm import ScalarMappable
+    from matplotlib.collections import LineCollection
     from matplotlib.colors import Normalize
     from matplotlib.figure import Figure
     from matplotlib.patches import Rectangle
@@ -108,19 +109,27 @@ def plan_figure(
                     label=f"flight {f.index + 1}: {f.duration_s / 60:.1f} min, {f.distance_m / 1000:.2f} km")
 
     starts = []
+    segments, colours, styles, cap_xy, cap_colour = [], [], [], [], []
     for p in plan.passes:
         xy = np.array([(w.x_m, w.y_m) for w in p.waypoints])
         colour = cmap(norm(p.usable_fraction))
-        style = "-" if p.feasible else "--"
-        ax.plot(xy[:, 0], xy[:, 1], style, color=colour, lw=1.8, zorder=3)
+        segments.append(xy)
+        colours.append(colour)
+        styles.append("-" if p.feasible else "--")
         if len(xy) >= 2 and np.hypot(*(xy[-1] - xy[0])) > 0:
             ax.annotate("", xy=xy[-1], xytext=xy[-2], zorder=4,
                         arrowprops={"arrowstyle": "-|>", "color": colour, "lw": 1.5, "mutation_scale": 14})
-        cap = np.array([(w.x_m, w.y_m) for w in p.waypoints if w.capture])
-        if len(cap):
-            ax.scatter(cap[:, 0], cap[:, 1], s=14, facecolors="white", edgecolors=[colour], linewidths=1.0,
-                       marker="o", zorder=4)
+        cap = [(w.x_m, w.y_m) for w in p.waypoints if w.capture]
+        cap_xy.extend(cap)
+        cap_colour.extend([colour] * len(cap))
         starts.append((p.index, xy))
+    # one artist each for all the pass lines and all the capture marks (one per pass drew 2.5x slower)
+    ax.add_collection(LineCollection(segments, colors=colours, linestyles=styles, linewidths=1.8, zorder=3),
+                      autolim=True)
+    if cap_xy:
+        cap_arr = np.array(cap_xy)
+        ax.scatter(cap_arr[:, 0], cap_arr[:, 1], s=14, facecolors="white", edgecolors=cap_colour, linewidths=1.0,
+                   marker="o", zorder=4)
     ax.plot([plan.home.x_m], [plan.home.y_m], marker="*", ms=12, color="crimson", ls="none", label="home", zorder=6)
 
     counts = plan_counts(plan)
@@ -160,7 +169,8 @@ def _place_pass_labels(fig: Any, ax: Any, starts: list[tuple[int, NDArray[np.flo
     font size and the axes scale) overlaps no placed label wins; a leader line
     joins a label moved away from its pass.
     """
-    fig.canvas.draw()  # fixes the limits and the aspect, hence the metres per pixel
+    ax.autoscale_view()  # fixes the limits and the aspect, hence the metres per pixel, without drawing
+    ax.apply_aspect()
     inv = ax.transData.inverted()
     origin = inv.transform((0.0, 0.0))
     per_px = np.abs(inv.transform((1.0, 1.0)) - origin)
