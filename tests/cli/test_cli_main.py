@@ -76,6 +76,28 @@ def test_help_imports_no_command_and_no_heavy_library():
     assert proc.stderr.strip().splitlines()[-1] == "[] 0"
 
 
+def test_command_help_imports_no_heavy_library():
+    """``pihim CMD --help`` builds the page from the command's signature: no command imports scipy, numba,
+    matplotlib or pandas for it (they cost 0.2-0.5 s of CPU each and are loaded when the command runs)."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import contextlib, io, sys; from pihim.cli import COMMANDS, main\n"
+            "heavy = ('scipy', 'numba', 'matplotlib', 'pandas', 'pvlib')\n"
+            "for name in COMMANDS:\n"
+            "    with contextlib.redirect_stdout(io.StringIO()):\n"
+            "        rc = main([name, '--help'])\n"
+            "    print(name, rc, sorted({m.split('.')[0] for m in sys.modules} & set(heavy)), file=sys.stderr)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    lines = proc.stderr.strip().splitlines()
+    from pihim.cli import COMMANDS
+
+    assert [line.split()[0] for line in lines] == list(COMMANDS), proc.stderr
+    assert all(line.split(maxsplit=1)[1] == "0 []" for line in lines), proc.stderr
+
+
 def test_each_command_loads_only_its_own_module(capsys):
     """A command's own help page is built from its function (options appear), through the lazy table."""
     from pihim.cli import main

@@ -14,7 +14,7 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import cv2
 import numpy as np
@@ -30,7 +30,9 @@ from pihim.camera.layout import MosaicLayout
 from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
 from pihim.cli._common import check_out_dir
 from pihim.errors import PihimInputError
-from pihim.inspection.calibration import CameraCalibration, calibrate_camera as _calibrate
+
+if TYPE_CHECKING:  # the calibration module imports the renderer (scipy): loaded when the command runs
+    from pihim.inspection.calibration import CameraCalibration
 
 GREY_SUFFIXES = (".png", ".tif", ".tiff")
 
@@ -202,6 +204,8 @@ def calibrate_camera(
             pol = polar_image(frame.data, layout=mosaic_layout, demosaic=demosaic,  # type: ignore[arg-type]
                               bit_depth=frame.bit_depth)
             arrays.append(pol.s0)
+    from pihim.inspection.calibration import calibrate_camera as _calibrate
+
     image_binning = binning if grey else (2 if demosaic == "superpixel" else 1)
     cal = _calibrate(
         arrays,

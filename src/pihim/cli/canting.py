@@ -11,7 +11,7 @@ import json
 import time as _time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -21,8 +21,9 @@ from pihim.camera.model import CameraModel
 from pihim.cli._common import check_out_dir, emit_json, load_field_option, report_error, stderr_console
 from pihim.cli.edges import _write_all, read_log
 from pihim.errors import PihimInputError
-from pihim.inspection.canting_output import canting_png_writer, canting_record
-from pihim.inspection.pipeline import InspectionResult, combine_results, inspect_frame
+
+if TYPE_CHECKING:  # the inspection imports the renderer's compiled kernels (numba): loaded when the command runs
+    from pihim.inspection.pipeline import InspectionResult
 
 def _meta_for(frames: list[Path], meta: list[Path] | None) -> list[Path]:
     if not meta:
@@ -54,6 +55,9 @@ def canting(
     Everything is checked and computed before anything is written; both
     outputs appear together or not at all.
     """
+    from pihim.inspection.canting_output import canting_png_writer, canting_record
+    from pihim.inspection.pipeline import combine_results, inspect_frame
+
     t0 = _time.perf_counter()
     if not frames:
         raise PihimInputError("give at least one frame")
