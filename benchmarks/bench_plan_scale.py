@@ -25,6 +25,16 @@ average of the machine, and the passes per heliostat.
 Targets: 100,000 heliostats planned and scored in < 5 min and < 8 GB; the
 growth from 1k to 100k is fitted on a log-log scale (slope 1 = linear).
 
+What ``pihim plan`` runs
+    Since the per-facet captures, the route and the facet report landed,
+    ``pihim plan`` does more than the pipeline above: for each size a second
+    fresh process times :func:`pihim.planning.pipeline.build_plan` on the
+    same field (the command's library call, without the exports), with its
+    stages: passes (``plan_ufacet``), scoring, facet captures
+    (``plan_facet_captures``), route and flights (``plan_flights``) and the
+    traced facet report (``facet_coverage``). Same targets, reported apart
+    (``--pipeline-sizes``; default the same sizes).
+
 ``--figure PATH`` (default ``docs/figures/plan_scale.png``) draws the
 log-log figure. Run ``python benchmarks/run.py --only bench_plan_scale`` or
 this file directly (``--sizes 1000 10000``).
@@ -52,6 +62,8 @@ SIZES = (1_000, 3_000, 10_000, 30_000, 100_000)
 COUNTS = harness.Counts(repeat=1, warmup=0, quick_repeat=1, quick_warmup=0, cap_quick=True)
 CASE_TIME = "2021-05-13T13:00:00-06:00"
 STAGES = ("track", "plan", "score", "flights")
+#: Stages of build_plan timed in the whole-pipeline rows (functions of pihim.planning.pipeline, and the facet report).
+PIPELINE_STAGES = ("plan_ufacet", "score_passes", "plan_facet_captures", "plan_flights", "facet_coverage")
 
 
 def _peak_rss_mb() -> float:
@@ -101,18 +113,70 @@ def child(n: int) -> dict[str, Any]:
             "load_avg": round((load0 + os.getloadavg()[0]) / 2.0, 2)}
 
 
-def run_benchmark(sizes: Sequence[int]) -> dict[str, Any]:
+def child_pipeline(n: int) -> dict[str, Any]:
+    """``build_plan`` (``pihim plan``'s library call) on the size-``n`` field, in this process, stages timed."""
+    from bench_plan import BIG_TOWER
+
+    import pihim.planning.facets as facets_module
+    import pihim.planning.pipeline as pipeline
+    from pihim.field.layout import radial_staggered_field
+    from pihim.sky.sun import NSTTF, parse_time
+
+    field = radial_staggered_field(n, tower=BIG_TOWER)
+    rss0 = _peak_rss_mb()
+    load0 = os.getloadavg()[0]
+    wall = dict.fromkeys(PIPELINE_STAGES, 0.0)
+    cpu = dict.fromkeys(PIPELINE_STAGES, 0.0)
+
+    def timed(module: Any, name: str) -> None:
+        fn = getattr(module, name)
+
+        def call(*args: Any, **kwargs: Any) -> Any:
+            t0, c0 = time.perf_counter(), time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                wall[name] += time.perf_counter() - t0
+                cpu[name] += time.process_time() - c0
+
+        setattr(module, name, call)
+
+    for name in PIPELINE_STAGES[:-1]:
+        timed(pipeline, name)
+    timed(facets_module, "facet_coverage")  # imported by build_plan when it runs
+    t0, c0 = time.perf_counter(), time.process_time()
+    plan = pipeline.build_plan(field, parse_time(CASE_TIME), NSTTF)
+    total_wall, total_cpu = time.perf_counter() - t0, time.process_time() - c0
+    flown = sum(len(f.pass_indices) for f in plan.flights)
+    return {"heliostats": n, "passes": len(plan.passes), "passes_flown": flown, "flights": len(plan.flights),
+            "captures": sum(w.capture for p in plan.passes for w in p.waypoints),
+            "wall_s": wall, "cpu_s": cpu, "total_wall_s": total_wall, "total_cpu_s": total_cpu,
+            "peak_rss_mb": _peak_rss_mb(), "rss_before_mb": rss0,
+            "load_avg": round((load0 + os.getloadavg()[0]) / 2.0, 2)}
+
+
+def _run_child(flag: str, n: int) -> dict[str, Any]:
+    out = subprocess.run([sys.executable, str(Path(__file__).resolve()), flag, str(n)], capture_output=True,
+                         text=True, env=dict(os.environ), check=False)
+    if out.returncode != 0:
+        return {"heliostats": n, "error": out.stderr.strip().splitlines()[-1:] or [f"exit code {out.returncode}"]}
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def run_benchmark(sizes: Sequence[int], pipeline_sizes: Sequence[int] = ()) -> dict[str, Any]:
     rows = []
     for n in sizes:
-        env = dict(os.environ)
-        out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", str(n)], capture_output=True,
-                             text=True, env=env, check=False)
-        if out.returncode != 0:
-            rows.append({"heliostats": n, "error": out.stderr.strip().splitlines()[-1:] or ["failed"]})
-            continue
-        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
-        print(f"  {n:,}: {rows[-1]['total_wall_s']:.1f} s wall, {rows[-1]['total_cpu_s']:.1f} s CPU, "
-              f"{rows[-1]['peak_rss_mb']:.0f} MB", flush=True)
+        rows.append(_run_child("--child", n))
+        if "error" not in rows[-1]:
+            print(f"  {n:,}: {rows[-1]['total_wall_s']:.1f} s wall, {rows[-1]['total_cpu_s']:.1f} s CPU, "
+                  f"{rows[-1]['peak_rss_mb']:.0f} MB", flush=True)
+    pipeline_rows = []
+    for n in pipeline_sizes:
+        pipeline_rows.append(_run_child("--child-pipeline", n))
+        if "error" not in pipeline_rows[-1]:
+            r = pipeline_rows[-1]
+            print(f"  build_plan {n:,}: {r['total_wall_s']:.1f} s wall, {r['total_cpu_s']:.1f} s CPU, "
+                  f"{r['peak_rss_mb']:.0f} MB", flush=True)
     ok = [r for r in rows if "error" not in r]
     fit = {}
     if len(ok) >= 2:
@@ -123,8 +187,18 @@ def run_benchmark(sizes: Sequence[int]) -> dict[str, Any]:
     big = next((r for r in ok if r["heliostats"] == 100_000), None)
     targets = [harness.target("100,000 heliostats planned and scored, wall", big and big["total_wall_s"], 300.0, "s"),
                harness.target("100,000 heliostats, peak memory", big and big["peak_rss_mb"] / 1024.0, 8.0, "GB")]
-    return {"benchmark": "bench_plan_scale", "sizes": list(sizes), "rows": rows, "loglog_slope": fit,
-            "targets": targets, "machine": harness.machine_info()}
+    ok_p = [r for r in pipeline_rows if "error" not in r]
+    if len(ok_p) >= 2:
+        x = np.log([r["heliostats"] for r in ok_p])
+        fit["pipeline_total_wall_s"] = float(np.polyfit(x, np.log([r["total_wall_s"] for r in ok_p]), 1)[0])
+    big_p = next((r for r in ok_p if r["heliostats"] == 100_000), None)
+    if 100_000 in pipeline_sizes:
+        targets += [harness.target("100,000 heliostats, build_plan (pihim plan's pipeline), wall",
+                                   big_p and big_p["total_wall_s"], 300.0, "s"),
+                    harness.target("100,000 heliostats, build_plan, peak memory",
+                                   big_p and big_p["peak_rss_mb"] / 1024.0, 8.0, "GB")]
+    return {"benchmark": "bench_plan_scale", "sizes": list(sizes), "rows": rows, "pipeline_sizes": list(pipeline_sizes),
+            "pipeline_rows": pipeline_rows, "loglog_slope": fit, "targets": targets, "machine": harness.machine_info()}
 
 
 def markdown_report(report: dict[str, Any]) -> str:
@@ -142,10 +216,25 @@ def markdown_report(report: dict[str, Any]) -> str:
                      + f" | {r['total_wall_s']:.1f} | {r['total_cpu_s']:.1f} | {r['peak_rss_mb']:.0f} | "
                      f"{r['load_avg']:.1f} |")
     f = report["loglog_slope"]
-    if f:
+    if "total_wall_s" in f:
         lines += ["", f"Log-log slopes from {min(report['sizes']):,} to {max(report['sizes']):,}: total wall time "
                   f"{f['total_wall_s']:.2f}, total CPU time {f['total_cpu_s']:.2f}, passes {f['passes']:.2f} "
                   "(1 = linear)."]
+    if report.get("pipeline_rows"):
+        lines += ["", "`build_plan`, what `pihim plan` runs (seconds of wall time per stage):", "",
+                  "| heliostats | passes | flights | captures | passes s | scoring s | facet captures s | route s | "
+                  "facet report s | total wall s | total CPU s | peak RSS MB | load |",
+                  "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        for r in report["pipeline_rows"]:
+            if "error" in r:
+                lines.append(f"| {r['heliostats']:,} | failed: {r['error']} |")
+                continue
+            lines.append(f"| {r['heliostats']:,} | {r['passes']:,} | {r['flights']:,} | {r['captures']:,} | "
+                         + " | ".join(f"{r['wall_s'][s]:.1f}" for s in PIPELINE_STAGES)
+                         + f" | {r['total_wall_s']:.1f} | {r['total_cpu_s']:.1f} | {r['peak_rss_mb']:.0f} | "
+                         f"{r['load_avg']:.1f} |")
+        if "pipeline_total_wall_s" in f:
+            lines += ["", f"Log-log slope of build_plan's wall time: {f['pipeline_total_wall_s']:.2f}."]
     lines += harness.target_table(report["targets"], spec=".1f")
     return "\n".join(lines)
 
@@ -194,15 +283,19 @@ def main(argv: Sequence[str] | None = None, *, quick: bool = False, json_path: P
     def configure(parser: Any) -> None:
         parser.add_argument("--sizes", type=int, nargs="*", metavar="N")
         parser.add_argument("--figure", type=Path, default=FIGURE_PATH, metavar="PNG")
+        parser.add_argument("--pipeline-sizes", type=int, nargs="*", metavar="N",
+                            help="sizes for the build_plan rows (default: the --sizes; none: skip them)")
 
     o = harness.options(argv, description="The planner at scale (radial fields).", counts=COUNTS, repeat=None,
                         warmup=None, quick=quick, json_path=json_path, configure=configure)
     sizes: Sequence[int] = (1_000, 10_000) if o.quick else SIZES
     fig_path: Path | None = None if o.quick else FIGURE_PATH
+    pipeline_sizes: Sequence[int] = sizes
     if o.args is not None:
         sizes = tuple(o.args.sizes) if o.args.sizes else sizes
+        pipeline_sizes = sizes if o.args.pipeline_sizes is None else tuple(o.args.pipeline_sizes)
         fig_path = o.args.figure
-    report = run_benchmark(sizes)
+    report = run_benchmark(sizes, pipeline_sizes)
     if echo:
         print(markdown_report(report))
     if fig_path is not None and sum("error" not in r for r in report["rows"]) >= 2:
@@ -215,5 +308,7 @@ def main(argv: Sequence[str] | None = None, *, quick: bool = False, json_path: P
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "--child":
         print(json.dumps(child(int(sys.argv[2]))))
+    elif len(sys.argv) == 3 and sys.argv[1] == "--child-pipeline":
+        print(json.dumps(child_pipeline(int(sys.argv[2]))))
     else:
         main(sys.argv[1:] or None)

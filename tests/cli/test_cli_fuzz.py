@@ -361,12 +361,12 @@ def test_edges(root, simulated, capsys, budget, data):
 @FUZZ
 @given(data=st.data())
 def test_canting_options(root, simulated, capsys, budget, data):
-    import pihim.cli.canting as canting_cli
+    import pihim.inspection.pipeline as inspection_pipeline  # the command imports inspect_frame from it when it runs
 
     def stop(*args, **kwargs):
         raise typer.Exit(0)  # the pose and facet fits would start here: validation passed
 
-    budget.setattr(canting_cli, "inspect_frame", stop)
+    budget.setattr(inspection_pipeline, "inspect_frame", stop)
     opts = {
         "--hua": st.sampled_from(["8E3", "99W1", "", "x" * 300]),
         "--target": st.sampled_from(["7E3", "8E3", ""]),
