@@ -91,7 +91,7 @@ def test_plan_files_read_by_third_party_readers(tmp_path, capsys):
         (["--time", TIME, "--max-altitude", "8"], "no feasible pass"),
         (["--time", TIME, "--heliostats", "5W1,5E2"], "no scan pass to fly: 5e2: no target heliostat in front"),
         (["--time", TIME, "--battery-min", "-5"], "--battery-min must be a positive number of minutes"),
-        (["--time", TIME, "--max-mission-items", "30"], "mission items, more than 30"),
+        (["--time", TIME, "--max-mission-items", "12"], "single capture, more than 12"),
         (["--time", TIME, "--autopilot", "inav"], "--autopilot must be ardupilot or px4"),
     ],
 )

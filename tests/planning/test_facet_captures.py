@@ -291,6 +291,64 @@ def test_plan_flights_is_shorter_and_flies_every_pass_once():
     assert all(f.duration_s <= DroneEndurance().usable_s for f in flights)
 
 
+def _long_pass(index: int, n_caps: int, x: float = 0.0, y0: float = 0.0, step: float = 4.0) -> ScanPass:
+    """A northbound stop-and-shoot pass: lead-in, ``n_caps`` captures of HUAs ``1E1``, ``2E1`` ..., run-past."""
+    wps = [Waypoint(x, y0 - 5.0, 25.0, 0, 0, 0, 0.0, -80.0, 3.0, kind="lead_in")]
+    wps += [Waypoint(x, y0 + step * k, 25.0, 0, 0, 0, 0.0, -80.0, 2.0, kind="scan", capture=True, hua=f"{k + 1}E1")
+            for k in range(n_caps)]
+    wps += [Waypoint(x, y0 + step * n_caps, 25.0, 0, 0, 0, 0.0, -80.0, 3.0, kind="run_past")]
+    return ScanPass(index=index, azimuth_deg=0.0, altitude_m=25.0, gimbal_pitch_deg=-80.0,
+                    pairs=tuple((f"{k + 1}E1", "0E1") for k in range(n_caps)), waypoints=tuple(wps))
+
+
+def test_split_pass_keeps_the_waypoints_in_order():
+    from pihim.planning.route import split_pass
+
+    p = _long_pass(3, 10)
+    for k in (1, 2, 3, 10):
+        parts = split_pass(p, k)
+        assert len(parts) == k and all(q.index == 3 for q in parts)
+        assert tuple(w for q in parts for w in q.waypoints) == p.waypoints
+        assert all(q.waypoints[0].capture for q in parts[1:])  # cut before a capture
+        caps = [sum(w.capture for w in q.waypoints) for q in parts]
+        assert sum(caps) == 10 and max(caps) - min(caps) <= 1
+        assert [pr for q in parts for pr in q.pairs] == list(p.pairs)  # each pair in the piece of its capture
+    with pytest.raises(PihimInputError, match="cannot be cut"):
+        split_pass(p, 11)
+
+
+def test_plan_flights_cuts_a_pass_too_long_for_one_mission():
+    """A 250-capture pass needs about 760 mission items (the 30,000-heliostat radial field's case, which failed
+    with "pass alone needs 769 mission items, more than 700"): it is flown in pieces, every capture once, and no
+    flight exceeds the limit."""
+    from pihim.planning.export.qgc import count_mission_items
+
+    home = Waypoint(0, -40, 0, 0, 0, 0, 0, 0, 0, kind="takeoff")
+    p = _long_pass(0, 250, step=1.0)
+    passes, flights = plan_flights([p], home, origin=NSTTF, max_mission_items=700, count_items=count_mission_items)
+    assert count_mission_items([home, *p.waypoints, home]) > 700
+    assert len(flights) >= 2 and all(count_mission_items(f.waypoints) <= 700 for f in flights)
+    assert [i for f in flights for i in f.pass_indices] == list(range(len(passes)))
+    caps = sorted(w.y_m for w in p.waypoints if w.capture)
+    assert sorted(w.y_m for f in flights for w in f.waypoints if w.capture) == caps
+    with pytest.raises(PihimInputError, match="single capture, more than 12"):
+        plan_flights([p], home, origin=NSTTF, max_mission_items=12, count_items=count_mission_items)
+
+
+def test_plan_flights_leaves_out_passes_beyond_a_battery():
+    """A pass 6 km from home (the edge of a field kilometres wide) cannot be reached and flown on one battery:
+    with ``unflyable`` it is planned but not flown and its index reported; without, the route refuses."""
+    home = Waypoint(0, -40, 0, 0, 0, 0, 0, 0, 0, kind="takeoff")
+    near, far = _long_pass(0, 5), _long_pass(1, 5, x=6000.0)
+    out: list[int] = []
+    passes, flights = plan_flights([far, near], home, origin=NSTTF, unflyable=out)
+    assert out == [1] and len(passes) == 2 and passes[1].waypoints == far.waypoints
+    assert [i for f in flights for i in f.pass_indices] == [0]
+    assert passes[0].waypoints in (near.waypoints, reverse_pass(near).waypoints)
+    with pytest.raises(PihimInputError, match="alone needs"):
+        plan_flights([far, near], home, origin=NSTTF)
+
+
 def test_reverse_pass_and_turns():
     p = _pass(0, (0, 0), (10, 0))
     r = reverse_pass(p)

@@ -98,10 +98,18 @@ def _human_summary(summary: dict, files: dict[str, Path], out: Path) -> str:
     return (
         f"pihim plan: {summary['passes']} passes, {images_text(summary)}{_facet_text(summary)}; "
         f"{summary['flights']} flights, {summary['distance_m'] / 1000:.2f} km, {summary['turns']} turns, "
-        f"longest {longest:.1f} min\n"
+        f"longest {longest:.1f} min{_unreachable_text(summary)}\n"
         f"wrote {len(files)} files to {out}: plan.json, plan.kml, plan.png and {n_flight_files} flight missions "
         f"(flight_NN.plan / .waypoints / _litchi*.csv)"
     )
+
+
+def _unreachable_text(summary: dict) -> str:
+    n = len(summary.get("unreachable_passes") or ())
+    if not n:
+        return ""
+    return (f"; {n} passes out of a battery's reach from the take-off point south of the tower, not flown "
+            f"(unreachable_passes in plan.json)")
 
 
 def _facet_text(summary: dict) -> str:

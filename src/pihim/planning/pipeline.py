@@ -164,13 +164,15 @@ def build_plan(
         opts = dict(mission_options or {})
         counter = functools.partial(count_mission_items, **opts)
         count_mission_items([home, home], **opts)  # bad options -> one-line error before the split
+    unflown: list[int] = []  # passes no flight from home reaches within a battery (a field kilometres wide)
     if route is not False:
         scored, flights = plan_flights(scored, home, origin=site, model=endurance, tower=field.tower,
                                        max_mission_items=max_mission_items, count_items=counter,
-                                       settings=route if isinstance(route, RouteSettings) else RouteSettings())
+                                       settings=route if isinstance(route, RouteSettings) else RouteSettings(),
+                                       unflyable=unflown)
     else:
         flights = split_flights(scored, home, origin=site, model=endurance, tower=field.tower,
-                                max_mission_items=max_mission_items, count_items=counter)
+                                max_mission_items=max_mission_items, count_items=counter, unflyable=unflown)
     if facet_captures is not False or route is not False:  # new or reversed captures: predict them
         scored = score_passes(scored, pose, sun.vector, scene=scene, camera=camera, aim_point=aim, origin=site,
                               search=None)
@@ -192,6 +194,7 @@ def build_plan(
         "distance_m": round(sum(f.distance_m for f in flights), 1),
         "turns": sum(turns(f.waypoints) for f in flights),
         "rescued_huas": list(rescued),
+        "unreachable_passes": sorted(unflown),
         "max_mission_items": max_mission_items,
         "missions": [{"flight": f.index, "mission_items": counter(f.waypoints) if counter else None,
                       "waypoints": len(f.waypoints), "passes": len(f.pass_indices),

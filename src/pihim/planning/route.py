@@ -346,11 +346,19 @@ class _PassCost:
 
     time_s: float
     items: int
+    alone_s: float = 0.0  # a flight of this pass alone (take-off, transits from and to home, landing): time
+    alone_items: int = 0  # and its mission items
+
 
 
 def _pass_costs(passes: Sequence[ScanPass], home: Waypoint, model: DroneEndurance,
-                count_items: Callable[[Sequence[Waypoint]], int] | None) -> tuple[list[_PassCost], int]:
-    """Time and items of every pass on its own, and the items of an empty flight (take-off, return, home)."""
+                count_items: Callable[[Sequence[Waypoint]], int] | None,
+                keepout: Any = None) -> tuple[list[_PassCost], int]:
+    """Time and items of every pass on its own, and the items of an empty flight (take-off, return, home).
+
+    ``alone_s`` and ``alone_items`` are those of a flight of the pass alone,
+    around the tower's ``keepout`` (what :func:`split_flights` checks).
+    """
     out = []
     base = 0
     land = dataclasses.replace(home, kind="land")  # type: ignore[arg-type]
@@ -358,7 +366,7 @@ def _pass_costs(passes: Sequence[ScanPass], home: Waypoint, model: DroneEnduranc
         lift = dataclasses.replace(home, z_m=1.0, kind="transit")  # type: ignore[arg-type]
         base = count_items([home, lift, land])
     for p in passes:
-        legs = _build([p], home, None, model, None)
+        legs = _build([p], home, keepout, model, None)
         own = [k for k, leg in enumerate(legs) if leg.waypoint is not None]
         inner = legs[own[0]:own[-1] + 1]
         t = model.turn_s + sum(leg.capture for leg in inner) * model.capture_s
@@ -366,8 +374,90 @@ def _pass_costs(passes: Sequence[ScanPass], home: Waypoint, model: DroneEnduranc
             t, _ = _time_and_distance(inner, model)
             t -= model.takeoff_landing_s  # counted once per flight
         items = count_items([home, *p.waypoints, land]) - count_items([home, land]) if count_items is not None else 0
-        out.append(_PassCost(max(t, 0.0), items))
+        out.append(_PassCost(max(t, 0.0), items, _time_and_distance(legs, model)[0],
+                             count_items(_leg_waypoints(legs)) if count_items is not None else 0))
     return out, base
+
+
+def split_pass(p: ScanPass, pieces: int) -> list[ScanPass]:
+    """``p`` cut into ``pieces`` consecutive passes with about as many captures each, cut before a capture.
+
+    For a pass too long for one flight: a radial line in a field of tens of
+    thousands of heliostats can hold more stop-and-shoot captures than a
+    700-item mission or one battery. The first piece keeps the lead-in, the
+    last the run-past; the waypoints keep their order, so the pieces flown
+    one after the other are the pass. Each piece images the pairs of the
+    HUAs its captures name (all the pass's pairs where captures name none);
+    predictions are dropped (score the pieces again, as
+    :func:`pihim.planning.pipeline.build_plan` does after the route).
+
+    Parameters
+    ----------
+    p : ScanPass
+    pieces : int
+        Number of pieces, at most the pass's number of capture waypoints.
+
+    Returns
+    -------
+    list of ScanPass
+        With ``p.index`` (:func:`plan_flights` renumbers the flown passes).
+    """
+    caps = [i for i, w in enumerate(p.waypoints) if w.capture]
+    if not (isinstance(pieces, int) and 1 <= pieces <= max(len(caps), 1)):
+        raise PihimInputError(f"a pass with {len(caps)} captures cannot be cut into {pieces!r} pieces")
+    if pieces == 1:
+        return [p]
+    starts = [0] + [caps[(k * len(caps)) // pieces] for k in range(1, pieces)]
+    ends = starts[1:] + [len(p.waypoints)]
+    out = []
+    for a, b in zip(starts, ends, strict=True):
+        wps = p.waypoints[a:b]
+        huas = {w.hua for w in wps if w.capture and w.hua is not None}
+        pairs = tuple(pr for pr in p.pairs if pr[0] in huas) if huas else p.pairs
+        out.append(dataclasses.replace(p, waypoints=wps, pairs=pairs, predictions=()))
+    return out
+
+
+def _fit_passes(fly: list[ScanPass], home: Waypoint, model: DroneEndurance,
+                count_items: Callable[[Sequence[Waypoint]], int] | None, max_items: int | None, keepout: Any,
+                ) -> tuple[list[ScanPass], list[_PassCost], int]:
+    """Passes too long for one flight cut by :func:`split_pass`, with the pieces' costs.
+
+    A pass is cut while a piece needs more mission items than ``max_items``
+    or a flight of it alone exceeds the battery though its transits alone
+    would not (a pass out of reach stays whole: cutting cannot help it).
+
+    Raises
+    ------
+    PihimInputError
+        A single capture needs more mission items than ``max_items``.
+    """
+    pc, base = _pass_costs(fly, home, model, count_items, keepout)
+    limit = model.usable_s
+
+    def too_long(q: _PassCost) -> bool:
+        over_items = max_items is not None and q.alone_items > max_items
+        return over_items or (q.alone_s > limit and q.alone_s - q.time_s < limit)
+
+    out: list[ScanPass] = []
+    costs: list[_PassCost] = []
+    for p, c in zip(fly, pc, strict=True):
+        n_caps = sum(w.capture for w in p.waypoints)
+        pieces, parts, part_costs = 1, [p], [c]
+        while any(too_long(q) for q in part_costs) and pieces < n_caps:
+            need = c.items / max(max_items - base, 1) if max_items is not None else 1.0
+            if c.alone_s > limit:
+                need = max(need, c.time_s / max(limit - (c.alone_s - c.time_s), 1e-9))
+            pieces = min(n_caps, max(pieces + 1, math.ceil(1.15 * need)))
+            parts = split_pass(p, pieces)
+            part_costs, _ = _pass_costs(parts, home, model, count_items, keepout)
+        for q in part_costs:
+            if max_items is not None and q.alone_items > max_items:
+                raise PihimInputError(f"pass {p.index} needs {q.alone_items} mission items for a flight of a single "
+                                      f"capture, more than {max_items}")
+        out += parts
+        costs += part_costs
+    return out, costs, base
 
 
 def _split(order: list[int], costs: _Costs, pc: list[_PassCost], base_items: int, model: DroneEndurance,
@@ -444,8 +534,12 @@ def plan_flights(
     count_items: Callable[[Sequence[Waypoint]], int] | None = None,
     include_infeasible: bool = False,
     settings: RouteSettings = RouteSettings(),
+    unflyable: list[int] | None = None,
 ) -> tuple[tuple[ScanPass, ...], tuple[Flight, ...]]:
     """Passes ordered and oriented, and flights cut, for the shortest path (module docstring).
+
+    A pass too long for one flight (mission items or battery, its own legs)
+    is first cut into consecutive pieces (:func:`split_pass`).
 
     Parameters
     ----------
@@ -465,20 +559,25 @@ def plan_flights(
     include_infeasible : bool
         Also fly passes marked infeasible.
     settings : RouteSettings
+    unflyable : list, optional
+        Given, a pass that a flight from home cannot reach and fly within one
+        battery (the edge of a field kilometres wide) is not flown and its
+        final index appended here, instead of raising.
 
     Returns
     -------
     passes : tuple of ScanPass
         Flown passes in flight order, renumbered 0, 1, ... (``index``), some
         reversed (:func:`reverse_pass`, predictions dropped), then the passes
-        not flown.
+        not flown (infeasible, then unreachable).
     flights : tuple of Flight
         As :func:`~pihim.planning.endurance.split_flights` returns them.
 
     Raises
     ------
     PihimInputError
-        A single pass does not fit one battery or the item limit, or bad input.
+        A single capture does not fit one battery or the item limit, a pass
+        out of reach without ``unflyable``, or bad input.
     """
     if not isinstance(home, Waypoint):
         raise PihimInputError(f"home must be a Waypoint (see home_waypoint), got {type(home).__name__}")
@@ -488,18 +587,21 @@ def plan_flights(
     fly = [p for p in passes if (p.feasible or include_infeasible) and p.waypoints]
     rest = [p for p in passes if not ((p.feasible or include_infeasible) and p.waypoints)]
     keepout = _keepout(tower, model.tower_clearance_m)
+    counter = count_items if max_mission_items is not None else None
+    fly, pc, base = _fit_passes(fly, home, model, counter, max_mission_items, keepout)
+    beyond: list[ScanPass] = []
+    if unflyable is not None:  # out of reach of a battery even alone: not flown
+        reach = [c.alone_s <= model.usable_s for c in pc]
+        beyond = [p for p, ok in zip(fly, reach, strict=True) if not ok]
+        fly = [p for p, ok in zip(fly, reach, strict=True) if ok]
+        pc = [c for c, ok in zip(pc, reach, strict=True) if ok]
     if not fly:
-        return tuple(_renumber(rest, 0)), ()
+        return _with_unflown([], rest, beyond, unflyable), ()
     costs = _Costs(fly, home, keepout, settings.turn_cost_m)
     order = list(range(len(fly)))
     if settings.turn_cost_m:  # the shortest order first; turns are then traded only where they are worth it
         order = _improve(order, _Costs(fly, home, keepout), settings)
     order = _improve(order, costs, settings)
-    pc, base = _pass_costs(fly, home, model, count_items if max_mission_items is not None else None)
-    for k, c in enumerate(pc):
-        if max_mission_items is not None and c.items + base > max_mission_items:
-            raise PihimInputError(f"pass {fly[k].index} alone needs {c.items + base} mission items, more than "
-                                  f"{max_mission_items}")
     z_of = np.array([max(w.z_m for w in p.waypoints) for p in fly])
     item_cap = math.inf if max_mission_items is None else float(max_mission_items)
     time_margin = settings.time_margin
@@ -533,13 +635,30 @@ def plan_flights(
     n0 = 0
     for group in groups:  # exact: a group still too long is cut greedily
         renum = _renumber(group, n0)
+        left: list[int] | None = None if unflyable is None else []
         sub = split_flights(renum, home, origin=org, model=model, tower=tower, max_mission_items=max_mission_items,
-                            count_items=count_items, include_infeasible=True)
+                            count_items=count_items, include_infeasible=True, unflyable=left)
+        if left:  # out of reach once the tower's detour counts: not flown, the rest of the group cut again
+            gone = set(left)
+            beyond += [g for g, r in zip(group, renum, strict=True) if r.index in gone]
+            group = [g for g, r in zip(group, renum, strict=True) if r.index not in gone]
+            renum = _renumber(group, n0)
+            sub = split_flights(renum, home, origin=org, model=model, tower=tower,
+                                max_mission_items=max_mission_items, count_items=count_items, include_infeasible=True)
         for f in sub:
             flights.append(dataclasses.replace(f, index=len(flights)))
         flown += renum
         n0 += len(renum)
-    return tuple(flown) + tuple(_renumber(rest, n0)), tuple(flights)
+    return _with_unflown(flown, rest, beyond, unflyable), tuple(flights)
+
+
+def _with_unflown(flown: list[ScanPass], rest: list[ScanPass], beyond: list[ScanPass],
+                  unflyable: list[int] | None) -> tuple[ScanPass, ...]:
+    """Flown passes, then the infeasible ones, then those out of reach (their final indices into ``unflyable``)."""
+    n0 = len(flown) + len(rest)
+    if unflyable is not None:
+        unflyable.extend(range(n0, n0 + len(beyond)))
+    return tuple(flown) + tuple(_renumber(rest, len(flown))) + tuple(_renumber(beyond, n0))
 
 
 def _renumber(passes: Sequence[ScanPass], start: int) -> list[ScanPass]:
