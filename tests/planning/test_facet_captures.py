@@ -132,6 +132,22 @@ def test_facet_report_matches_a_brute_force_tracer(plan10, first_mirror):
     assert (got >= 0).sum() > 20  # the captures do show heliostat backs
 
 
+def test_facet_report_in_chunks_is_the_same(plan10, monkeypatch):
+    """Captures are traced in chunks (bounded memory at 30,000 heliostats): chunks of 7 give what one batch of
+    every capture gives."""
+    import pihim.planning.facets as facets_module
+
+    plan, field_, pose, _ = plan10
+    names = {n: k for k, n in enumerate(field_.names)}
+    caps = [w for p in plan.passes for w in p.waypoints if w.capture][:60]
+    args = (pose, [names[w.hua] for w in caps], [(w.x_m, w.y_m, w.z_m) for w in caps],
+            [w.heading_deg for w in caps], [w.gimbal_pitch_deg for w in caps])
+    whole = facet_targets(*args, tower=field_.tower)
+    monkeypatch.setattr(facets_module, "_CHUNK", 7)
+    assert np.array_equal(facet_targets(*args, tower=field_.tower), whole)
+    assert (whole >= 0).sum() > 100
+
+
 def test_every_facet_imaged(plan10):
     plan, field_, _, _ = plan10
     fc = plan.summary["facet_coverage"]
