@@ -253,6 +253,10 @@ def figure(report: dict[str, Any], path: Path) -> None:
         ax.loglog(n, [max(r["wall_s"][s], 1e-3) for r in ok], mk + "-", lw=1, ms=4, label=f"{s} (wall)")
     ax.loglog(n, [r["total_wall_s"] for r in ok], "k-", lw=2, label="total wall")
     ax.loglog(n, [r["total_cpu_s"] for r in ok], "k--", lw=1.5, label="total CPU")
+    ok_p = [r for r in report.get("pipeline_rows", []) if "error" not in r]
+    if ok_p:
+        ax.loglog([r["heliostats"] for r in ok_p], [r["total_wall_s"] for r in ok_p], "D-", color="tab:purple",
+                  lw=2, ms=4, label="build_plan, what pihim plan runs (wall)")
     ref = ok[0]["total_wall_s"] * n / n[0]
     ax.loglog(n, ref, ":", color="0.5", label="slope 1 (linear)")
     ax.axhline(300, color="r", lw=0.8)
@@ -264,6 +268,9 @@ def figure(report: dict[str, Any], path: Path) -> None:
     ax.grid(True, which="both", lw=0.3)
     ax2.loglog(n, [r["passes"] for r in ok], "o-", label="passes")
     ax2.loglog(n, [r["peak_rss_mb"] for r in ok], "s-", label="peak RSS, MB")
+    if ok_p:
+        ax2.loglog([r["heliostats"] for r in ok_p], [r["peak_rss_mb"] for r in ok_p], "D-", color="tab:purple",
+                   label="build_plan peak RSS, MB")
     ax2.loglog(n, n * ok[0]["passes"] / n[0], ":", color="0.5", label="slope 1")
     ax2.axhline(8192, color="r", lw=0.8)
     ax2.text(n[-1], 8800, "8 GB", color="r", fontsize=8, ha="right")
