@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import tifffile
 
-import pihim.cli.edges as cli_edges
 from pihim.camera.model import CameraModel
 from pihim.cli import main
 from pihim.field import UFACET_AIM_POINT, nsttf_like_field, track_field
@@ -160,7 +159,7 @@ def test_bad_input_one_line_exit_2_nothing_written(frame, tmp_path, capsys):
 
 def test_a_failed_write_leaves_nothing(frame, tmp_path, capsys, monkeypatch):
     calls = {"n": 0}
-    real = cli_edges.tifffile.imwrite
+    real = tifffile.imwrite  # the command imports tifffile where it writes: patched there
 
     def flaky(path, data, *a, **k):
         calls["n"] += 1
@@ -168,7 +167,7 @@ def test_a_failed_write_leaves_nothing(frame, tmp_path, capsys, monkeypatch):
             raise OSError("disk full")
         return real(path, data, *a, **k)
 
-    monkeypatch.setattr(cli_edges.tifffile, "imwrite", flaky)
+    monkeypatch.setattr(tifffile, "imwrite", flaky)
     out = tmp_path / "flaky"
     rc, cap = _run([frame, "--out", out], capsys)
     assert rc == 1 and "disk full" in cap.err and cap.err.startswith("pihim: error: ")

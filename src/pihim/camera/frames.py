@@ -82,9 +82,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeAlias
 
-import cv2
 import numpy as np
-import tifffile
 from numpy.typing import ArrayLike, NDArray
 
 from pihim.camera.layout import check_mosaic_shape
@@ -512,6 +510,8 @@ def _check_file(path: PathLike, label: str) -> None:
 
 def _decode_tiff(label: str, path: PathLike) -> tuple[NDArray, int]:
     """Decode the only page of a TIFF; returns the samples and ``BitsPerSample``."""
+    import tifffile  # here: a command's --help need not load it
+
     with tifffile.TiffFile(path) as tif:
         npages = len(tif.pages)
         if npages != 1:
@@ -634,6 +634,8 @@ def read_png(path: PathLike) -> RawFrame:
     if raw[: len(_PNG_SIGNATURE)].tobytes() != _PNG_SIGNATURE:
         raise _error(label, "not a PNG file (bad signature)")
     _check_png_chunks(label, raw)
+    import cv2  # here: OpenCV's import is about 0.1 s of CPU that a command's --help need not pay
+
     # OpenCV logs its own warning line for corrupt buffers; the error below says it all
     log_level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)

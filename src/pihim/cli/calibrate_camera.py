@@ -16,9 +16,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
-import cv2
 import numpy as np
-import tifffile
 import typer
 from numpy.typing import NDArray
 from rich.console import Console
@@ -66,6 +64,9 @@ def read_grey(path: Path) -> NDArray:
     from pihim.camera.frames import stderr_captured
 
     check_regular_file(path, "grey image")
+    import cv2  # imported where used: the command's --help need not load OpenCV
+    import tifffile
+
     captured: list[str] = []
     try:
         if suffix == ".png":
@@ -204,6 +205,8 @@ def calibrate_camera(
             pol = polar_image(frame.data, layout=mosaic_layout, demosaic=demosaic,  # type: ignore[arg-type]
                               bit_depth=frame.bit_depth)
             arrays.append(pol.s0)
+    import cv2
+
     from pihim.inspection.calibration import calibrate_camera as _calibrate
 
     image_binning = binning if grey else (2 if demosaic == "superpixel" else 1)

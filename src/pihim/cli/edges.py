@@ -16,9 +16,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Annotated, Any
 
-import cv2
 import numpy as np
-import tifffile
 import typer
 
 from pihim._atomic import describe_os_error, write_group
@@ -103,13 +101,19 @@ def _write_all(out_dir: Path, writers: dict[Path, Callable[[Path], None]]) -> No
 
 def _png_writer(mask: np.ndarray) -> Callable[[Path], None]:
     def write(path: Path) -> None:
+        import cv2  # imported where used: the command's --help need not load OpenCV
+
         if not cv2.imwrite(str(path), np.where(mask, 255, 0).astype(np.uint8)):
             raise OSError(f"{path}: could not write PNG")
     return write
 
 
 def _tiff_writer(image: np.ndarray) -> Callable[[Path], None]:
-    return lambda path: tifffile.imwrite(path, np.ascontiguousarray(image, dtype=np.float32))
+    def write(path: Path) -> None:
+        import tifffile
+
+        tifffile.imwrite(path, np.ascontiguousarray(image, dtype=np.float32))
+    return write
 
 
 def summary_record(frame: Path, meta: Path, maps: EdgeMaps, *, demosaic: str, camera: CameraModel,

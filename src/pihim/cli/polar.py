@@ -46,7 +46,6 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
-import tifffile
 import typer
 
 from pihim._atomic import atomic_group, write_json_atomic
@@ -115,6 +114,8 @@ class PolarOptions:
 
 def write_float_tiff(path: Path, image: np.ndarray) -> Path:
     """Write a float32 TIFF (to ``path`` as given: pass a temporary name for atomicity)."""
+    import tifffile  # imported where used (a module import is a dictionary look-up after the first)
+
     tifffile.imwrite(path, np.ascontiguousarray(image, dtype=np.float32))
     return path
 
@@ -245,6 +246,8 @@ def input_fingerprint(path: Path) -> dict[str, Any]:
 
 def _tiff_matches(path: Path, height: int, width: int) -> bool:
     """Whether ``path`` is a single float32 TIFF page of the given shape (header only)."""
+    import tifffile
+
     try:
         with tifffile.TiffFile(path) as tif:
             page = tif.pages[0]

@@ -62,7 +62,6 @@ import warnings
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -114,6 +113,8 @@ def _fill_nearest(image: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDAr
     Nearest in OpenCV's 5x5-mask approximation of the Euclidean distance
     (``cv2.distanceTransformWithLabels``, one label per valid pixel).
     """
+    import cv2  # imported where used: the command line's --help need not load OpenCV
+
     valid = np.isfinite(image)
     if valid.all():
         return image, valid
@@ -128,6 +129,8 @@ def _fill_nearest(image: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDAr
 
 def _sobel_xy(image: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Per-pixel derivatives d/dcolumn and d/drow (Sobel / 8, replicated borders)."""
+    import cv2  # imported where used: the command line's --help need not load OpenCV
+
     img = np.ascontiguousarray(image, dtype=np.float64)
     gx = cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=3, scale=_SOBEL_SCALE, borderType=cv2.BORDER_REPLICATE)
     gy = cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=3, scale=_SOBEL_SCALE, borderType=cv2.BORDER_REPLICATE)
@@ -146,6 +149,8 @@ def _scalar_gradient(image: ArrayLike, name: str) -> tuple[NDArray, NDArray, NDA
 def _axial_gradient(aop_deg: ArrayLike, dolp: ArrayLike | None, *,
                     direction: bool = False) -> tuple[NDArray, NDArray | None, NDArray | None, NDArray[np.bool_]]:
     """(magnitude, dx, dy, valid) of an AoP image; dx, dy along the principal direction (if asked for)."""
+    import cv2  # imported where used: the command line's --help need not load OpenCV
+
     a, valid = _fill_nearest(_image("AoP", aop_deg))
     two_a = np.radians(2.0 * a)
     cx, cy = _sobel_xy(np.cos(two_a))
@@ -234,6 +239,8 @@ def robust_thresholds(
 def _canny(mag: NDArray, dx: NDArray, dy: NDArray, valid: NDArray[np.bool_], high: float,
            low: float) -> NDArray[np.bool_]:
     """OpenCV Canny on given gradients: scaled so that ``high`` is 1000 int16 units."""
+    import cv2  # imported where used: the command line's --help need not load OpenCV
+
     if not math.isfinite(high) or high <= 0.0:
         # no finite gradient, or a flat image: nothing can be an edge
         return np.zeros(mag.shape, dtype=bool)
