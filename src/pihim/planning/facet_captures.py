@@ -730,14 +730,23 @@ def plan_facet_captures(
         need = math.ceil(st.min_planned_coverage * len(names) - 1e-9) - len(seen_hua) - len(rescued)
         if need > 0 and left:
             caps_xy = np.array([(w.x_m, w.y_m) for p in passes if p.feasible for w in p.waypoints if w.capture])
+            caps_tree = cKDTree(caps_xy) if len(caps_xy) else None
+            alts = [p.altitude_m for p, ln in zip(passes, lines, strict=True) if ln is not None and p.feasible]
+            own = {"z": float(np.median(alts)) if alts else None,  # the own lines' altitude (their own adds keep it)
+                   "index": max(q.index for q in passes) + 1}
             offers = []
             for hh in left:
-                got = _own_line(hh, pose, passes, lines, camera, st, ctx, used, n_f)
+                got = _own_line(hh, pose, passes, lines, camera, st, ctx, used, n_f, own)
                 if got is None:
                     continue
                 cand_, ev_, picks_, b_ = got
+                got = ([cand_[b_]], {k: v[b_:b_ + 1].copy() for k, v in ev_.items()}, [picks_[b_]], 0)  # the best only
                 xy = ev_["cam"][b_, [g for g, _, _, _ in picks_[b_]], :2]
-                cost = float(np.min(np.linalg.norm(caps_xy[:, None, :] - xy[None], axis=-1))) if len(caps_xy) else 0.0
+                cost = 0.0
+                if caps_tree is not None:  # distance to the nearest planned capture: among its 8 nearest, exactly
+                    _, near = caps_tree.query(xy, k=min(8, len(caps_xy)))
+                    near = np.unique(np.asarray(near).ravel())
+                    cost = float(np.min(np.linalg.norm(caps_xy[near][:, None, :] - xy[None], axis=-1)))
                 offers.append((cost, hh, got))
             for cost, hh, (cand_, ev_, picks_, b_) in sorted(offers, key=lambda o: o[:2])[:need]:
                 if any(int(ev_["k"][b_, g]) in used.get(cand_[b_].pass_k, set()) for g, _, _, _ in picks_[b_]):
@@ -776,15 +785,16 @@ def plan_facet_captures(
 
 
 def _own_line(hh: int, pose: Any, passes: list[ScanPass], lines: list[_Line | None], camera: CameraModel,
-              st: FacetCaptureSettings, ctx: dict[str, Any], used: dict[int, set[int]], n_f: int) -> Any:
+              st: FacetCaptureSettings, ctx: dict[str, Any], used: dict[int, set[int]], n_f: int,
+              own: dict[str, Any]) -> Any:
     """A line of its own for a HUA no planned line images: through the point that shows each candidate
     target's centre at the HUA's centre (``H + t w``, ``w`` the mirror image of the direction to the
-    target), along the HUA's normals' plane, at the median pass altitude. Appends the best line and a
-    placeholder pass; returns (instances, evaluation, picks, best) or None."""
-    alts = [p.altitude_m for p, ln in zip(passes, lines, strict=True) if ln is not None and p.feasible]
-    if not alts:
+    target), along the HUA's normals' plane, at the median pass altitude (``own["z"]``). Appends a line and
+    a placeholder pass (numbered from ``own["index"]``) per candidate; returns (instances, evaluation,
+    picks, best) or None."""
+    z = own["z"]
+    if z is None:
         return None
-    z = float(np.median(alts))
     c, n = pose.mirror_centres, pose.normals
     tgt = ctx["targets"](np.array([hh]))[0]
     tgt = tgt[tgt >= 0]
@@ -804,7 +814,8 @@ def _own_line(hh: int, pose: Any, passes: list[ScanPass], lines: list[_Line | No
     cand = []
     for j, p0 in enumerate(cam):
         lines.append(_Line(np.array([p0[0], p0[1], z]), b, z))
-        passes.append(ScanPass(index=max(q.index for q in passes) + 1, azimuth_deg=float(azimuth_deg(b[0], b[1])),
+        own["index"] += 1
+        passes.append(ScanPass(index=own["index"] - 1, azimuth_deg=float(azimuth_deg(b[0], b[1])),
                                altitude_m=z,
                                gimbal_pitch_deg=-90.0, pairs=(), waypoints=(), feasible=True,
                                issues=(f"{pose.field.names[hh]}: imaged from a short pass of its own (no planned "
