@@ -70,7 +70,7 @@ from pihim.planning.endurance import (
 )
 from pihim.planning.model import Flight, ScanPass, Waypoint
 
-__all__ = ["RouteSettings", "orient_passes", "plan_flights", "reverse_pass", "turns"]
+__all__ = ["RouteSettings", "orient_passes", "plan_flights", "reverse_pass", "split_pass", "turns"]
 
 
 @dataclass(frozen=True)
@@ -348,7 +348,6 @@ class _PassCost:
     items: int
     alone_s: float = 0.0  # a flight of this pass alone (take-off, transits from and to home, landing): time
     alone_items: int = 0  # and its mission items
-
 
 
 def _pass_costs(passes: Sequence[ScanPass], home: Waypoint, model: DroneEndurance,
