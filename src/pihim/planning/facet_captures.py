@@ -69,7 +69,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -698,16 +698,17 @@ def plan_facet_captures(
         line_k = np.array([k for k, ln in enumerate(lines) if k in extent and ln is not None], dtype=np.int64)
         line_a = np.array([lines[k].a[:2] for k in line_k]).reshape(-1, 2)
         line_e = np.array([lines[k].e for k in line_k]).reshape(-1, 2)
+        pending: list[tuple[int, list[_Instance]]] = []
         for hh in todo:
             rel = c[hh, :2] - line_a  # to every flown line at once (a loop over lines per HUA grew as N^2)
             near = np.flatnonzero(np.abs(rel[:, 0] * line_e[:, 1] - rel[:, 1] * line_e[:, 0]) <= st.rescue_reach_m)
             along = np.sum(rel[near] * line_e[near], axis=1)
-            cand = [_Instance(hh, int(line_k[j]), float(s_)) for j, s_ in zip(near.tolist(), along.tolist(),
-                                                                                 strict=True)]
+            pending.append((hh, [_Instance(hh, int(line_k[j]), float(s_))
+                                 for j, s_ in zip(near.tolist(), along.tolist(), strict=True)]))
+        for hh, cand, ev in _evaluated(pending, lines, pose, camera, st, ctx):
             if not cand:
                 left.append(hh)
                 continue
-            ev = _evaluate(cand, lines, pose, camera, st, ctx)
             picks = _greedy(ev, cand, used, st, commit=False)
             best, key = -1, None
             for b, (i, pk) in enumerate(zip(cand, picks, strict=True)):
@@ -847,6 +848,30 @@ def _trim(chosen: list[tuple[Any, Any, int, list]], n_f: int, target: float) -> 
         covered -= gain
         if len(picks) > 1:
             heapq.heappush(heap, (int(picks[-1][2].sum()), k))
+
+
+def _evaluated(pending: Sequence[tuple[int, list[_Instance]]], lines: Sequence[_Line | None], pose: Any,
+               camera: CameraModel, st: FacetCaptureSettings, ctx: dict[str, Any]
+               ) -> Iterator[tuple[int, list[_Instance], dict[str, NDArray] | None]]:
+    """``(hua, candidates, evaluation)`` in order, the candidates of several HUAs evaluated in one batch.
+
+    An instance's evaluation depends neither on the others in its batch nor on the grid positions already
+    used (only :func:`_greedy` does), so a batch of up to ``st.batch`` instances serves several HUAs: a
+    100,000-heliostat field has about 25,000 HUAs to rescue, one small evaluation each before.
+    """
+    k0 = 0
+    while k0 < len(pending):
+        k1, n = k0, 0
+        while k1 < len(pending) and (k1 == k0 or n + len(pending[k1][1]) <= st.batch):
+            n += len(pending[k1][1])
+            k1 += 1
+        flat = [i for _, cand in pending[k0:k1] for i in cand]
+        ev = _evaluate(flat, lines, pose, camera, st, ctx) if flat else {}
+        off = 0
+        for hh, cand in pending[k0:k1]:
+            yield hh, cand, ({k: v[off:off + len(cand)] for k, v in ev.items()} if cand else None)
+            off += len(cand)
+        k0 = k1
 
 
 #: What the captures are built from once chosen (:func:`_slice`).

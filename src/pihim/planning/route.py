@@ -605,25 +605,37 @@ def plan_flights(
     item_cap = math.inf if max_mission_items is None else float(max_mission_items)
     time_margin = settings.time_margin
     cap = item_cap
+    tours: dict[tuple[int, ...], tuple[list[ScanPass], float, int | None, int]] = {}
+
+    def tour(key: tuple[int, ...]) -> tuple[list[ScanPass], float, int | None, int]:
+        """A flight of the passes ``key``: its order improved as a tour from home and back, oriented; its
+        passes, time, mission items and the items its passes alone were estimated at. The same block recurs
+        from one cut to the next: each is worked out once."""
+        if key not in tours:
+            hp = costs.home_pass
+            block = _improve([hp, *key, hp], costs, settings, pinned=True)[1:-1]
+            _, dirs = orient_passes(block, costs, home_z=float(costs.home[2]))
+            group = [reverse_pass(fly[k]) if o else fly[k] for k, o in zip(block, dirs, strict=True)]
+            legs = _build(group, home, keepout, model, None)
+            t, _ = _time_and_distance(legs, model)
+            n = count_items(_leg_waypoints(legs)) if max_mission_items is not None and count_items is not None \
+                else None
+            tours[key] = (group, t, n, base + sum(pc[k].items for k in block))
+        return tours[key]
+
     for _ in range(6):  # the estimates are a little optimistic: tighten them by the error seen and cut again
         blocks = _split(order, costs, pc, base, model, z_of, cap,
                         dataclasses.replace(settings, time_margin=time_margin))
         groups = []
         item_err, time_err, bad = 0, 0.0, False
         for i, j in blocks:
-            hp = costs.home_pass  # each flight's order improved as a tour from home and back
-            block = _improve([hp, *order[i:j], hp], costs, settings, pinned=True)[1:-1]
-            _, dirs = orient_passes(block, costs, home_z=float(costs.home[2]))
-            group = [reverse_pass(fly[k]) if o else fly[k] for k, o in zip(block, dirs, strict=True)]
-            groups.append(group)
-            legs = _build(group, home, keepout, model, None)
-            t, _ = _time_and_distance(legs, model)
+            group, t, n_items, estimate = tour(tuple(order[i:j]))
+            groups.append(list(group))
             bad |= t > model.usable_s
             time_err = max(time_err, t / model.usable_s - (1.0 - time_margin))
-            if max_mission_items is not None and count_items is not None:
-                n_items = count_items(_leg_waypoints(legs))
+            if n_items is not None:
                 bad |= n_items > max_mission_items
-                item_err = max(item_err, n_items - (base + sum(pc[k].items for k in block)))
+                item_err = max(item_err, n_items - estimate)
         if not bad:
             break
         if max_mission_items is not None:
