@@ -164,7 +164,7 @@ def build_plan(
         opts = dict(mission_options or {})
         counter = functools.partial(count_mission_items, **opts)
         count_mission_items([home, home], **opts)  # bad options -> one-line error before the split
-    unflown: list[int] = []  # passes no flight from home reaches within a battery (a field kilometres wide)
+    unflown: list[int] = []  # passes no flight from home reaches within a battery (a field kilometres wide; route)
     if route is not False:
         scored, flights = plan_flights(scored, home, origin=site, model=endurance, tower=field.tower,
                                        max_mission_items=max_mission_items, count_items=counter,
@@ -172,7 +172,7 @@ def build_plan(
                                        unflyable=unflown)
     else:
         flights = split_flights(scored, home, origin=site, model=endurance, tower=field.tower,
-                                max_mission_items=max_mission_items, count_items=counter, unflyable=unflown)
+                                max_mission_items=max_mission_items, count_items=counter)
     if facet_captures is not False or route is not False:  # new or reversed captures: predict them
         scored = score_passes(scored, pose, sun.vector, scene=scene, camera=camera, aim_point=aim, origin=site,
                               search=None)
