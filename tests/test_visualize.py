@@ -130,3 +130,108 @@ def test_ordinal_suffixes():
 
     assert [_ordinal(n) for n in (1, 2, 3, 4, 11, 12, 13, 21, 22, 102, 111)] == [
         "1st", "2nd", "3rd", "4th", "11th", "12th", "13th", "21st", "22nd", "102nd", "111th"]
+
+
+def _colour_bar(lo, hi):
+    """A figure with one vertical grey colour bar over ``[lo, hi]``, drawn by matplotlib."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(2.0, 4.0), dpi=110)
+    canvas = FigureCanvasAgg(fig)
+    cax = fig.add_axes((0.2, 0.1, 0.12, 0.8))
+    bar = fig.colorbar(ScalarMappable(Normalize(lo, hi), cmap="gray"), cax=cax)
+    cax.tick_params(labelsize=7)
+    canvas.draw()
+    return canvas, bar
+
+
+_RANGES = [(437.2, 4512.9), (500.0, 4400.0), (30001.0, 30009.5), (0.013, 0.52), (-20.0, 20.0), (1.0, 65535.0),
+           (437.2, 4512.9)]
+
+
+def test_bar_ticks_draw_what_matplotlib_draws():
+    """The figure's S0 colour bar ticks (:class:`_BarTicks`) against matplotlib's own colour bar of each range.
+
+    The same label strings (offset text included), the same tick-mark and
+    offset-text pixels, and each label's ink within a pixel of where
+    matplotlib draws it (ours sit on whole pixels). Labels kept from earlier
+    frames are stamped: the last range repeats the first, after others.
+    """
+    from pihim.visualize import _BarTicks
+
+    canvas, bar = _colour_bar(0.0, 60000.0)  # laid out once, as PolarFigure does
+    ticks = _BarTicks(bar)
+    canvas.draw()
+    background = canvas.copy_from_bbox(canvas.figure.bbox)
+    right = int(np.ceil(bar.ax.bbox.x1)) + 1  # the bar itself is the background's
+    for lo, hi in _RANGES:
+        ref_canvas, ref_bar = _colour_bar(lo, hi)
+        want = np.asarray(ref_canvas.buffer_rgba())[..., :3]
+        canvas.restore_region(background)
+        drawn = ticks.draw(lo, hi, np.asarray(canvas.buffer_rgba()))
+        got = np.asarray(canvas.buffer_rgba())[..., :3]
+        height = want.shape[0]
+        span = hi - lo
+        labels = [t for t in ref_bar.ax.get_yticklabels() if lo - 1e-9 * span <= t.get_position()[1] <= hi + 1e-9 * span]
+        assert [t.get_text() for t in labels] == [text for _, text in drawn] and len(drawn) >= 3, (lo, hi)
+        covered = np.zeros(want.shape[:2], bool)
+        for label in labels:
+            box = label.get_window_extent()
+            r0, r1 = height - int(np.ceil(box.y1)) - 2, height - int(np.floor(box.y0)) + 2
+            c0, c1 = int(np.floor(box.x0)) - 1, int(np.ceil(box.x1)) + 1
+            ink = [255 - img[r0:r1, c0:c1].min(axis=2).astype(float) for img in (got, want)]
+            centres = [np.array([(w * np.arange(w.shape[0])[:, None]).sum(), (w * np.arange(w.shape[1])).sum()])
+                       / w.sum() for w in ink]
+            assert np.abs(centres[0] - centres[1]).max() <= 1.0, (lo, hi, label)
+            assert abs(ink[0].sum() / ink[1].sum() - 1.0) < 0.1  # the same glyphs
+            covered[r0 - 1:r1 + 1, c0:c1] = True
+        outside = np.ones(want.shape[:2], bool)
+        outside[:, :right] = False
+        outside &= ~covered
+        assert np.array_equal(got[outside], want[outside]), (lo, hi)  # tick marks and offset text exactly
+        offset = ref_bar.ax.yaxis.get_offset_text().get_text()
+        assert (offset != "") == ((lo, hi) == (30001.0, 30009.5)), offset
+
+
+def test_bar_ticks_stamped_labels_equal_drawn_ones():
+    """A label kept from an earlier frame and stamped gives the pixels of drawing it afresh."""
+    from pihim.visualize import _BarTicks
+
+    def frames(warm):
+        canvas, bar = _colour_bar(0.0, 60000.0)
+        ticks = _BarTicks(bar)
+        canvas.draw()
+        background = canvas.copy_from_bbox(canvas.figure.bbox)
+        out = []
+        for lo, hi in (warm + [(437.2, 4512.9), (512.5, 4388.0)]):
+            canvas.restore_region(background)
+            ticks.draw(lo, hi, np.asarray(canvas.buffer_rgba()))
+            out.append(np.asarray(canvas.buffer_rgba()).copy())
+        return out[len(warm):], ticks
+
+    fresh, fresh_ticks = frames([])
+    stamped, ticks = frames([(480.0, 4501.0), (390.0, 4410.0)])
+    assert set(fresh_ticks._stamps) <= set(ticks._stamps)
+    for a, b in zip(fresh, stamped, strict=True):
+        assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("shape", [(40, 30), (1, 40, 30)])  # the compiled and the numpy path
+def test_colourings_write_into_out(shape):
+    """``out=`` gives the same pixels in the array passed (reused frame to frame), whatever it held before."""
+    rng = np.random.default_rng(11)
+    a = rng.uniform(0, 180, shape).astype(np.float32)
+    d = rng.uniform(0, 1, shape).astype(np.float32)
+    s = rng.normal(1000, 300, shape).astype(np.float32)
+    d.flat[3] = np.nan
+    cases = [(lambda **k: aop_to_rgb(a, d, **k), (*shape, 3)), (lambda **k: dolp_to_rgb(d, **k), (*shape, 3)),
+             (lambda **k: s0_to_gray(s, **k), shape)]
+    for colour, out_shape in cases:
+        out = rng.integers(0, 256, out_shape, dtype=np.uint8)
+        assert colour(out=out) is out
+        assert np.array_equal(out, colour())
+        with pytest.raises(PihimInputError, match="out must be"):
+            colour(out=np.zeros((2, *out_shape), np.uint8))

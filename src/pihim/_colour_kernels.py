@@ -6,6 +6,12 @@ as the numpy formulation documented in :mod:`pihim.visualize` (with numpy's
 identical to it, without its float64 temporaries (about 20 full-size arrays
 for an AoP image). Imported on first use: loading numba costs time that only
 callers of these functions should pay.
+
+The kernels run on the calling thread only (no ``prange``): ``pihim polar``
+colours frames on its writer threads, several at once, and numba's
+parallel launches are not safe from several threads under its fallback
+(``workqueue``) threading layer. A super-pixel frame's three colourings
+take about 8 ms of one core here.
 """
 
 from __future__ import annotations
@@ -13,7 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 
 @njit(inline="always", cache=True)
@@ -38,12 +44,12 @@ def _to_u8(x):  # pragma: no cover - compiled
     return np.uint8(v)
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def gray_stretch(x, lo, hi, out):  # pragma: no cover - compiled
     """``out = u8(clip(nan_to_num((x - lo) / (hi - lo)), 0, 1))``, all 0 unless ``hi > lo``."""
     n_rows, n_cols = x.shape
     span = hi - lo
-    for i in prange(n_rows):
+    for i in range(n_rows):
         for j in range(n_cols):
             s = 0.0
             if hi > lo:
@@ -54,11 +60,11 @@ def gray_stretch(x, lo, hi, out):  # pragma: no cover - compiled
             out[i, j] = _to_u8(s)
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def lut_colour(d, vmax, lut_u8, out):  # pragma: no cover - compiled
     """``out = lut_u8[clip(rint(d / vmax * 255), 0, 255)]``, black where ``d`` is not finite."""
     n_rows, n_cols = d.shape
-    for i in prange(n_rows):
+    for i in range(n_rows):
         for j in range(n_cols):
             v = np.float64(d[i, j])
             if not math.isfinite(v):
@@ -74,33 +80,35 @@ def lut_colour(d, vmax, lut_u8, out):  # pragma: no cover - compiled
             out[i, j, 2] = lut_u8[idx, 2]
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def hue_colour(aop, dolp, use_dolp, dolp_max, out):  # pragma: no cover - compiled
     """AoP as HSV hue (saturation 1), value 1 or ``clip(dolp / dolp_max, 0, 1)``; black where not finite.
 
     ``dolp`` is read only when ``use_dolp``. The branch-free sextant formulas
-    of :func:`pihim.visualize._hsv_to_rgb`, operation for operation.
+    of :func:`pihim.visualize._hsv_to_rgb`, operation for operation. A pixel
+    that is not finite is computed as AoP 0 at value 0 (black) instead of
+    being skipped, and each row's levels go through a small buffer before
+    the interleaved RGB stores: the loop has no branch and vectorises (about
+    3x faster than pixel by pixel with a branch, same pixels).
     """
     n_rows, n_cols = aop.shape
-    for i in prange(n_rows):
+    for i in range(n_rows):
+        levels = np.empty((3, n_cols))
         for j in range(n_cols):
             a = np.float64(aop[i, j])
-            v = 1.0
             valid = math.isfinite(a)
+            v = 1.0
             if use_dolp:
                 d = np.float64(dolp[i, j])
-                valid = valid and math.isfinite(d)
-                if valid:
-                    v = min(max(d / dolp_max, 0.0), 1.0)
-            if not valid:
-                out[i, j, 0] = 0
-                out[i, j, 1] = 0
-                out[i, j, 2] = 0
-                continue
-            h6 = _mod1(a / 180.0) * 6.0
-            r = min(max(abs(h6 - 3.0) - 1.0, 0.0), 1.0)
-            g = min(max(2.0 - abs(h6 - 2.0), 0.0), 1.0)
-            b = min(max(2.0 - abs(h6 - 4.0), 0.0), 1.0)
-            out[i, j, 0] = _to_u8(v * r)
-            out[i, j, 1] = _to_u8(v * g)
-            out[i, j, 2] = _to_u8(v * b)
+                valid = valid & math.isfinite(d)
+                v = min(max(d / dolp_max, 0.0), 1.0)
+            v = v if valid else 0.0
+            h6 = _mod1((a if valid else 0.0) / 180.0) * 6.0
+            # v and the sextant terms lie in [0, 1]: rint(255 x) needs no clip (_to_u8)
+            levels[0, j] = np.rint(v * min(max(abs(h6 - 3.0) - 1.0, 0.0), 1.0) * 255.0)
+            levels[1, j] = np.rint(v * min(max(2.0 - abs(h6 - 2.0), 0.0), 1.0) * 255.0)
+            levels[2, j] = np.rint(v * min(max(2.0 - abs(h6 - 4.0), 0.0), 1.0) * 255.0)
+        for j in range(n_cols):
+            out[i, j, 0] = np.uint8(levels[0, j])
+            out[i, j, 1] = np.uint8(levels[1, j])
+            out[i, j, 2] = np.uint8(levels[2, j])

@@ -15,6 +15,7 @@ References
 from __future__ import annotations
 
 import struct
+import threading
 import zlib
 
 import numpy as np
@@ -36,8 +37,24 @@ _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _COLOUR_TYPE = {1: 0, 3: 2, 4: 6}  # channels -> PNG colour type (grey, RGB, RGBA)
 
 
-def _chunk(kind: bytes, data: bytes) -> bytes:
-    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(data, zlib.crc32(kind)))
+def _chunk(kind: bytes, data: bytes) -> list[bytes]:
+    """The parts of one chunk: length, type, data, CRC-32 of type and data (joined once by the caller)."""
+    return [struct.pack(">I", len(data)), kind, data, struct.pack(">I", _deflate.crc32(data, zlib.crc32(kind)))]
+
+
+_ROWS = threading.local()  # each thread's row buffer of the last size it encoded
+
+
+def _row_buffer(height: int, row_bytes: int) -> NDArray[np.uint8]:
+    """A ``(height, row_bytes)`` uint8 buffer, reused by the calling thread while the size stays the same.
+
+    Previews of one camera have one size: reusing the buffer saves faulting
+    in megabytes of fresh pages for every image.
+    """
+    rows = getattr(_ROWS, "buffer", None)
+    if rows is None or rows.shape != (height, row_bytes):
+        rows = _ROWS.buffer = np.empty((height, row_bytes), dtype=np.uint8)
+    return rows
 
 
 def encode_png(image: NDArray[np.uint8], *, level: int | None = None) -> bytes:
@@ -61,9 +78,9 @@ def encode_png(image: NDArray[np.uint8], *, level: int | None = None) -> bytes:
     channels = 1 if img.ndim == 2 else img.shape[2]
     if height < 1 or width < 1:
         raise ValueError("encode_png needs a non-empty image")
-    rows = np.empty((height, 1 + width * channels), dtype=np.uint8)
+    rows = _row_buffer(height, 1 + width * channels)
     rows[:, 0] = 0  # filter type 0 (none) on every row
     rows[:, 1:].reshape(height, width, channels)[...] = img.reshape(height, width, channels)  # one copy, no temporary
     ihdr = struct.pack(">IIBBBBB", width, height, 8, _COLOUR_TYPE[channels], 0, 0, 0)
     idat = _deflate.compress(rows.data, DEFAULT_LEVEL if level is None else level)
-    return _SIGNATURE + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", bytes(idat)) + _chunk(b"IEND", b"")
+    return b"".join([_SIGNATURE, *_chunk(b"IHDR", ihdr), *_chunk(b"IDAT", idat), *_chunk(b"IEND", b"")])

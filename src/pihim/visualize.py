@@ -54,11 +54,30 @@ def _to_u8(x: NDArray) -> NDArray[np.uint8]:
     return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)
 
 
+def _output(out: NDArray[np.uint8] | None, shape: tuple[int, ...]) -> NDArray[np.uint8]:
+    """``out`` checked to be a writable C-contiguous uint8 array of ``shape``, else a new one."""
+    if out is None:
+        return np.empty(shape, dtype=np.uint8)
+    if out.shape != shape or out.dtype != np.uint8 or not out.flags.c_contiguous or not out.flags.writeable:
+        raise PihimInputError(f"out must be a writable C-contiguous uint8 array of shape {shape}, got "
+                              f"{out.dtype} {out.shape}")
+    return out
+
+
+def _into(out: NDArray[np.uint8] | None, image: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """``image``, copied into ``out`` when given."""
+    if out is None:
+        return image
+    _output(out, image.shape)[...] = image
+    return out
+
+
 def aop_to_rgb(
     aop_deg: ArrayLike,
     dolp: ArrayLike | None = None,
     *,
     dolp_max: float = 1.0,
+    out: NDArray[np.uint8] | None = None,
 ) -> NDArray[np.uint8]:
     """AoP as cyclic hue (0 deg red, 60 green, 120 blue); value from DoLP if given.
 
@@ -70,6 +89,9 @@ def aop_to_rgb(
         If given, the brightness is ``clip(dolp / dolp_max, 0, 1)``.
     dolp_max : float
         DoLP that maps to full brightness.
+    out : numpy.ndarray, optional
+        C-contiguous uint8 array of shape ``aop_deg.shape + (3,)`` to write
+        the image into (and return), e.g. one recycled from an earlier frame.
 
     Notes
     -----
@@ -87,10 +109,10 @@ def aop_to_rgb(
     if a.ndim == 2 and a.dtype in (np.float32, np.float64) and (d is None or d.dtype in (np.float32, np.float64)):
         from pihim._colour_kernels import hue_colour
 
-        out = np.empty((*a.shape, 3), dtype=np.uint8)
+        rgb = _output(out, (*a.shape, 3))
         hue_colour(np.ascontiguousarray(a), np.ascontiguousarray(a if d is None else d), d is not None,
-                   float(dolp_max), out)
-        return out
+                   float(dolp_max), rgb)
+        return rgb
     a = a.astype(np.float64)
     valid = np.isfinite(a)
     v = np.ones_like(a)
@@ -100,7 +122,7 @@ def aop_to_rgb(
         v = np.clip(np.nan_to_num(d) / dolp_max, 0.0, 1.0)
     rgb = _hsv_to_rgb(np.nan_to_num(a) / 180.0, v)
     rgb[~valid] = 0.0
-    return _to_u8(rgb)
+    return _into(out, _to_u8(rgb))
 
 
 @functools.lru_cache(maxsize=8)
@@ -113,25 +135,28 @@ def colour_lut(cmap: str = "viridis") -> NDArray[np.uint8]:
     return lut
 
 
-def dolp_to_rgb(dolp: ArrayLike, *, vmax: float = 1.0, cmap: str = "viridis") -> NDArray[np.uint8]:
+def dolp_to_rgb(
+    dolp: ArrayLike, *, vmax: float = 1.0, cmap: str = "viridis", out: NDArray[np.uint8] | None = None
+) -> NDArray[np.uint8]:
     """DoLP through a perceptual matplotlib colour map over ``[0, vmax]``.
 
     Entry ``clip(rint(255 dolp / vmax), 0, 255)`` of :func:`colour_lut`;
-    black where DoLP is not finite.
+    black where DoLP is not finite. ``out`` (optional): a C-contiguous uint8
+    array of shape ``dolp.shape + (3,)`` to write into and return.
     """
     d = np.asarray(dolp)
     lut = colour_lut(cmap)
     if d.ndim == 2 and d.dtype in (np.float32, np.float64):
         from pihim._colour_kernels import lut_colour
 
-        out = np.empty((*d.shape, 3), dtype=np.uint8)
-        lut_colour(np.ascontiguousarray(d), float(vmax), lut, out)
-        return out
+        rgb = _output(out, (*d.shape, 3))
+        lut_colour(np.ascontiguousarray(d), float(vmax), lut, rgb)
+        return rgb
     d = d.astype(np.float64)
     idx = np.clip(np.rint(np.nan_to_num(d) / vmax * 255.0), 0, 255).astype(np.intp)
     rgb = lut[idx].copy()
     rgb[~np.isfinite(d)] = 0
-    return rgb
+    return _into(out, rgb)
 
 
 def s0_range(s0: ArrayLike, percentiles: tuple[float, float] = (0.5, 99.5)) -> tuple[float, float] | None:
@@ -156,28 +181,34 @@ def s0_range(s0: ArrayLike, percentiles: tuple[float, float] = (0.5, 99.5)) -> t
 
 
 def s0_to_gray(
-    s0: ArrayLike, *, percentiles: tuple[float, float] = (0.5, 99.5), value_range: tuple[float, float] | None = None
+    s0: ArrayLike,
+    *,
+    percentiles: tuple[float, float] = (0.5, 99.5),
+    value_range: tuple[float, float] | None = None,
+    out: NDArray[np.uint8] | None = None,
 ) -> NDArray[np.uint8]:
     """S0 as 8-bit grey with a percentile stretch (NaN -> 0).
 
     ``lo, hi =`` :func:`s0_range` ``(s0, percentiles)`` (or ``value_range``
     when given), then ``rint(255 clip((s0 - lo) / (hi - lo), 0, 1))``; all 0
-    unless ``hi > lo``. 2-D float images take one compiled pass.
+    unless ``hi > lo``. 2-D float images take one compiled pass. ``out``
+    (optional): a C-contiguous uint8 array of ``s0``'s shape to write into
+    and return.
     """
     x = np.asarray(s0)
     bounds = value_range if value_range is not None else s0_range(x, percentiles)
     if bounds is None:
-        return np.zeros(x.shape, dtype=np.uint8)
+        return _into(out, np.zeros(x.shape, dtype=np.uint8))
     lo, hi = float(bounds[0]), float(bounds[1])
     if x.ndim == 2 and x.dtype in (np.float32, np.float64):
         from pihim._colour_kernels import gray_stretch
 
-        out = np.empty(x.shape, dtype=np.uint8)
-        gray_stretch(np.ascontiguousarray(x), lo, hi, out)
-        return out
+        gray = _output(out, x.shape)
+        gray_stretch(np.ascontiguousarray(x), lo, hi, gray)
+        return gray
     x = x.astype(np.float64)
     scale = (x - lo) / (hi - lo) if hi > lo else np.zeros_like(x)
-    return _to_u8(np.clip(np.nan_to_num(scale), 0.0, 1.0))
+    return _into(out, _to_u8(np.clip(np.nan_to_num(scale), 0.0, 1.0)))
 
 
 def write_png(path: str | Path, image: NDArray[np.uint8], *, atomic: bool = True) -> Path:
@@ -295,6 +326,115 @@ def _aop_wheel(ax: object, dolp_weighted: bool) -> None:
                  fontsize=8)  # type: ignore[attr-defined]
 
 
+class _BarTicks:
+    """Ticks and tick labels of a vertical colour bar, redrawn quickly for each new value range.
+
+    The bar's own ``YAxis`` redraw (locator, formatter, tick update and a
+    layout pass over the tick labels) took about 25 ms of a frame; this draws
+    the same ticks -- the axis's own locator, matplotlib's
+    :class:`~matplotlib.ticker.ScalarFormatter` for the labels, both placed
+    where the laid-out axis put its ticks -- as one marker line and a few
+    text artists. The axis itself then draws only its label, pinned where
+    the layout put it (for five-digit tick labels).
+
+    Parameters
+    ----------
+    colorbar : matplotlib.colorbar.Colorbar
+        A vertical colour bar of a figure drawn once (laid out).
+    """
+
+    def __init__(self, colorbar: object) -> None:
+        from matplotlib.lines import Line2D
+        from matplotlib.text import Text
+        from matplotlib.ticker import NullLocator
+        from matplotlib.transforms import IdentityTransform
+
+        cax = colorbar.ax  # type: ignore[attr-defined]
+        axis = cax.yaxis
+        figure = cax.get_figure(root=True)
+        tick = axis.get_major_ticks()[0]
+        label = tick.label2 if tick.label2.get_visible() else tick.label1
+        mark = tick.tick2line if tick.tick2line.get_visible() else tick.tick1line
+        self._locator = axis.get_major_locator()  # bound to the axis: its tick spacing follows the bar's length
+        box = cax.bbox
+        self._y0, self._height = float(box.y0), float(box.height)
+        pixels = IdentityTransform()
+        self._label_x = float(label.get_transform().transform(label.get_position())[0])
+        self._marks = Line2D([], [])
+        self._marks.update_from(mark)
+        self._marks.set(transform=pixels, clip_on=False, figure=figure, animated=True)
+        self._mark_x = float(mark.get_transform().transform((mark.get_xdata()[0], 0.0))[0])
+        self._label_style = label
+        self._labels: list[Text] = []
+        self._stamps: dict[str, tuple[NDArray[np.uint8], int, int]] = {}
+        offset = axis.offsetText
+        self._offset = Text()
+        self._offset.update_from(offset)
+        self._offset.set(transform=pixels, figure=figure, animated=True,
+                         position=offset.get_transform().transform(offset.get_position()))
+        self._figure = figure
+        # the axis keeps only its label, where the layout put it
+        axis.set_label_coords(*axis.label.get_transform().transform(axis.label.get_position()), transform=pixels)
+        axis.set_major_locator(NullLocator())
+
+    def _label(self, k: int) -> object:
+        from matplotlib.text import Text
+        from matplotlib.transforms import IdentityTransform
+
+        while len(self._labels) <= k:
+            text = Text()
+            text.update_from(self._label_style)
+            text.set(transform=IdentityTransform(), figure=self._figure, animated=True)
+            self._labels.append(text)
+        return self._labels[k]
+
+    def draw(self, lo: float, hi: float, pixels: NDArray[np.uint8]) -> list[tuple[float, str]]:
+        """Draw the ticks of the range ``lo < hi`` over a background without them; return ``(value, label)``s.
+
+        ``pixels`` is the canvas's RGBA buffer (rows top down). A label
+        drawn once is kept as the pixels it drew (over the plain figure
+        background right of the bar) and stamped at its next position,
+        whole pixels as matplotlib's Agg places text: tick values repeat
+        from frame to frame, and a text draw costs about 1 ms.
+        """
+        from matplotlib.ticker import ScalarFormatter
+
+        span = hi - lo
+        locs = np.asarray(self._locator.tick_values(lo, hi), dtype=float)
+        locs = locs[(locs >= lo - 1e-10 * span) & (locs <= hi + 1e-10 * span)]  # as matplotlib keeps them
+        formatter = ScalarFormatter()
+        formatter.create_dummy_axis()
+        formatter.axis.set_view_interval(lo, hi)  # type: ignore[union-attr]
+        texts = formatter.format_ticks(locs)
+        ys = self._y0 + (locs - lo) / span * self._height
+        self._marks.set_data(np.full(len(ys), self._mark_x), ys)
+        self._figure.draw_artist(self._marks)
+        height = pixels.shape[0]
+        for k, (y, text) in enumerate(zip(ys, texts, strict=True)):
+            # labels sit on whole pixels (within half a pixel of their tick): Agg then draws a string the same at
+            # any height, shifted by whole rows, so a kept label stamps exactly where a drawn one would be
+            y = float(round(y))
+            anchor = int(height - y)
+            stamp = self._stamps.get(text)
+            if stamp is None:
+                artist = self._label(k)
+                artist.set(position=(self._label_x, y), text=text)  # type: ignore[attr-defined]
+                self._figure.draw_artist(artist)
+                box = artist.get_window_extent()  # type: ignore[attr-defined]
+                r0, r1 = height - int(np.ceil(box.y1)) - 1, height - int(np.floor(box.y0)) + 1
+                c0, c1 = int(np.floor(box.x0)) - 1, int(np.ceil(box.x1)) + 1
+                if len(self._stamps) >= 512:
+                    self._stamps.clear()
+                self._stamps[text] = (pixels[r0:r1, c0:c1].copy(), r0 - anchor, c0)
+            else:
+                patch, dr, c0 = stamp
+                r0 = anchor + dr
+                pixels[r0:r0 + patch.shape[0], c0:c0 + patch.shape[1]] = patch
+        self._offset.set_text(formatter.get_offset())
+        self._figure.draw_artist(self._offset)
+        return [(float(v), t) for v, t in zip(locs, texts, strict=True)]
+
+
 class PolarFigure:
     """The captioned S0 / DoLP / AoP figure of :func:`polar_figure_png`, drawn once and reused.
 
@@ -302,9 +442,9 @@ class PolarFigure:
     labels, the AoP wheel; about 0.2-0.6 s); each frame then only pastes
     its three decimated images into the axes (nearest-neighbour, as the
     figure's ``interpolation="nearest"``) and redraws the parts that change,
-    the S0 colour bar's axis (its raw-unit range follows the frame) and the
-    title, with matplotlib's blitting. That takes a few milliseconds
-    instead of a full draw. Not thread-safe (matplotlib is not): use one
+    the S0 colour bar's ticks (its raw-unit range follows the frame,
+    :class:`_BarTicks`) and the title, with matplotlib's blitting. That
+    takes about 10 ms instead of a full draw. Not thread-safe (matplotlib is not): use one
     instance per thread.
 
     Parameters
@@ -356,8 +496,9 @@ class PolarFigure:
         self._title = fig.suptitle("placeholder" if titled else "", fontsize=11)
         self._canvas.draw()  # lay out once, then freeze the layout
         fig.set_layout_engine("none")
+        self._s0_ticks = _BarTicks(self._cb0)  # the S0 colour bar's axis now draws only its label
         # what changes from frame to frame is drawn over a background that lacks it
-        self._dynamic = [self._cb0.ax.yaxis, self._title, *(sp for ax in self._axes for sp in ax.spines.values())]
+        self._dynamic = [self._title, *(sp for ax in self._axes for sp in ax.spines.values())]
         for artist in self._dynamic:
             artist.set_animated(True)
         for im in (self._im0, im1, *ax2.get_images()):
@@ -411,9 +552,10 @@ class PolarFigure:
         k = self.step
         if previews is not None:
             gray, dolp_rgb, aop_rgb, (lo, hi) = previews
-            panels = (gray[::k, ::k, None], dolp_rgb[::k, ::k], aop_rgb[::k, ::k])
+            panels = (gray[..., None], dolp_rgb, aop_rgb)  # every k-th pixel of these is shown
         else:
-            a_s0, a_d, a_a = (np.ascontiguousarray(v[::k, ::k]) for v in (a_s0, a_d, a_a))
+            k = 1  # panels made from every k-th pixel
+            a_s0, a_d, a_a = (np.ascontiguousarray(v[::self.step, ::self.step]) for v in (a_s0, a_d, a_a))
             s0f = a_s0.astype(np.float32, copy=False)
             bounds = s0_range(s0f)
             lo, hi = bounds if bounds is not None else (0.0, 1.0)
@@ -423,11 +565,11 @@ class PolarFigure:
         self._canvas.restore_region(self._background)
         buf = np.asarray(self._canvas.buffer_rgba())
         for (r0, r1, c0, c1, rows, cols), rgb in zip(self._boxes, panels, strict=True):
-            buf[r0:r1, c0:c1, :3] = rgb.take(rows, axis=0).take(cols, axis=1)
-        self._im0.set_clim(lo, hi)  # the colour bar's axis follows
+            buf[r0:r1, c0:c1, :3] = rgb.take(rows * k, axis=0).take(cols * k, axis=1)  # rows first: fewer
         self._title.set_text(title)
         for artist in self._dynamic:
             self._fig.draw_artist(artist)
+        self._s0_ticks.draw(lo, hi, buf)
         return encode_png(np.asarray(self._canvas.buffer_rgba())[..., :3])
 
 

@@ -582,3 +582,28 @@ def test_frames_are_reported_in_input_order_when_a_later_write_finishes_first(fr
     assert finished[0] == "f1" and sorted(finished) == ["f0", "f1", "f2"]  # written out of order ...
     assert [r["file"] for r in recs] == [str(p) for p in frames]  # ... reported in input order
     assert all((tmp_path / "o" / f"f{k}.S0.tiff").is_file() for k in range(3))
+
+
+def test_batch_previews_show_their_own_frame(tmp_path, capsys):
+    """In a batch (preview arrays recycled from frame to frame) each PNG shows its own frame's images."""
+    import cv2
+
+    from pihim.visualize import aop_to_rgb, dolp_to_rgb, s0_to_gray
+
+    frames = []
+    for k, (dolp, aop) in enumerate([(0.1, 10.0), (0.6, 80.0), (0.3, 150.0), (0.8, 45.0), (0.45, 100.0)]):
+        rng = np.random.default_rng(k)
+        s = stokes_from_dolp_aop(rng.uniform(1500, 3000, (48, 64)), dolp, aop)
+        path = tmp_path / "in" / f"f{k}.tiff"
+        path.parent.mkdir(exist_ok=True)
+        tifffile.imwrite(path, mosaic_from_stokes(*s, bit_depth=12, read_noise_dn=2.0, rng=k))
+        frames.append(path)
+    out = tmp_path / "out"
+    assert main(["polar", *map(str, frames), "--out", str(out), "--png"]) == 0
+    capsys.readouterr()
+    for path in frames:
+        s0, dolp, aop = (tifffile.imread(out / f"{path.stem}.{k}.tiff") for k in ("S0", "DoLP", "AoP"))
+        shown = {k: cv2.imread(str(out / f"{path.stem}.{k}.png"), cv2.IMREAD_UNCHANGED) for k in ("S0", "DoLP", "AoP")}
+        assert np.array_equal(shown["S0"], s0_to_gray(s0))
+        assert np.array_equal(shown["DoLP"][..., ::-1], dolp_to_rgb(dolp))
+        assert np.array_equal(shown["AoP"][..., ::-1], aop_to_rgb(aop, dolp))

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import gc
 import hashlib
 import json
 import math
@@ -132,7 +133,7 @@ def output_paths(out_dir: Path, name: str, *, png: bool) -> dict[str, Path]:
 
 @dataclass(frozen=True)
 class Previews:
-    """A frame's PNG previews, made before writing (:func:`make_previews`)."""
+    """A frame's PNG previews (:func:`make_previews`)."""
 
     gray: np.ndarray
     dolp_rgb: np.ndarray
@@ -140,11 +141,20 @@ class Previews:
     s0_range: tuple[float, float]
 
 
-def make_previews(result: PolarImage) -> Previews:
-    """The three bare previews of a frame and the S0 range of its grey stretch."""
-    bounds = s0_range(result.s0) or (0.0, 0.0)
-    return Previews(s0_to_gray(result.s0, value_range=bounds), dolp_to_rgb(result.dolp),
-                    aop_to_rgb(result.aop_deg, result.dolp), bounds)
+def make_previews(result: PolarImage, out: Previews | None = None, *,
+                  s0_bounds: tuple[float, float] | None = None) -> Previews:
+    """The three bare previews of a frame and the S0 range of its grey stretch.
+
+    ``out``: previews of an earlier frame of the same size whose arrays are
+    written over (no fresh pages to fault in: about 20 ms of CPU per
+    super-pixel frame here). ``s0_bounds``: the frame's :func:`s0_range`
+    when already known.
+    """
+    bounds = s0_bounds if s0_bounds is not None else (s0_range(result.s0) or (0.0, 0.0))
+    arrays = (None, None, None) if out is None else (out.gray, out.dolp_rgb, out.aop_rgb)
+    return Previews(s0_to_gray(result.s0, value_range=bounds, out=arrays[0]),
+                    dolp_to_rgb(result.dolp, out=arrays[1]),
+                    aop_to_rgb(result.aop_deg, result.dolp, out=arrays[2]), bounds)
 
 
 class Cancelled(Exception):
@@ -317,7 +327,9 @@ class Computed:
     result: PolarImage
     summary: dict[str, Any]
     warnings: list[str]
-    previews: Previews | None
+    s0_bounds: tuple[float, float] | None  # with --png: the S0 range of the grey previews
+    recycled: Previews | None = None  # an earlier frame's previews, whose arrays this frame's are made in
+    previews: Previews | None = None  # made by the writer
 
 
 def read_one(path: Path, options: PolarOptions) -> tuple[Any, dict[str, Any]]:
@@ -331,8 +343,13 @@ def read_one(path: Path, options: PolarOptions) -> tuple[Any, dict[str, Any]]:
 
 
 def compute_one(path: Path, name: str, frame: Any, source: dict[str, Any], options: PolarOptions,
-                out: PolarImage | None = None) -> Computed:
-    """Stokes images, statistics, warnings and (with ``--png``) previews of a frame read by :func:`read_one`."""
+                out: PolarImage | None = None, previews_out: Previews | None = None) -> Computed:
+    """Stokes images, statistics, warnings and (with ``--png``) the previews' S0 range of a frame read by
+    :func:`read_one`.
+
+    ``out`` and ``previews_out``: an earlier frame's arrays of the same size to write over (the previews are
+    made by the writer, :func:`write_one`: their compiled kernels run serially, on the writer threads).
+    """
     opts = options
     try:
         result = polar_image(
@@ -349,8 +366,8 @@ def compute_one(path: Path, name: str, frame: Any, source: dict[str, Any], optio
         raise PihimInputError(f"{path}: {exc}") from None
     summary = result.summary()
     warnings = _frame_warnings(frame.data, summary, opts.dark_level)
-    previews = make_previews(result) if opts.png else None
-    return Computed(path, name, frame.pixel_format, source, result, summary, warnings, previews)
+    s0_bounds = (s0_range(result.s0) or (0.0, 0.0)) if opts.png else None  # parallel: on the computing thread
+    return Computed(path, name, frame.pixel_format, source, result, summary, warnings, s0_bounds, previews_out)
 
 
 def write_one(done: Computed, out_dir: Path, options: PolarOptions, cancel: threading.Event | None = None
@@ -360,6 +377,8 @@ def write_one(done: Computed, out_dir: Path, options: PolarOptions, cancel: thre
     record_path = out_dir / f"{done.name}{RECORD_SUFFIX}"
     with contextlib.suppress(FileNotFoundError):
         record_path.unlink()  # the frame is not complete again until its new record is written
+    if opts.png:
+        done.previews = make_previews(done.result, done.recycled, s0_bounds=done.s0_bounds)
     outputs = write_polar_outputs(done.result, out_dir, done.name, png=opts.png, previews=done.previews,
                                   cancel=cancel)
     record: dict[str, Any] = {
@@ -566,7 +585,7 @@ class _Batch:
     resumed: int = 0
     processed: list[dict[str, Any]] = field(default_factory=list)
     cancel: threading.Event = field(default_factory=threading.Event)
-    spare: queue.SimpleQueue = field(default_factory=queue.SimpleQueue)  # output arrays to reuse
+    spare: queue.SimpleQueue = field(default_factory=queue.SimpleQueue)  # (PolarImage, Previews | None) to reuse
 
     def report(self, path: Path, outcome: dict[str, Any] | BaseException) -> None:
         """Report one frame (in input order): its record, or the failure that stopped it."""
@@ -581,28 +600,32 @@ class _Batch:
                 self.resumed += 1
             else:
                 self.processed.append(record)
+                if len(self.processed) == 1:
+                    # what lives now lives until exit (modules, compiled kernels, the laid-out figure): out of the
+                    # collector's full passes, which otherwise walk it all every few frames (~10 ms a frame here)
+                    gc.freeze()
                 for text in record["warnings"]:
                     print(f"pihim: warning: {path}: {text}", file=sys.stderr)
         if self.json_out:
             emit_json(record)
 
-    def _buffers(self, frame: Any) -> PolarImage | None:
-        """Output arrays of an earlier frame of the same size to reuse, if any."""
+    def _buffers(self, frame: Any) -> tuple[PolarImage | None, Previews | None]:
+        """Output arrays and previews of an earlier frame of the same size to reuse, if any."""
         h, w = frame.data.shape
         shape = (h // 2, w // 2) if self.options.demosaic == "superpixel" else (h, w)
         while True:
             try:
-                old = self.spare.get_nowait()
+                old, previews = self.spare.get_nowait()
             except queue.Empty:
-                return None
+                return None, None
             if old.shape == shape:
-                return old  # a buffer of another size is dropped
+                return old, previews  # arrays of another size are dropped
 
     def _write(self, done: Computed) -> dict[str, Any]:
         try:
             return write_one(done, self.out_dir, self.options, self.cancel)
         finally:
-            self.spare.put(done.result)
+            self.spare.put((done.result, done.previews or done.recycled))
 
     def go(self, batch: Sequence[Path], names: dict[Path, str],
            decide: Callable[[Path], dict[str, Any] | None]) -> None:
@@ -641,7 +664,7 @@ class _Batch:
                         try:
                             frame, source = reading.result()
                             done = compute_one(path, names[path], frame, source, self.options,
-                                               self._buffers(frame))
+                                               *self._buffers(frame))
                             del frame
                         except Exception as exc:  # noqa: BLE001 - one frame's failure never stops the batch
                             waiting.append((k, exc))
