@@ -173,6 +173,28 @@ def make_frames(folder: Path, n: int, seed: int = 20261122) -> list[Path]:
     return paths
 
 
+def disk_write_mb_s(folder: Path, n_bytes: int = 1 << 30) -> float:
+    """Sustained write bandwidth of the disk under ``folder``: ``n_bytes`` written in 16 MiB blocks, then fsync."""
+    import time
+
+    block = os.urandom(1 << 24)
+    path = folder / "disk-bandwidth.bin"
+    os.sync()
+    start = time.perf_counter()
+    with open(path, "wb") as f:
+        for _ in range(n_bytes // len(block)):
+            f.write(block)
+        f.flush()
+        os.fsync(f.fileno())
+    seconds = time.perf_counter() - start
+    path.unlink()
+    return n_bytes / seconds / 1e6
+
+
+def _folder_bytes(folder: Path) -> int:
+    return sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
+
+
 def polar_runs(n_frames: int) -> dict[str, Any]:
     """``pihim polar`` over ``n_frames`` frames as one process (three settings) and the numpy script anchor."""
     with tempfile.TemporaryDirectory(prefix="pihim-bench-cli-") as tmp:
@@ -190,7 +212,8 @@ def polar_runs(n_frames: int) -> dict[str, Any]:
             records = res["stdout"].strip().splitlines()
             runs[key] = {k: res[k] for k in ("returncode", "wall_s", "cpu_s", "load_before", "load_after", "other_cpu")}
             runs[key].update(frames=n_frames, records=len(records), ms_per_frame=1e3 * res["wall_s"] / n_frames,
-                             cpu_ms_per_frame=1e3 * res["cpu_s"] / n_frames)
+                             cpu_ms_per_frame=1e3 * res["cpu_s"] / n_frames,
+                             output_mb_per_frame=_folder_bytes(out) / n_frames / 1e6)
             shutil.rmtree(out, ignore_errors=True)
         out = root / "out-anchor"
         out.mkdir()
@@ -201,6 +224,9 @@ def polar_runs(n_frames: int) -> dict[str, Any]:
                                                       "other_cpu")}
         runs["numpy_script"].update(frames=n_frames, ms_per_frame=1e3 * res["wall_s"] / n_frames,
                                     cpu_ms_per_frame=1e3 * res["cpu_s"] / n_frames)
+        runs["disk_write_mb_s"] = disk_write_mb_s(root)
+    for key in ("superpixel", "superpixel_png", "full"):
+        runs[key]["disk_floor_ms_per_frame"] = 1e3 * runs[key]["output_mb_per_frame"] / runs["disk_write_mb_s"]
     sp, png = runs["superpixel"], runs["superpixel_png"]
     runs["previews"] = {"ms_per_frame": png["ms_per_frame"] - sp["ms_per_frame"],
                         "cpu_ms_per_frame": png["cpu_ms_per_frame"] - sp["cpu_ms_per_frame"]}
@@ -276,6 +302,17 @@ def markdown_report(r: dict[str, Any]) -> str:
                      f"{_f(x['load_before'], '.1f')} / {_f(x['load_after'], '.1f')} |")
     lines.append(f"| previews (`--png` minus super-pixel) | | | | {p['previews']['ms_per_frame']:.1f} | "
                  f"{p['previews']['cpu_ms_per_frame']:.1f} | | |")
+    disk = p.get("disk_write_mb_s")
+    if disk:
+        lines += ["", f"Disk under the outputs, same run: {disk:.0f} MB/s sustained (1 GiB written, then fsync). "
+                  "Outputs per frame and the time the disk needs for them (what a run is held to once its "
+                  "unwritten outputs reach the kernel's dirty-page limit, 20 % of memory by default):", "",
+                  "| run | MB per frame | disk floor, ms per frame | measured, ms per frame |", "|---|--:|--:|--:|"]
+        for key, label in (("superpixel", "super-pixel `--json`"), ("superpixel_png", "super-pixel `--json --png`"),
+                           ("full", "full resolution `--json`")):
+            x = p[key]
+            lines.append(f"| {label} | {x['output_mb_per_frame']:.1f} | {x['disk_floor_ms_per_frame']:.1f} | "
+                         f"{x['ms_per_frame']:.1f} |")
     lines += harness.target_table(r["targets"], spec=".2f", unit_spec={"ms": ".1f"}, column="Result", align="--:")
     return "\n".join(lines)
 

@@ -497,14 +497,14 @@ class PolarFigure:
         self._canvas.draw()  # lay out once, then freeze the layout
         fig.set_layout_engine("none")
         self._s0_ticks = _BarTicks(self._cb0)  # the S0 colour bar's axis now draws only its label
-        # what changes from frame to frame is drawn over a background that lacks it
-        self._dynamic = [self._title, *(sp for ax in self._axes for sp in ax.spines.values())]
-        for artist in self._dynamic:
-            artist.set_animated(True)
+        # what changes from frame to frame is drawn over a background that lacks it; the axes frames (spines)
+        # are the background's, put back over each pasted image's border
+        self._title.set_animated(True)
         for im in (self._im0, im1, *ax2.get_images()):
             im.set_visible(False)
         self._canvas.draw()
         self._background = self._canvas.copy_from_bbox(fig.bbox)
+        background = np.asarray(self._canvas.buffer_rgba())
         self._fig = fig
         # pixel boxes of the three images in the canvas buffer, and the data pixel of every box pixel
         height = int(self._canvas.get_width_height()[1])
@@ -518,6 +518,16 @@ class PolarFigure:
             cols = np.clip(((np.arange(c0, c1) + 0.5 - c0) * small[1] / max(c1 - c0, 1)).astype(np.intp), 0,
                            small[1] - 1)
             self._boxes.append((r0, r1, c0, c1, rows, cols))
+        # the pixels of the axes frames (black spines, 0.8 pt: within a pixel of each box's rounded edge) inside
+        # the boxes, to lay back over the pasted images: drawn over the white face, a pixel's level is 255 times
+        # (1 - the spine's coverage of it), by which the image's pixel under it is scaled
+        ring = np.zeros(background.shape[:2], dtype=bool)
+        for r0, r1, c0, c1, _, _ in self._boxes:
+            ring[r0:r1, c0:c1] = True
+            ring[r0 + 2:r1 - 2, c0 + 2:c1 - 2] = False
+        ring &= np.any(background[..., :3] != np.asarray(self._axes[0].get_facecolor()[:3]) * 255, axis=-1)
+        self._frame_at = np.nonzero(ring)
+        self._frame_cover = background[self._frame_at][:, :3].astype(np.uint16)
 
     def render(
         self,
@@ -566,9 +576,10 @@ class PolarFigure:
         buf = np.asarray(self._canvas.buffer_rgba())
         for (r0, r1, c0, c1, rows, cols), rgb in zip(self._boxes, panels, strict=True):
             buf[r0:r1, c0:c1, :3] = rgb.take(rows * k, axis=0).take(cols * k, axis=1)  # rows first: fewer
+        under = buf[self._frame_at][:, :3].astype(np.uint16)
+        buf[(*self._frame_at, slice(0, 3))] = (under * self._frame_cover + 127) // 255
         self._title.set_text(title)
-        for artist in self._dynamic:
-            self._fig.draw_artist(artist)
+        self._fig.draw_artist(self._title)
         self._s0_ticks.draw(lo, hi, buf)
         return encode_png(np.asarray(self._canvas.buffer_rgba())[..., :3])
 
