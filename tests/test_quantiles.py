@@ -47,3 +47,28 @@ def test_large_image_and_order_statistics():
         order_statistics(x, None, [120_000])
     with pytest.raises(ValueError, match="do not describe"):
         order_statistics(x, None, [5], hist=np.ones((1, N_BINS), np.int64) * 2)
+
+
+def test_order_statistics_pair_equals_the_sorted_samples():
+    """Two images of one selection in one pass: each rank's value is the sorted sample's, NaN and inf left out."""
+    from pihim._quantiles import histogram_keys, n_chunks_for, order_statistics_pair
+
+    rng = np.random.default_rng(5)
+    a = rng.normal(1000, 100, (120, 90)).astype(np.float32)
+    b = rng.uniform(0, 1, a.shape).astype(np.float32)
+    b[rng.random(a.shape) < 0.2] = np.nan  # the selection: where b is finite
+    a[rng.random(a.shape) < 0.05] = np.inf  # not in a's sample
+    a[:3, :3] = 1000.0  # ties in a bin
+    hists = []
+    for im in (a, b):
+        h = np.zeros((n_chunks_for(a.shape[0]), N_BINS), np.int64)
+        histogram_keys(im.view(np.uint32), b, h)
+        hists.append(h)
+    samples = [np.sort(a[np.isfinite(a) & np.isfinite(b)]), np.sort(b[np.isfinite(b)])]
+    ranks = [[0, 7, len(samples[0]) // 2, len(samples[0]) - 1], [1, len(samples[1]) // 3, len(samples[1]) - 1]]
+    got = order_statistics_pair((a, b), b, (ranks[0], ranks[1]), (hists[0], hists[1]))
+    for g, sample, rk in zip(got, samples, ranks, strict=True):
+        assert [g[r] for r in rk] == [float(sample[r]) for r in rk]
+    assert got == (order_statistics(a, b, ranks[0], hist=hists[0]), order_statistics(b, b, ranks[1], hist=hists[1]))
+    with pytest.raises(ValueError, match="share a shape"):
+        order_statistics_pair((a, b[:5]), b, (ranks[0], ranks[1]), (hists[0], hists[1]))

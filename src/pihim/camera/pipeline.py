@@ -126,7 +126,7 @@ class PolarImage:
         in the AoP image.
         Computed in two parallel passes over the images
         (:func:`pihim.camera._kernels.frame_moments`,
-        :func:`pihim._quantiles.order_statistics`), without float64 copies.
+        :func:`pihim._quantiles.order_statistics_pair`), without float64 copies.
         """
         from pihim import _quantiles
         from pihim.camera import _kernels
@@ -154,14 +154,16 @@ class PolarImage:
         n_valid, n_sat, sum_s0, sum_dolp, sum_c, sum_s = sums.sum(axis=0)
         n_valid = int(n_valid)
 
-        def _stats(image: NDArray[np.float32], hist: NDArray[np.int64], total: float) -> dict[str, float | None]:
-            n = int(hist.sum())
+        q = (5.0, 50.0, 95.0)
+        counts = [int(hist_s0.sum()), int(hist_dolp.sum())]
+        ranks = [[r for lo, hi, _ in _quantiles.linear_positions(n, q) for r in (lo, hi)] if n else []
+                 for n in counts]
+        # the order statistics of both images in one more pass over them
+        order = _quantiles.order_statistics_pair((s0, dolp), dolp, (ranks[0], ranks[1]), (hist_s0, hist_dolp))
+
+        def _stats(n: int, order: dict[int, float], total: float) -> dict[str, float | None]:
             if n == 0:
                 return dict(empty)
-            q = (5.0, 50.0, 95.0)
-            positions = _quantiles.linear_positions(n, q)
-            ranks = [r for lo, hi, _ in positions for r in (lo, hi)]
-            order = _quantiles.order_statistics(image, dolp, ranks, hist=hist)
             p05, med, p95 = _quantiles.percentiles_from_statistics(n, q, order)
             return {"mean": float(total / n), "median": med, "p05": p05, "p95": p95}
 
@@ -177,8 +179,8 @@ class PolarImage:
             **base,
             "fraction_saturated": float(n_sat) / n_pixels,
             "fraction_valid": n_valid / n_pixels,
-            "s0": _stats(s0, hist_s0, sum_s0),
-            "dolp": _stats(dolp, hist_dolp, sum_dolp),
+            "s0": _stats(counts[0], order[0], sum_s0),
+            "dolp": _stats(counts[1], order[1], sum_dolp),
             "aop": aop,
         }
 
