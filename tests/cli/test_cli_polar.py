@@ -264,18 +264,21 @@ def test_implausible_calibration_refused(frame, tmp_path, capsys):
 def test_disk_full_leaves_no_part_of_the_frame(frame, tmp_path, capsys, monkeypatch):
     other = tmp_path / "in" / "frame_b.tiff"
     other.write_bytes(frame.read_bytes())
-    import tifffile  # the command imports it where it writes
+    import errno
 
-    real = tifffile.imwrite
+    from pihim import _tiff  # where the command writes its TIFFs
+
+    real = _tiff._write_all
     calls = []
 
-    def imwrite(path, data, **kw):
-        calls.append(path)
+    def write_all(fd, data):
+        calls.append(fd)
         if len(calls) == 2:  # frame_a's DoLP, after its S0 was written
-            raise OSError("1253376 requested and 749500 written")
-        return real(path, data, **kw)
+            real(fd, data[:4096])
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(fd, data)
 
-    monkeypatch.setattr(tifffile, "imwrite", imwrite)
+    monkeypatch.setattr(_tiff, "_write_all", write_all)
     out = tmp_path / "o"
     assert main(["polar", str(frame), str(other), "--out", str(out), "--json"]) == 1
     recs, err = _records(capsys)
