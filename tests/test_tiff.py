@@ -1,4 +1,5 @@
-"""The float32 TIFF writer of ``pihim polar`` (``pihim._tiff``), read back by tifffile and OpenCV."""
+"""The output writers of ``pihim polar``: float32 TIFFs (``pihim._tiff``, read back by tifffile and OpenCV) and
+files written past the page cache (``pihim._direct_io``)."""
 
 import errno
 import os
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from pihim import _tiff
+from pihim import _direct_io, _tiff
 
 
 @pytest.mark.parametrize("shape", [(1, 1), (3, 5), (37, 1001), (1024, 1224)])
@@ -56,7 +57,16 @@ def test_no_space_is_raised(tmp_path, monkeypatch):
     def full(fd, data):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(_tiff, "_write_all", full)
+    monkeypatch.setattr(_direct_io, "_write_all", full)
     with pytest.raises(OSError) as info:
         _tiff.write_float32_tiff(tmp_path / "x.tiff", np.ones((4, 4), np.float32))
     assert info.value.errno == errno.ENOSPC
+
+
+@pytest.mark.parametrize("n", [0, 1, 4095, 4096, 4097, 3 * 4096 + 5])
+def test_write_bytes_any_length(tmp_path, n, monkeypatch):
+    """Files of any length come out exact, direct or through the page cache."""
+    data = np.random.default_rng(n).integers(0, 256, n, dtype=np.uint8).tobytes()
+    assert _direct_io.write_bytes(tmp_path / "a.bin", data).read_bytes() == data
+    monkeypatch.setattr(os, "O_DIRECT", 0, raising=False)  # a system without direct I/O
+    assert _direct_io.write_bytes(tmp_path / "b.bin", data).read_bytes() == data

@@ -1,15 +1,11 @@
-"""Single-page float32 TIFF files written in one system call, past the page cache where the file system allows.
+"""Single-page float32 TIFF files, laid out to be written past the page cache.
 
-``pihim polar`` writes 15 to 60 MB of float32 images per frame. Written
-through the page cache, the kernel's copy of each byte costs more CPU than
-computing it: 20-55 ms of CPU per 20 MB file on the 2-core benchmark machine
-while a batch runs, against about 1 ms with direct I/O (``O_DIRECT``: the
-disk reads the bytes from this process's buffer). The file is baseline TIFF
-6.0: the 8-byte header and one image file directory (IFD) in the first 4096
-bytes, then the image, uncompressed, as one strip at offset 4096, so that
-the whole file can leave from one page-aligned buffer. Where ``O_DIRECT``
-is refused (tmpfs, non-Linux systems, unaligned block sizes) the same bytes
-are written through the page cache.
+``pihim polar`` writes 15 to 60 MB of float32 images per frame, with
+:func:`pihim._direct_io.write_file` (one system call from a page-aligned
+buffer, ``O_DIRECT`` where allowed). The file is baseline TIFF 6.0: the
+8-byte header and one image file directory (IFD) in the first 4096 bytes,
+then the image, uncompressed, as one strip at offset 4096, so that the
+whole file leaves from one buffer with the image block-aligned in it.
 
 References
 ----------
@@ -20,20 +16,18 @@ References
 
 from __future__ import annotations
 
-import errno
 import mmap
-import os
 import struct
-import threading
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-#: Offset of the image data: the header and IFD fill the first block (a multiple of any disk's logical block).
-DATA_OFFSET = 4096
+from pihim._direct_io import BLOCK, write_file
+
+#: Offset of the image data: the header and IFD fill the first block.
+DATA_OFFSET = BLOCK
 _SHORT, _LONG = 3, 4
-_BUFFER = threading.local()  # each thread's page-aligned staging buffer
 
 
 def tiff_header(height: int, width: int) -> bytes:
@@ -59,21 +53,6 @@ def tiff_header(height: int, width: int) -> bytes:
     return header + bytes(DATA_OFFSET - len(header))
 
 
-def _staging(n_bytes: int) -> mmap.mmap:
-    """This thread's page-aligned buffer of at least ``n_bytes`` (kept for the next file of the same size)."""
-    buf = getattr(_BUFFER, "buf", None)
-    if buf is None or len(buf) < n_bytes:
-        buf = _BUFFER.buf = mmap.mmap(-1, n_bytes)
-    return buf
-
-
-def _write_all(fd: int, data: memoryview) -> None:
-    """``os.write`` until every byte of ``data`` is written."""
-    done = 0
-    while done < len(data):
-        done += os.write(fd, data[done:])
-
-
 def write_float32_tiff(path: str | Path, image: NDArray) -> Path:
     """Write a 2-D image as a float32 TIFF at ``path`` (as given: write to a temporary name for atomicity).
 
@@ -93,33 +72,10 @@ def write_float32_tiff(path: str | Path, image: NDArray) -> Path:
     n_bytes = height * width * 4
     if DATA_OFFSET + n_bytes >= 1 << 32:
         raise ValueError(f"a {width}x{height} float32 image is too large for a classic TIFF")
-    length = DATA_OFFSET + n_bytes
-    blocks = -(-length // DATA_OFFSET) * DATA_OFFSET  # direct I/O writes whole blocks; the file is cut back after
-    buf = _staging(blocks)
-    view = memoryview(buf)
-    view[:DATA_OFFSET] = tiff_header(height, width)
-    np.frombuffer(buf, dtype=np.float32, count=height * width, offset=DATA_OFFSET).reshape(height, width)[...] = a
-    direct = getattr(os, "O_DIRECT", 0)
-    flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_BINARY", 0)
-    if direct:
-        try:
-            fd = os.open(path, flags | direct, 0o666)
-        except OSError as exc:
-            if exc.errno != errno.EINVAL:
-                raise
-        else:
-            try:
-                _write_all(fd, view[:blocks])
-                os.ftruncate(fd, length)
-                return Path(path)
-            except OSError as exc:
-                if exc.errno != errno.EINVAL:  # a real failure (no space, I/O error): the caller's to report
-                    raise
-            finally:
-                os.close(fd)
-    fd = os.open(path, flags, 0o666)  # through the page cache
-    try:
-        _write_all(fd, view[:length])
-    finally:
-        os.close(fd)
-    return Path(path)
+    header = tiff_header(height, width)
+
+    def fill(buf: mmap.mmap) -> None:
+        buf[:DATA_OFFSET] = header
+        np.frombuffer(buf, dtype=np.float32, count=height * width, offset=DATA_OFFSET).reshape(height, width)[...] = a
+
+    return write_file(path, DATA_OFFSET + n_bytes, fill)

@@ -225,8 +225,10 @@ def write_png(path: str | Path, image: NDArray[np.uint8], *, atomic: bool = True
     if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3) or img.size == 0:
         raise PihimInputError("PNG previews must be non-empty uint8 grey or RGB images")
     data = encode_png(img)
+    from pihim._direct_io import write_bytes
+
     with atomic_path(path) if atomic else contextlib.nullcontext(Path(path)) as tmp:
-        Path(tmp).write_bytes(data)
+        write_bytes(tmp, data)  # past the page cache where allowed (pihim._direct_io)
     return Path(path)
 
 
@@ -664,6 +666,8 @@ def polar_figure_png(
             _FIGURES.clear()  # keep only the latest size
             figure = _FIGURES[key] = PolarFigure(a_s0.shape, titled=bool(title), max_side=max_side, dpi=dpi)
         data = figure.render(a_s0, a_d, a_a, title=title, previews=previews)
+    from pihim._direct_io import write_bytes
+
     with atomic_path(path) if atomic else contextlib.nullcontext(Path(path)) as tmp:
-        Path(tmp).write_bytes(data)
+        write_bytes(tmp, data)  # past the page cache where allowed (pihim._direct_io)
     return Path(path)

@@ -266,9 +266,9 @@ def test_disk_full_leaves_no_part_of_the_frame(frame, tmp_path, capsys, monkeypa
     other.write_bytes(frame.read_bytes())
     import errno
 
-    from pihim import _tiff  # where the command writes its TIFFs
+    from pihim import _direct_io  # where the command writes its files
 
-    real = _tiff._write_all
+    real = _direct_io._write_all
     calls = []
 
     def write_all(fd, data):
@@ -278,7 +278,7 @@ def test_disk_full_leaves_no_part_of_the_frame(frame, tmp_path, capsys, monkeypa
             raise OSError(errno.ENOSPC, "No space left on device")
         return real(fd, data)
 
-    monkeypatch.setattr(_tiff, "_write_all", write_all)
+    monkeypatch.setattr(_direct_io, "_write_all", write_all)
     out = tmp_path / "o"
     assert main(["polar", str(frame), str(other), "--out", str(out), "--json"]) == 1
     recs, err = _records(capsys)
