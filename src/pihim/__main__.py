@@ -13,6 +13,7 @@ memory), else 1 (a broken installation).
 
 from __future__ import annotations
 
+import os
 import sys
 
 #: Address space the command line takes once its libraries are loaded (``VmSize`` after ``import pihim.cli``:
@@ -39,6 +40,10 @@ def run() -> int:
         print(f"pihim: error: the address-space limit of {limit / 1e9:.3g} GB (ulimit -v {limit // 1024}) is "
               f"below the {START_BYTES / 1e9:.3g} GB pihim needs to load its libraries", file=sys.stderr)
         return 2
+    # numpy's and SciPy's OpenBLAS each start a pool of threads at import that spin before they sleep (0.06 s of
+    # CPU each, start-up no command needs: pihim's heavy kernels are numba's and OpenCV's, its matrix products
+    # small). A command-line process only; a value set by the user wins.
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     try:
         from pihim.cli import main
     except (ImportError, OSError, MemoryError, RecursionError, KeyboardInterrupt) as exc:

@@ -283,6 +283,22 @@ def test_libraries_that_do_not_load_are_one_line(capsys, monkeypatch, limit, sta
     assert words in _one_error_line(capsys.readouterr().err)
 
 
+@pytest.mark.parametrize("user, expected", [(None, "1"), ("4", "4")])
+def test_the_command_line_starts_openblas_single_threaded_unless_told(monkeypatch, capsys, user, expected):
+    """OpenBLAS's thread pools spin at start-up for nothing a command needs: one thread, unless the user says."""
+    import pihim.__main__ as entry
+
+    if user is None:
+        monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("OPENBLAS_NUM_THREADS", user)
+    monkeypatch.setattr(entry, "_address_space_limit", lambda: None)
+    monkeypatch.setitem(sys.modules, "pihim.cli", None)  # stop before loading the libraries
+    entry.run()
+    capsys.readouterr()
+    assert os.environ["OPENBLAS_NUM_THREADS"] == expected
+
+
 def test_demo_too_large_for_the_memory_is_refused_with_the_figure(tmp_path, capsys, monkeypatch):
     import pihim._resources as resources
 
