@@ -73,9 +73,10 @@ for k, path in enumerate(sys.argv[3:]):
 """
 
 
-#: Runs ``pihim ARGS`` in this process and prints, at the end, the CPU and wall time spent importing: every
-#: outermost ``import`` statement and ``importlib.import_module`` call (lazy ones and numba's own included) is
-#: timed with ``time.process_time`` (the whole process: a thread computing meanwhile is counted too).
+#: Runs ``pihim ARGS`` in this process, through the ``pihim`` script's entry point, and prints, at the end, the
+#: CPU and wall time spent importing: every outermost ``import`` statement and ``importlib.import_module`` call
+#: (lazy ones and numba's own included) is timed with ``time.process_time`` (the whole process: a thread
+#: computing meanwhile is counted too).
 _IMPORT_TIMER = r"""
 import builtins, importlib, sys, threading, time
 _depth = threading.local()
@@ -96,8 +97,9 @@ def _timed(f):
 builtins.__import__ = _timed(builtins.__import__)
 importlib.import_module = _timed(importlib.import_module)
 try:
-    from pihim.cli import main
-    rc = main(sys.argv[1:])
+    from pihim.__main__ import run  # what the pihim script runs (it sets up the environment, then loads the CLI)
+    sys.argv = ["pihim", *sys.argv[1:]]
+    rc = run()
 finally:
     sys.stderr.write(f"\nPIHIM_IMPORTS cpu={_total[0]:.6f} wall={_total[1]:.6f}\n")
 sys.exit(rc)
