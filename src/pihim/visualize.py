@@ -418,20 +418,21 @@ class _BarTicks:
             y = float(round(y))
             anchor = int(height - y)
             stamp = self._stamps.get(text)
-            if stamp is None:
-                artist = self._label(k)
-                artist.set(position=(self._label_x, y), text=text)  # type: ignore[attr-defined]
-                self._figure.draw_artist(artist)
-                box = artist.get_window_extent()  # type: ignore[attr-defined]
-                r0, r1 = height - int(np.ceil(box.y1)) - 1, height - int(np.floor(box.y0)) + 1
-                c0, c1 = int(np.floor(box.x0)) - 1, int(np.ceil(box.x1)) + 1
-                if len(self._stamps) >= 512:
-                    self._stamps.clear()
-                self._stamps[text] = (pixels[r0:r1, c0:c1].copy(), r0 - anchor, c0)
-            else:
+            if stamp is not None and 0 <= anchor + stamp[1] <= height - stamp[0].shape[0]:
                 patch, dr, c0 = stamp
                 r0 = anchor + dr
                 pixels[r0:r0 + patch.shape[0], c0:c0 + patch.shape[1]] = patch
+                continue
+            artist = self._label(k)
+            artist.set(position=(self._label_x, y), text=text)  # type: ignore[attr-defined]
+            self._figure.draw_artist(artist)
+            box = artist.get_window_extent()  # type: ignore[attr-defined]
+            r0, r1 = height - int(np.ceil(box.y1)) - 1, height - int(np.floor(box.y0)) + 1
+            c0, c1 = int(np.floor(box.x0)) - 1, int(np.ceil(box.x1)) + 1
+            if 0 <= r0 and r1 <= height and 0 <= c0 and c1 <= pixels.shape[1]:  # kept only whole
+                if len(self._stamps) >= 512:
+                    self._stamps.clear()
+                self._stamps[text] = (pixels[r0:r1, c0:c1].copy(), r0 - anchor, c0)
         self._offset.set_text(formatter.get_offset())
         self._figure.draw_artist(self._offset)
         return [(float(v), t) for v, t in zip(locs, texts, strict=True)]
