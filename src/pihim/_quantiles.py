@@ -75,6 +75,17 @@ def histogram_keys(x_bits, select, hist):  # pragma: no cover - compiled
                     hist[c, order_key(b) >> 16] += 1
 
 
+@njit(inline="always", cache=True)
+def _gather(bits, c, slot_of_bin, cursor, end, out):  # pragma: no cover - compiled
+    """Append the key of one finite float32 bit pattern to band ``c``'s range of its bin's slot, if wanted."""
+    if finite_bits(bits):
+        key = order_key(bits)
+        slot = slot_of_bin[key >> 16]
+        if slot >= 0 and cursor[c, slot] < end[c, slot]:
+            out[cursor[c, slot]] = key
+            cursor[c, slot] += 1
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def gather_bins(x_bits, select, slot_of_bin, cursor, end, out):  # pragma: no cover - compiled
     """Copy the keys of the selected pixels that fall in the wanted bins, grouped by bin.
@@ -98,13 +109,8 @@ def gather_bins(x_bits, select, slot_of_bin, cursor, end, out):  # pragma: no co
     for c in prange(n_chunks):
         for i in range(c * n_rows // n_chunks, (c + 1) * n_rows // n_chunks):
             for j in range(n_cols):
-                b = x_bits[i, j]
-                if math.isfinite(select[i, j]) and finite_bits(b):
-                    key = order_key(b)
-                    slot = slot_of_bin[key >> 16]
-                    if slot >= 0 and cursor[c, slot] < end[c, slot]:
-                        out[cursor[c, slot]] = key
-                        cursor[c, slot] += 1
+                if math.isfinite(select[i, j]):
+                    _gather(x_bits[i, j], c, slot_of_bin, cursor, end, out)
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -117,22 +123,9 @@ def gather_bins_pair(a_bits, b_bits, select, slot_a, cursor_a, end_a, out_a, slo
     for c in prange(n_chunks):
         for i in range(c * n_rows // n_chunks, (c + 1) * n_rows // n_chunks):
             for j in range(n_cols):
-                if not math.isfinite(select[i, j]):
-                    continue
-                b = a_bits[i, j]
-                if finite_bits(b):
-                    key = order_key(b)
-                    slot = slot_a[key >> 16]
-                    if slot >= 0 and cursor_a[c, slot] < end_a[c, slot]:
-                        out_a[cursor_a[c, slot]] = key
-                        cursor_a[c, slot] += 1
-                b = b_bits[i, j]
-                if finite_bits(b):
-                    key = order_key(b)
-                    slot = slot_b[key >> 16]
-                    if slot >= 0 and cursor_b[c, slot] < end_b[c, slot]:
-                        out_b[cursor_b[c, slot]] = key
-                        cursor_b[c, slot] += 1
+                if math.isfinite(select[i, j]):
+                    _gather(a_bits[i, j], c, slot_a, cursor_a, end_a, out_a)
+                    _gather(b_bits[i, j], c, slot_b, cursor_b, end_b, out_b)
 
 
 def n_chunks_for(n_rows: int) -> int:
