@@ -610,3 +610,19 @@ def test_batch_previews_show_their_own_frame(tmp_path, capsys):
         assert np.array_equal(shown["S0"], s0_to_gray(s0))
         assert np.array_equal(shown["DoLP"][..., ::-1], dolp_to_rgb(dolp))
         assert np.array_equal(shown["AoP"][..., ::-1], aop_to_rgb(aop, dolp))
+
+
+def test_batch_freezes_the_collector_and_hands_it_back(frame, tmp_path, capsys, monkeypatch):
+    """The long-lived objects are frozen out of the collector's passes during a batch, and unfrozen after it."""
+    import gc
+
+    before = gc.get_freeze_count()
+    calls = []
+    real = gc.freeze
+    monkeypatch.setattr(gc, "freeze", lambda: (calls.append(1), real())[1])
+    other = tmp_path / "in" / "frame_b.tiff"
+    other.write_bytes(frame.read_bytes())
+    assert main(["polar", str(frame), str(other), "--out", str(tmp_path / "o"), "--json"]) == 0
+    capsys.readouterr()
+    assert calls == [1]  # once per batch, after its first frame
+    assert gc.get_freeze_count() == before  # a caller in this process keeps its collector whole
