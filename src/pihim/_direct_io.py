@@ -7,7 +7,9 @@ batch runs, against about 1 ms with direct I/O (``O_DIRECT``: the disk reads
 the bytes from this process's page-aligned buffer). Where ``O_DIRECT`` is
 refused (tmpfs, systems without it, unaligned block sizes) the same bytes
 are written through the page cache. The file's bytes are written as they
-are: the caller writes under a temporary name for atomicity.
+are: the caller writes under a temporary name for atomicity. Each thread
+keeps one staging buffer, the size of the largest file it wrote (20 MB for
+a full-resolution float32 TIFF), freed with the thread.
 
 Direct I/O also bypasses the cache for what it would have absorbed: on a
 disk slower than the outputs come, a writer waits for the disk at once
