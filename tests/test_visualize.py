@@ -235,3 +235,19 @@ def test_colourings_write_into_out(shape):
         assert np.array_equal(out, colour())
         with pytest.raises(PihimInputError, match="out must be"):
             colour(out=np.zeros((2, *out_shape), np.uint8))
+
+
+@pytest.mark.parametrize("level", [0, 1, 3, 6, 9])
+def test_png_levels_decode_to_the_same_pixels(level):
+    """Every deflate level gives the same pixels (OpenCV's libpng); level 0 stores the rows uncompressed."""
+    from pihim import _png
+
+    img = np.random.default_rng(level).integers(0, 256, (61, 47, 3), dtype=np.uint8)
+    data = _png.encode_png(img, level=level)
+    back = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)[..., ::-1]
+    assert np.array_equal(back, img)
+    rows = 61 * (1 + 47 * 3)
+    if level == 0:  # stored blocks: the rows, 5 bytes per block of up to 65535, zlib's 6 and the chunks' 57
+        assert rows < len(data) <= rows + 5 * (rows // 65535 + 1) + 6 + 57
+    with pytest.raises(ValueError, match="0-9"):
+        _png.encode_png(img, level=10)

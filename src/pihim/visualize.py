@@ -211,20 +211,20 @@ def s0_to_gray(
     return _into(out, _to_u8(np.clip(np.nan_to_num(scale), 0.0, 1.0)))
 
 
-def write_png(path: str | Path, image: NDArray[np.uint8], *, atomic: bool = True) -> Path:
+def write_png(path: str | Path, image: NDArray[np.uint8], *, atomic: bool = True, level: int | None = None) -> Path:
     """Write an RGB ``(H, W, 3)`` or grey ``(H, W)`` uint8 image as PNG, atomically.
 
     Encoded by :func:`pihim._png.encode_png` (unfiltered rows, fast deflate;
-    ISA-L when the ``fast`` extra is installed). ``atomic=False`` writes
-    ``path`` directly (for a caller that already writes under a temporary
-    name).
+    ISA-L when the ``fast`` extra is installed; ``level`` 0-9, 0 stores the
+    rows uncompressed). ``atomic=False`` writes ``path`` directly (for a
+    caller that already writes under a temporary name).
     """
     from pihim._png import encode_png
 
     img = np.asarray(image)
     if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3) or img.size == 0:
         raise PihimInputError("PNG previews must be non-empty uint8 grey or RGB images")
-    data = encode_png(img)
+    data = encode_png(img, level=level)
     from pihim._direct_io import write_bytes
 
     with atomic_path(path) if atomic else contextlib.nullcontext(Path(path)) as tmp:

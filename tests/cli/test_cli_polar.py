@@ -626,3 +626,21 @@ def test_batch_freezes_the_collector_and_hands_it_back(frame, tmp_path, capsys, 
     capsys.readouterr()
     assert calls == [1]  # once per batch, after its first frame
     assert gc.get_freeze_count() == before  # a caller in this process keeps its collector whole
+
+
+def test_png_level_changes_the_bytes_not_the_pixels(frame, tmp_path, capsys):
+    """--png-level 0 (the default) stores the bare previews; 6 compresses them; the pixels are the same."""
+    import cv2
+
+    sizes, pixels = {}, {}
+    for level in (0, 6):
+        out = tmp_path / f"o{level}"
+        assert main(["polar", str(frame), "--out", str(out), "--png", "--png-level", str(level)]) == 0
+        png = out / "frame_a.DoLP.png"
+        sizes[level], pixels[level] = png.stat().st_size, cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+    capsys.readouterr()
+    assert np.array_equal(pixels[0], pixels[6])
+    assert sizes[0] > 16 * (1 + 20 * 3) > sizes[6]  # 16 x 20 RGB rows stored; a uniform DoLP compresses
+    assert main(["polar", str(frame), "--out", str(tmp_path / "bad"), "--png", "--png-level", "12"]) == 2
+    assert "--png-level must be a deflate level 0-9, got 12" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()  # refused before anything is written

@@ -96,6 +96,7 @@ class PolarOptions:
     height: int | None
     pixel_format: str | None
     png: bool
+    png_level: int = 0  # deflate level of the bare previews: their bytes, not their pixels (not in the fingerprint)
 
     def fingerprint(self) -> dict[str, Any]:
         """JSON-ready summary compared on resume (a frame made with other options is redone)."""
@@ -167,7 +168,7 @@ class Cancelled(Exception):
 
 def write_polar_outputs(
     result: PolarImage, out_dir: Path, stem: str, *, png: bool, previews: Previews | None = None,
-    cancel: threading.Event | None = None,
+    cancel: threading.Event | None = None, png_level: int | None = None,
 ) -> dict[str, str]:
     """Write ``<stem>.S0/DoLP/AoP.tiff`` (and the PNG previews and figure) together; return the written paths.
 
@@ -175,7 +176,9 @@ def write_polar_outputs(
     every one is complete; on failure none is left. ``previews`` (else made
     here) are the frame's :func:`make_previews`; when ``cancel`` is set
     before the group is complete, :class:`Cancelled` is raised and nothing is
-    left.
+    left. ``png_level``: deflate level of the three bare previews (0 stores
+    them; default :data:`pihim._png.DEFAULT_LEVEL`); the figure is always
+    compressed.
     """
     paths = output_paths(out_dir, stem, png=png)
     images = {"S0": result.s0, "DoLP": result.dolp, "AoP": result.aop_deg}
@@ -194,7 +197,7 @@ def write_polar_outputs(
             pv = previews if previews is not None else make_previews(result)
             for key, image in (("S0_png", pv.gray), ("DoLP_png", pv.dolp_rgb), ("AoP_png", pv.aop_rgb)):
                 go_on()
-                write_png(tmp[key], image, atomic=False)
+                write_png(tmp[key], image, atomic=False, level=png_level)
             go_on()
             polar_figure_png(result.s0, result.dolp, result.aop_deg, tmp["figure_png"],
                              title=f"{stem}: S0, DoLP and AoP", atomic=False,
@@ -384,7 +387,7 @@ def write_one(done: Computed, out_dir: Path, options: PolarOptions, cancel: thre
     if opts.png:
         done.previews = make_previews(done.result, done.recycled, s0_bounds=done.s0_bounds)
     outputs = write_polar_outputs(done.result, out_dir, done.name, png=opts.png, previews=done.previews,
-                                  cancel=cancel)
+                                  cancel=cancel, png_level=opts.png_level)
     record: dict[str, Any] = {
         "schema": SCHEMA_ID,
         "file": str(done.path),
@@ -470,6 +473,7 @@ def _summary(processed: Sequence[dict[str, Any]], resumed: int, n_frames: int, o
 def check_options(
     *, demosaic: str, layout: str, calibration: Path | None, dark_level: float, bit_depth: int | None,
     saturation_level: float | None, width: int | None, height: int | None, pixel_format: str | None, png: bool,
+    png_level: int = 0,
 ) -> PolarOptions:
     """Validate every option (one-line :class:`PihimInputError`) before any frame is read."""
     if demosaic not in DEMOSAIC_METHODS:
@@ -495,9 +499,12 @@ def check_options(
     for label, v in (("--width", width), ("--height", height)):
         if v is not None and v < 1:
             raise PihimInputError(f"{label} must be a positive number of pixels, got {v}")
+    if not 0 <= png_level <= 9:
+        raise PihimInputError(f"--png-level must be a deflate level 0-9, got {png_level}")
     fmt = None if pixel_format is None else normalize_pixel_format(pixel_format)
     return PolarOptions(lay, analyser, demosaic, float(dark_level), bit_depth,
-                        None if saturation_level is None else float(saturation_level), width, height, fmt, png)
+                        None if saturation_level is None else float(saturation_level), width, height, fmt, png,
+                        int(png_level))
 
 
 def _distinct(frames: Sequence[Path]) -> list[Path]:
@@ -526,6 +533,7 @@ def polar(
     height: Annotated[int | None, typer.Option(help="Height in pixels (.raw only).")] = None,
     pixel_format: Annotated[str | None, typer.Option(help="Lucid pixel format (.raw only), e.g. PolarizeMono12p.")] = None,
     png: Annotated[bool, typer.Option("--png", help="Also write PNG previews and a captioned figure, <stem>.polar.png.")] = False,
+    png_level: Annotated[int, typer.Option(help="Deflate level of the three bare PNG previews: 0 stores them uncompressed (least CPU, keeps up with the camera), 1-9 compress (smaller files; 1-3 fast with the 'fast' extra). The captioned figure is always compressed.")] = 0,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Redo frames already done in --out by an earlier run.")] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object per frame on stdout.")] = False,
 ) -> int:
@@ -538,7 +546,7 @@ def polar(
     """
     options = check_options(demosaic=demosaic, layout=layout, calibration=calibration, dark_level=dark_level,
                             bit_depth=bit_depth, saturation_level=saturation_level, width=width, height=height,
-                            pixel_format=pixel_format, png=png)
+                            pixel_format=pixel_format, png=png, png_level=png_level)
     batch = _distinct(frames)
     names = output_names(batch)
     _warn_renamed(batch, names)
