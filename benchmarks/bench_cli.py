@@ -18,10 +18,13 @@ Start-up
     with ``--json --png`` (the previews' cost per frame is the difference of
     these two runs; target <= 60 ms) and full resolution with ``--json``
     (<= 150 ms). Start-up is included (the numba cache is warm, as after a
-    first run). Each run starts after ``sync``: the previous run's outputs
-    (6 GB at full resolution) are not still being written back meanwhile. Anchor, in the same run: the same frames
-    through a plain script (tifffile read, the numpy super-pixel route of
-    ``bench_polar.py``, three float32 TIFFs written) in one process.
+    first run), and so are the command's defaults (``--png-level 0``: the
+    bare previews stored uncompressed). Each run starts after ``sync``. Anchor,
+    in the same run: the same frames through a plain script (tifffile read,
+    the numpy super-pixel route of ``bench_polar.py``, three float32 TIFFs
+    written) in one process. Also in the same run: the disk's sustained
+    write bandwidth, written as ``pihim polar`` writes (1 GiB with direct
+    I/O), and each setting's output bytes and disk floor per frame.
 
 Run ``python benchmarks/run.py --only bench_cli`` or this file directly
 (``--quick``: 20 frames, fewer start-up repetitions).
