@@ -4,7 +4,9 @@ Rows are stored unfiltered (PNG filter type 0) and the whole image is one
 deflate stream at a fast level: with the optional ``isal`` package (Intel
 ISA-L, ``pip install pihim[fast]``) about 4x faster than zlib at a similar
 size, else with the standard library's zlib. Both release the GIL, so
-several images can be encoded at once on several threads.
+several images can be encoded at once on several threads. Level 0 stores
+the rows in deflate's uncompressed blocks: a valid PNG the size of its
+pixels for the least CPU (``pihim polar --png``'s previews by default).
 
 References
 ----------
