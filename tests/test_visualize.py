@@ -251,3 +251,26 @@ def test_png_levels_decode_to_the_same_pixels(level):
         assert rows < len(data) <= rows + 5 * (rows // 65535 + 1) + 6 + 57
     with pytest.raises(ValueError, match="0-9"):
         _png.encode_png(img, level=10)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1024, 1224, 3), (300, 700, 3), (35, 40), (9, 7, 4), (2, 22000, 3)])
+def test_stored_png_decodes_and_checks_out(tmp_path, shape):
+    """Level 0 laid out block by block (whole rows per stored block, the last one partial): libpng decodes it
+    (checking the CRCs and zlib's Adler-32), zlib inflates it, and ``write_png`` writes the same file."""
+    import zlib
+
+    from pihim import _png
+    from pihim.visualize import write_png
+
+    img = np.random.default_rng(sum(shape)).integers(0, 256, shape, dtype=np.uint8)
+    data = _png.encode_png(img, level=0)
+    back = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img.ndim == 3:
+        back = back[..., [2, 1, 0, 3][: img.shape[2]]]
+    assert np.array_equal(back, img)
+    stream = zlib.decompress(data[41:-16])  # IDAT data: the zlib stream, its Adler-32 checked
+    rows = np.frombuffer(stream, np.uint8).reshape(shape[0], -1)
+    assert not rows[:, 0].any() and np.array_equal(rows[:, 1:], img.reshape(shape[0], -1))
+    if img.ndim == 2 or img.shape[2] == 3:
+        assert write_png(tmp_path / "x.png", img, level=0).read_bytes() == data
+    assert (_png.stored_png(img) is None) == (shape[1] * (shape[2] if img.ndim == 3 else 1) + 1 > 65535)

@@ -219,16 +219,19 @@ def write_png(path: str | Path, image: NDArray[np.uint8], *, atomic: bool = True
     rows uncompressed). ``atomic=False`` writes ``path`` directly (for a
     caller that already writes under a temporary name).
     """
-    from pihim._png import encode_png
+    from pihim._direct_io import write_bytes, write_file
+    from pihim._png import encode_png, stored_png
 
     img = np.asarray(image)
     if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3) or img.size == 0:
         raise PihimInputError("PNG previews must be non-empty uint8 grey or RGB images")
-    data = encode_png(img, level=level)
-    from pihim._direct_io import write_bytes
-
+    stored = stored_png(img) if level == 0 else None  # laid out straight into the write buffer
+    data = encode_png(img, level=level) if stored is None else b""
     with atomic_path(path) if atomic else contextlib.nullcontext(Path(path)) as tmp:
-        write_bytes(tmp, data)  # past the page cache where allowed (pihim._direct_io)
+        if stored is not None:
+            write_file(tmp, *stored)
+        else:
+            write_bytes(tmp, data)  # past the page cache where allowed (pihim._direct_io)
     return Path(path)
 
 
