@@ -226,12 +226,11 @@ def write_png(path: str | Path, image: NDArray[np.uint8], *, atomic: bool = True
     if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3) or img.size == 0:
         raise PihimInputError("PNG previews must be non-empty uint8 grey or RGB images")
     stored = stored_png(img) if level == 0 else None  # laid out straight into the write buffer
-    data = encode_png(img, level=level) if stored is None else b""
     with atomic_path(path) if atomic else contextlib.nullcontext(Path(path)) as tmp:
         if stored is not None:
             write_file(tmp, *stored)
         else:
-            write_bytes(tmp, data)  # past the page cache where allowed (pihim._direct_io)
+            write_bytes(tmp, encode_png(img, level=level))  # past the page cache where allowed (pihim._direct_io)
     return Path(path)
 
 
