@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
@@ -142,3 +144,349 @@ def first_hits(p0: NDArray, p1: NDArray, ray: NDArray, rect: NDArray, exclude: N
             best[i] = t
             out[i] = j
     return out
+
+
+@njit(cache=True)
+def cone_intervals(q: NDArray, a: NDArray, e: NDArray, p_terms: NDArray, d_terms: NDArray, centroid: NDArray,
+                   winding: NDArray, idx: NDArray, s_first: NDArray, s_last: NDArray,
+                   negative: bool) -> tuple:  # pragma: no cover - compiled
+    """The parameters ``s`` for which ``a + s e`` lies in the cone from apex ``q`` over a convex polygon, for
+    every (apex, polygon) pair of a batch: the closed-form test of
+    :func:`pihim.planning.facet_captures.cone_interval`, one pass with no temporaries.
+
+    ``q``, ``a``, ``e`` (B, I, 3): apexes and their lines; ``p_terms``, ``d_terms`` (B, J, K, 3): per polygon
+    edge ``P_k = X_k x X_k+1`` and ``D_k = X_k+1 - X_k``; ``centroid``, ``winding`` (B, J, 3); ``idx`` (B, J):
+    the polygon's heliostat, -1 for padding. With ``m_k = (X_k - q) x (X_k+1 - q) = P_k - q x D_k``, each edge
+    gives ``alpha_k + s beta_k >= 0`` with ``alpha_k = (a - q) . m_k`` and ``beta_k = e . m_k`` (``<= 0`` on the
+    opposite nappe, ``negative``), oriented by the side of the polygon's plane the apex is on. Returns ``lo``,
+    ``hi`` (B, I, J): ``(inf, -inf)`` where the line misses the cone, the polygon is padding, or the interval
+    misses ``[s_first[b], s_last[b]]``."""
+    n_b, n_i, n_j, n_k = q.shape[0], q.shape[1], p_terms.shape[1], p_terms.shape[2]
+    lo_out = np.empty((n_b, n_i, n_j))
+    hi_out = np.empty((n_b, n_i, n_j))
+    for b in range(n_b):
+        for i in range(n_i):
+            qx, qy, qz = q[b, i, 0], q[b, i, 1], q[b, i, 2]
+            ax, ay, az = a[b, i, 0] - qx, a[b, i, 1] - qy, a[b, i, 2] - qz
+            ex, ey, ez = e[b, i, 0], e[b, i, 1], e[b, i, 2]
+            # a x q and e x q (the D_k terms of alpha and beta)
+            cax, cay, caz = a[b, i, 1] * qz - a[b, i, 2] * qy, a[b, i, 2] * qx - a[b, i, 0] * qz, \
+                a[b, i, 0] * qy - a[b, i, 1] * qx
+            cex, cey, cez = ey * qz - ez * qy, ez * qx - ex * qz, ex * qy - ey * qx
+            for j in range(n_j):
+                if idx[b, j] < 0:
+                    lo_out[b, i, j] = np.inf
+                    hi_out[b, i, j] = -np.inf
+                    continue
+                side = (qx * winding[b, j, 0] + qy * winding[b, j, 1] + qz * winding[b, j, 2]) - (
+                    centroid[b, j, 0] * winding[b, j, 0] + centroid[b, j, 1] * winding[b, j, 1]
+                    + centroid[b, j, 2] * winding[b, j, 2])
+                flip = (side > 0.0) != negative  # the oriented normals are -m_k
+                lo, hi, empty = -np.inf, np.inf, False
+                for k in range(n_k):
+                    px, py, pz = p_terms[b, j, k, 0], p_terms[b, j, k, 1], p_terms[b, j, k, 2]
+                    dx, dy, dz = d_terms[b, j, k, 0], d_terms[b, j, k, 1], d_terms[b, j, k, 2]
+                    alpha = (ax * px + ay * py + az * pz) - (cax * dx + cay * dy + caz * dz)
+                    beta = (ex * px + ey * py + ez * pz) - (cex * dx + cey * dy + cez * dz)
+                    if beta == 0.0:
+                        if alpha != 0.0 and (alpha < 0.0) != flip:
+                            empty = True
+                        continue
+                    bound = -alpha / beta
+                    if (beta > 0.0) != flip:
+                        lo = max(lo, bound)
+                    else:
+                        hi = min(hi, bound)
+                if empty or lo > s_last[b] or hi < s_first[b]:
+                    lo, hi = np.inf, -np.inf
+                lo_out[b, i, j] = lo
+                hi_out[b, i, j] = hi
+    return lo_out, hi_out
+
+
+@njit(cache=True)
+def facet_grid(s: NDArray, valid: NDArray, r_lo: NDArray, r_hi: NDArray, back: NDArray, tgt: NDArray,
+               b_lo: NDArray, b_hi: NDArray, f_lo: NDArray, f_hi: NDArray, q: NDArray, cam: NDArray,
+               fwd: NDArray, right: NDArray, down: NDArray, n_facets: int, tx: float,
+               ty: float) -> tuple:  # pragma: no cover - compiled
+    """For every candidate capture (camera position ``g`` on the line, aim ``a``) of every HUA ``b``: which
+    facets it covers and the heliostat whose back each shows (:func:`pihim.planning.facet_captures._evaluate`).
+
+    A sample point ``i`` (the HUA's facets' samples, ``n_facets`` x S of them, facet-major) shows a target
+    from position ``s[b, g]`` when the first (nearest) target interval ``[r_lo, r_hi]`` (B, I, J) containing
+    ``s`` is one whose plane it lies behind (``back``), no blocker interval ``[b_lo, b_hi]`` (B, I, Jb)
+    contains ``s``, the camera is in front of the facet (``f_lo < s < f_hi``, (B, I)) and the position is
+    allowed (``valid``, (B, G)). It is framed by aim ``a`` when its direction from ``cam[b, g]`` has, in the
+    camera axes ``fwd``, ``right``, ``down`` (B, G, A, 3), ``z > 0``, ``|x| <= tx z``, ``|y| <= ty z``.
+    Returns ``good`` (B, G, A, F): some sample of the facet shows a target and is framed; ``target``
+    (B, G, A, F): the target its first such sample shows, -1 where not good."""
+    n_b, n_g, n_a = fwd.shape[0], fwd.shape[1], fwd.shape[2]
+    n_i, n_j, n_jb = q.shape[1], r_lo.shape[2], b_lo.shape[2]
+    n_s = n_i // n_facets
+    good = np.zeros((n_b, n_g, n_a, n_facets), np.bool_)
+    target = np.full((n_b, n_g, n_a, n_facets), -1, np.int64)
+    vis = np.empty(n_i, np.int64)
+    for b in range(n_b):
+        for g in range(n_g):
+            sg = s[b, g]
+            any_vis = False
+            for i in range(n_i):
+                vis[i] = -1
+                if not valid[b, g] or not (f_lo[b, i] < sg < f_hi[b, i]):
+                    continue
+                first = -1
+                for j in range(n_j):
+                    if r_lo[b, i, j] <= sg <= r_hi[b, i, j]:
+                        first = j
+                        break
+                if first < 0 or not back[b, i, first]:
+                    continue
+                blocked = False
+                for j in range(n_jb):
+                    if b_lo[b, i, j] <= sg <= b_hi[b, i, j]:
+                        blocked = True
+                        break
+                if not blocked:
+                    vis[i] = tgt[b, first]
+                    any_vis = True
+            if not any_vis:
+                continue
+            cx, cy, cz = cam[b, g, 0], cam[b, g, 1], cam[b, g, 2]
+            for a in range(n_a):
+                for f in range(n_facets):
+                    for k in range(n_s):
+                        i = f * n_s + k
+                        if vis[i] < 0:
+                            continue
+                        vx, vy, vz = q[b, i, 0] - cx, q[b, i, 1] - cy, q[b, i, 2] - cz
+                        z = fwd[b, g, a, 0] * vx + fwd[b, g, a, 1] * vy + fwd[b, g, a, 2] * vz
+                        x = right[b, g, a, 0] * vx + right[b, g, a, 1] * vy + right[b, g, a, 2] * vz
+                        y = down[b, g, a, 0] * vx + down[b, g, a, 1] * vy + down[b, g, a, 2] * vz
+                        if z > 0.0 and abs(x) <= tx * z and abs(y) <= ty * z:
+                            good[b, g, a, f] = True
+                            target[b, g, a, f] = vis[i]
+                            break
+    return good, target
+
+
+@njit(cache=True)
+def first_hits_among(p0: NDArray, d: NDArray, mirrors: NDArray, skip: NDArray, t_max: NDArray, normals: NDArray,
+                     centres: NDArray, x: NDArray, y: NDArray, hw: float,
+                     hh: float) -> NDArray:  # pragma: no cover - compiled
+    """First of ``mirrors`` (M,) met by each ray ``p0 + t d`` (R, 3), ``1e-9 < t < t_max``, within the mirror's
+    half-width ``hw`` along ``x`` and half-height ``hh`` along ``y`` (``normals``, ``centres``, ``x``, ``y``:
+    (M, 3), the mirrors' own rows), skipping mirror ``skip[r]``; -1 for none. Equal ``t`` keeps the earlier
+    mirror (:func:`pihim.planning.facets._first_hits_among`)."""
+    n_r, n_m = p0.shape[0], mirrors.shape[0]
+    out = np.full(n_r, -1, np.int64)
+    cn = np.empty(n_m)
+    cx = np.empty(n_m)
+    cy = np.empty(n_m)
+    for m in range(n_m):
+        cn[m] = centres[m, 0] * normals[m, 0] + centres[m, 1] * normals[m, 1] + centres[m, 2] * normals[m, 2]
+        cx[m] = centres[m, 0] * x[m, 0] + centres[m, 1] * x[m, 1] + centres[m, 2] * x[m, 2]
+        cy[m] = centres[m, 0] * y[m, 0] + centres[m, 1] * y[m, 1] + centres[m, 2] * y[m, 2]
+    for r in range(n_r):
+        best = np.inf
+        px0, py0, pz0 = p0[r, 0], p0[r, 1], p0[r, 2]
+        dx, dy, dz = d[r, 0], d[r, 1], d[r, 2]
+        for m in range(n_m):
+            if mirrors[m] == skip[r]:
+                continue
+            den = dx * normals[m, 0] + dy * normals[m, 1] + dz * normals[m, 2]
+            if den == 0.0:  # parallel to the plane (numpy's inf or nan t: no hit either)
+                continue
+            t = (cn[m] - (px0 * normals[m, 0] + py0 * normals[m, 1] + pz0 * normals[m, 2])) / den
+            if not (t > 1e-9 and t < t_max[r] and t < best):
+                continue
+            u = (px0 * x[m, 0] + py0 * x[m, 1] + pz0 * x[m, 2]) + t * (dx * x[m, 0] + dy * x[m, 1] + dz * x[m, 2]) \
+                - cx[m]
+            v = (px0 * y[m, 0] + py0 * y[m, 1] + pz0 * y[m, 2]) + t * (dx * y[m, 0] + dy * y[m, 1] + dz * y[m, 2]) \
+                - cy[m]
+            if abs(u) <= hw and abs(v) <= hh:
+                best = t
+                out[r] = mirrors[m]
+    return out
+
+
+# --------------------------------------------------------------------------- transits and the route
+
+
+@njit(cache=True)
+def crosses(ax: float, ay: float, bx: float, by: float, keep: NDArray) -> bool:  # pragma: no cover - compiled
+    """Whether the 2-D segment a-b passes through the open rectangle ``keep[0:2]`` (low corner) -
+    ``keep[2:4]`` (high corner), shrunk by 1e-6 m (Liang-Barsky)."""
+    eps = 1e-6
+    t0, t1 = 0.0, 1.0
+    for k in range(2):
+        a, d = (ax, bx - ax) if k == 0 else (ay, by - ay)
+        lo, hi = keep[k] + eps, keep[2 + k] - eps
+        if abs(d) < 1e-15:
+            if a <= lo or a >= hi:
+                return False
+            continue
+        ta, tb = (lo - a) / d, (hi - a) / d
+        t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
+        if t0 >= t1:
+            return False
+    return True
+
+
+@njit(cache=True)
+def detour(ax: float, ay: float, bx: float, by: float, keep: NDArray) -> tuple:  # pragma: no cover - compiled
+    """Shortest 2-D path from a to b around the rectangle ``keep`` (:func:`crosses`): Dijkstra over a, b and
+    the rectangle's corners, popping the least (distance, node) first as :mod:`heapq` does. Returns the
+    intermediate corners (4, 2) and their count (0: the straight segment is clear)."""
+    path = np.empty((4, 2))
+    if not crosses(ax, ay, bx, by, keep):
+        return path, 0
+    nx = np.array([ax, bx, keep[0], keep[2], keep[2], keep[0]])
+    ny = np.array([ay, by, keep[1], keep[1], keep[3], keep[3]])
+    dist = np.full(6, np.inf)
+    prev = np.full(6, -1, np.int64)
+    dist[0] = 0.0
+    heap_d = np.empty(64)  # entries (distance, node); at most 1 + 6 x 5 pushes
+    heap_n = np.empty(64, np.int64)
+    live = np.zeros(64, np.bool_)
+    heap_d[0], heap_n[0], live[0] = 0.0, 0, True
+    n_e = 1
+    while True:
+        k = -1
+        for m in range(n_e):
+            if live[m] and (k < 0 or heap_d[m] < heap_d[k] or (heap_d[m] == heap_d[k] and heap_n[m] < heap_n[k])):
+                k = m
+        if k < 0:
+            break
+        live[k] = False
+        dcur, i = heap_d[k], heap_n[k]
+        if dcur > dist[i]:
+            continue
+        for j in range(6):
+            if j == i or crosses(nx[i], ny[i], nx[j], ny[j], keep):
+                continue
+            nd = dcur + math.sqrt((nx[j] - nx[i]) ** 2 + (ny[j] - ny[i]) ** 2)
+            if nd < dist[j] - 1e-12:
+                dist[j], prev[j] = nd, i
+                heap_d[n_e], heap_n[n_e], live[n_e] = nd, j, True
+                n_e += 1
+    n = 0
+    k = prev[1]
+    while k > 1:
+        path[n, 0], path[n, 1] = nx[k], ny[k]
+        n += 1
+        k = prev[k]
+    return path[:n][::-1].copy(), n
+
+
+@njit(cache=True)
+def straight(a: NDArray, b: NDArray, keep: NDArray) -> float:  # pragma: no cover - compiled
+    """Transit a -> b (3-D points), metres: across (around the keep-out ``keep`` = low x, low y, high x, high y,
+    top z when both ends are below its top; ``keep`` empty: none), plus the climb or descent."""
+    d = math.hypot(b[0] - a[0], b[1] - a[1])
+    if keep.shape[0] and max(a[2], b[2]) < keep[4]:
+        path, n = detour(a[0], a[1], b[0], b[1], keep)
+        if n:
+            px, py = a[0], a[1]
+            d = 0.0
+            for k in range(n + 1):
+                qx, qy = (path[k, 0], path[k, 1]) if k < n else (b[0], b[1])
+                d += math.sqrt((qx - px) ** 2 + (qy - py) ** 2)
+                px, py = qx, qy
+    return d + abs(b[2] - a[2])
+
+
+@njit(cache=True)
+def transit(pts: NDArray, out: NDArray, e1: int, e2: int, keep: NDArray, turn_cost: float,
+            cos_turn: float) -> float:  # pragma: no cover - compiled
+    """Transit from pass end ``e1`` to pass end ``e2`` (rows of ``pts``), plus ``turn_cost`` for each turn
+    of more than the angle of ``cos_turn`` out of ``e1`` (along ``out[e1]``) and into ``e2`` (along
+    ``-out[e2]``); the same both ways (computed from the lower end)."""
+    if e2 < e1:
+        e1, e2 = e2, e1
+    v = straight(pts[e1], pts[e2], keep)
+    if turn_cost != 0.0:
+        ax, ay, bx, by = out[e1, 0], out[e1, 1], -out[e2, 0], -out[e2, 1]
+        a_any, b_any = ax != 0.0 or ay != 0.0, bx != 0.0 or by != 0.0
+        lx, ly = pts[e2, 0] - pts[e1, 0], pts[e2, 1] - pts[e1, 1]
+        n = math.hypot(lx, ly)
+        turns = 0
+        if n < 0.5:  # no horizontal transit: the turn, if any, is from one pass straight into the other
+            turns = int(a_any and b_any and ax * bx + ay * by < cos_turn)
+        else:
+            ux, uy = lx / n, ly / n
+            turns = int(a_any and ax * ux + ay * uy < cos_turn) + int(b_any and ux * bx + uy * by < cos_turn)
+        v += turn_cost * turns
+    return v
+
+
+@njit(cache=True)
+def _leg(pts: NDArray, out: NDArray, e1: int, e2: int, keep: NDArray, turn_cost: float,
+         cos_turn: float) -> float:  # pragma: no cover - compiled
+    """:func:`transit`, 0 where either end is missing (-1: the route's start or end)."""
+    if e1 < 0 or e2 < 0:
+        return 0.0
+    return transit(pts, out, e1, e2, keep, turn_cost, cos_turn)
+
+
+@njit(cache=True)
+def improve_sweep(order: NDArray, dirs: NDArray, pts: NDArray, out: NDArray, keep: NDArray, turn_cost: float,
+                  cos_turn: float, lo_i: int, hi_i: int, window: int) -> bool:  # pragma: no cover - compiled
+    """One sweep of :func:`pihim.planning.route._improve` in place: 2-opt (reverse positions i..j), then
+    Or-opt (move a run of 1-3 positions between two others, maybe reversed), each within ``window``
+    positions, on the positions ``lo_i..hi_i``. Pass ``k`` flown in direction ``o`` runs from end
+    ``2k + o`` to end ``2k + 1 - o``; a move is made when it shortens the transits at the segment ends by
+    more than 1e-6 m (Or-opt: the best such place). Returns whether any move was made."""
+    n = order.shape[0]
+    improved = False
+
+    def s_(i: int) -> int:
+        return 2 * order[i] + dirs[i] if 0 <= i < n else -1
+
+    def e_(i: int) -> int:
+        return 2 * order[i] + 1 - dirs[i] if 0 <= i < n else -1
+
+    for i in range(lo_i, hi_i):
+        for j in range(i + 1, min(hi_i + 1, i + window + 1)):
+            old = _leg(pts, out, e_(i - 1), s_(i), keep, turn_cost, cos_turn) + _leg(
+                pts, out, e_(j), s_(j + 1), keep, turn_cost, cos_turn)
+            new = _leg(pts, out, e_(i - 1), e_(j), keep, turn_cost, cos_turn) + _leg(
+                pts, out, s_(i), s_(j + 1), keep, turn_cost, cos_turn)
+            if new < old - 1e-6:
+                order[i:j + 1] = order[i:j + 1][::-1].copy()
+                dirs[i:j + 1] = 1 - dirs[i:j + 1][::-1]
+                improved = True
+    for length in range(1, 4):
+        i = lo_i
+        while i + length - 1 <= hi_i:
+            j = i + length - 1
+            a, b = s_(i), e_(j)
+            before, after = e_(i - 1), s_(j + 1)
+            gain = (_leg(pts, out, before, a, keep, turn_cost, cos_turn)
+                    + _leg(pts, out, b, after, keep, turn_cost, cos_turn)
+                    - _leg(pts, out, before, after, keep, turn_cost, cos_turn))
+            best, best_p, best_rev = 1e-6, -1, False
+            for p in range(max(lo_i, i - window), min(hi_i + 1, j + 1 + window) + 1):
+                if i <= p <= j + 1:
+                    continue
+                left, right = e_(p - 1), s_(p)
+                base = _leg(pts, out, left, right, keep, turn_cost, cos_turn)
+                for rev in (False, True):
+                    x, y = (b, a) if rev else (a, b)
+                    add = _leg(pts, out, left, x, keep, turn_cost, cos_turn) + _leg(
+                        pts, out, y, right, keep, turn_cost, cos_turn)
+                    delta = gain - (add - base)
+                    if delta > best:
+                        best, best_p, best_rev = delta, p, rev
+            if best_p >= 0:
+                seg_o = order[i:j + 1].copy()
+                seg_d = dirs[i:j + 1].copy()
+                if best_rev:
+                    seg_o, seg_d = seg_o[::-1].copy(), 1 - seg_d[::-1]
+                rest_o = np.concatenate((order[:i], order[j + 1:]))
+                rest_d = np.concatenate((dirs[:i], dirs[j + 1:]))
+                q = best_p if best_p < i else best_p - length
+                order[:] = np.concatenate((rest_o[:q], seg_o, rest_o[q:]))
+                dirs[:] = np.concatenate((rest_d[:q], seg_d, rest_d[q:]))
+                improved = True
+            i += 1
+    return improved

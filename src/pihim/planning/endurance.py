@@ -32,7 +32,6 @@ References
 
 from __future__ import annotations
 
-import heapq
 import itertools
 import math
 from collections.abc import Callable, Sequence
@@ -221,54 +220,24 @@ def _keepout(tower: Any, clearance: float) -> tuple[NDArray[np.float64], NDArray
     return lo, hi, float(c[:, 2].max()) + clearance
 
 
-def _crosses(a: NDArray[np.float64], b: NDArray[np.float64], lo: NDArray[np.float64],
-             hi: NDArray[np.float64]) -> bool:
-    """Whether the 2-D segment a-b passes through the open rectangle (lo, hi) (Liang-Barsky)."""
-    eps = 1e-6
-    lo, hi = lo + eps, hi - eps
-    d = b - a
-    t0, t1 = 0.0, 1.0
-    for k in range(2):
-        if abs(d[k]) < 1e-15:
-            if a[k] <= lo[k] or a[k] >= hi[k]:
-                return False
-            continue
-        ta, tb = (lo[k] - a[k]) / d[k], (hi[k] - a[k]) / d[k]
-        t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
-        if t0 >= t1:
-            return False
-    return True
+def keepout_array(keepout: tuple[NDArray[np.float64], NDArray[np.float64], float] | None) -> NDArray[np.float64]:
+    """The keep-out as the compiled transits take it (:mod:`pihim.planning._kernels`): low x, low y, high x,
+    high y, top z; empty for none."""
+    if keepout is None:
+        return np.empty(0)
+    lo, hi, top = keepout
+    return np.array([lo[0], lo[1], hi[0], hi[1], top], dtype=float)
 
 
 def _detour(a: NDArray[np.float64], b: NDArray[np.float64], keepout: Any) -> list[NDArray[np.float64]]:
-    """Intermediate 2-D points of the shortest path from a to b around the keep-out rectangle."""
+    """Intermediate 2-D points of the shortest path from a to b around the keep-out rectangle
+    (:func:`pihim.planning._kernels.detour`)."""
     if keepout is None:
         return []
-    lo, hi, _ = keepout
-    if not _crosses(a[:2], b[:2], lo, hi):
-        return []
-    nodes = [a[:2], b[:2]] + [np.array(p) for p in ((lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1]))]
-    dist = [math.inf] * len(nodes)
-    prev = [-1] * len(nodes)
-    dist[0] = 0.0
-    heap = [(0.0, 0)]
-    while heap:
-        dcur, i = heapq.heappop(heap)
-        if dcur > dist[i]:
-            continue
-        for j in range(len(nodes)):
-            if j == i or _crosses(nodes[i], nodes[j], lo, hi):
-                continue
-            nd = dcur + float(np.linalg.norm(nodes[j] - nodes[i]))
-            if nd < dist[j] - 1e-12:
-                dist[j], prev[j] = nd, i
-                heapq.heappush(heap, (nd, j))
-    path: list[NDArray[np.float64]] = []
-    k = prev[1]
-    while k > 1:
-        path.append(nodes[k])
-        k = prev[k]
-    return path[::-1]
+    from pihim.planning import _kernels
+
+    path, n = _kernels.detour(float(a[0]), float(a[1]), float(b[0]), float(b[1]), keepout_array(keepout))
+    return [path[k].copy() for k in range(n)]
 
 
 @dataclass(frozen=True)

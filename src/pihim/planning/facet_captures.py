@@ -327,33 +327,23 @@ def _polygon_terms(corners: NDArray[np.float64]) -> tuple[NDArray[np.float64], N
 
 
 def _cone_intervals(q: NDArray[np.float64], a: NDArray[np.float64], e: NDArray[np.float64],
-                    terms: tuple[NDArray, NDArray, NDArray, NDArray], negative: bool
+                    terms: tuple[NDArray, NDArray, NDArray, NDArray], idx: NDArray[np.int64],
+                    window: tuple[NDArray[np.float64], NDArray[np.float64]], negative: bool
                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """:func:`cone_interval` for every (sample, polygon) pair by matrix products.
+    """:func:`cone_interval` for every (apex, polygon) pair of a batch, compiled
+    (:func:`pihim.planning._kernels.cone_intervals`).
 
-    ``q``, ``a``, ``e``: (B, I, 3) apexes and per-apex lines; ``terms`` of
-    :func:`_polygon_terms` for polygons (B, J, K, 3). With ``m_k = (X_k - q)
-    x (X_k+1 - q) = P_k - q x D_k``: ``(a - q) . m_k = (a - q) . P_k - (a x q) . D_k``
-    and ``e . m_k = e . P_k - (e x q) . D_k``. Returns (B, I, J).
+    ``q``, ``a``, ``e``: (B, I, 3) apexes and per-apex lines; ``terms`` of :func:`_polygon_terms` for
+    polygons (B, J, K, 3); ``idx`` (B, J) their heliostats (-1: padding). Returns ``lo``, ``hi`` (B, I, J),
+    ``(inf, -inf)`` for padding and where the interval misses ``[window[0][b], window[1][b]]``.
     """
-    P, D, cen, wind = terms
-    B, J, K, _ = P.shape
-    PD = np.concatenate([P, D], axis=-1).reshape(B, J * K, 6)  # (B, JK, 6)
-    lhs_a = np.concatenate([a - q, -np.cross(a, q)], axis=-1)  # (B, I, 6)
-    lhs_e = np.concatenate([e, -np.cross(e, q)], axis=-1)
-    alpha = np.matmul(lhs_a, PD.transpose(0, 2, 1)).reshape(*q.shape[:2], J, K)
-    beta = np.matmul(lhs_e, PD.transpose(0, 2, 1)).reshape(*q.shape[:2], J, K)
-    # orientation: m_k . (c - q) has the sign of (c - q) . N (N the polygon's winding normal); the bound
-    # -alpha / beta does not depend on it, only whether it is a lower or an upper bound
-    side = np.matmul(q, wind.transpose(0, 2, 1)) - np.sum(cen * wind, axis=-1)[:, None, :]  # (q - c) . N
-    flip = (side > 0) != negative  # True where the oriented normals are -m_k
-    with np.errstate(divide="ignore", invalid="ignore"):
-        bound = -alpha / beta
-    lower = (beta > 0) != flip[..., None]
-    lo = np.max(np.where(lower & (beta != 0), bound, -np.inf), axis=-1)
-    hi = np.min(np.where(~lower & (beta != 0), bound, np.inf), axis=-1)
-    empty = np.any((beta == 0) & ((alpha < 0) != flip[..., None]) & (alpha != 0), axis=-1)
-    return np.where(empty, np.inf, lo), np.where(empty, -np.inf, hi)
+    from pihim.planning import _kernels
+
+    P, D, cen, wind = (np.ascontiguousarray(t, dtype=np.float64) for t in terms)
+    q, a, e = (np.ascontiguousarray(x, dtype=np.float64) for x in (q, a, e))
+    return _kernels.cone_intervals(q, a, e, P, D, cen, wind, np.ascontiguousarray(idx, dtype=np.int64),
+                                   np.ascontiguousarray(window[0], dtype=np.float64),
+                                   np.ascontiguousarray(window[1], dtype=np.float64), bool(negative))
 
 
 def _grid_points(corners: NDArray[np.float64], samples: int) -> NDArray[np.float64]:
@@ -419,7 +409,6 @@ def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, came
     k0 = np.round(np.array([i.s0 for i in inst]) / st.step_m).astype(np.int64)
     kk = k0[:, None] + np.arange(-half, half + 1)[None, :]  # (B, G) grid indices along each line
     s = kk * st.step_m
-    G = s.shape[1]
     cam = a[:, None, :] + s[..., None] * e3[:, None, :]  # (B, G, 3)
     ch = pose.mirror_centres[h]
     # camera range, keep-outs and flux
@@ -446,9 +435,9 @@ def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, came
 
     def intervals(idx: NDArray[np.int64], pts: NDArray[np.float64], a_: NDArray, e_: NDArray,
                   negative: bool) -> tuple[NDArray, NDArray]:
-        lo, hi = _cone_intervals(pts, a_, e_, _polygon_terms(outline[np.maximum(idx, 0)]), negative)
-        live = (idx >= 0)[:, None, :] & (lo <= s[:, -1:, None]) & (hi >= s[:, :1, None])  # meets the window
-        return np.where(live, lo, np.inf), np.where(live, hi, -np.inf)
+        """Intervals (B, I, J) of the polygons ``idx`` seen from ``pts``; empty where they miss the window."""
+        return _cone_intervals(pts, a_, e_, _polygon_terms(outline[np.maximum(idx, 0)]), idx, (s[:, 0], s[:, -1]),
+                               negative)
 
     def shortlist(idx: NDArray[np.int64], a_: NDArray, e_: NDArray, negative: bool) -> NDArray[np.int64]:
         """Mirrors whose interval meets the window, widened, for some facet centre (cheap first pass), -1 padded.
@@ -480,44 +469,25 @@ def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, came
     # blockers of the sight line camera -> sample
     blk = shortlist(ctx["blockers"](h), a_i, e_i, False)
     b_lo, b_hi = intervals(blk, q, a_i, e_i, False)
-    # on the grid: the nearest containing target, seen from behind, sight line clear, camera in front
-    vis = np.full((B, G, q.shape[1]), -1, dtype=np.int64)
-    if tgt.shape[1]:
-        for gs in range(0, G, 8):  # chunks of grid positions bound the (B, g, I, J) temporaries
-            sl = slice(gs, gs + 8)
-            sgc = s[:, sl, None, None]
-            inside = (r_lo[:, None] <= sgc) & (sgc <= r_hi[:, None])  # (B, g, I, J)
-            first = np.argmax(inside, axis=-1)[..., None]
-            ok = np.take_along_axis(inside, first, axis=-1)[..., 0]
-            ok &= np.take_along_axis(np.broadcast_to(back[:, None], inside.shape), first, axis=-1)[..., 0]
-            if blk.shape[1]:
-                ok &= ~((b_lo[:, None] <= sgc) & (sgc <= b_hi[:, None])).any(axis=-1)
-            ok &= (f_lo[:, None] < s[:, sl, None]) & (s[:, sl, None] < f_hi[:, None]) & valid[:, sl, None]
-            shown = np.take_along_axis(np.broadcast_to(tgt[:, None, None, :], inside.shape), first, axis=-1)[..., 0]
-            vis[:, sl] = np.where(ok, shown, -1)
-    # aims and field of view: sample directions in each camera frame (zero roll)
+    # aims (the centre aim first: ties prefer it) and their camera axes (zero roll)
     offs = np.array(st.aim_offsets_m, float)
     ox, oy = np.meshgrid(offs, offs, indexing="ij")
     ox, oy = ox.ravel(), oy.ravel()
-    order = np.argsort(np.hypot(ox, oy), kind="stable")  # the centre aim first (ties prefer it)
+    order = np.argsort(np.hypot(ox, oy), kind="stable")
     ox, oy = ox[order], oy[order]
     rx, ry = pose.rotations[h][:, :, 0], pose.rotations[h][:, :, 1]
     aims = ch[:, None, :] + ox[None, :, None] * rx[:, None, :] + oy[None, :, None] * ry[:, None, :]  # (B, A, 3)
     head, pitch = gaze_angles(cam[:, :, None, :], aims[:, None, :, :])  # (B, G, A)
     right, down, fwd = camera_frame(head, pitch)  # (B, G, A, 3)
-    frame = np.concatenate([fwd, right, down], axis=2)  # (B, G, 3A, 3)
-    v = q[:, None, :, :] - cam[:, :, None, :]  # (B, G, I, 3)
-    proj = np.matmul(frame, v.transpose(0, 1, 3, 2))  # (B, G, 3A, I)
-    n_a = len(ox)
-    zc, xc, yc = proj[:, :, :n_a], np.abs(proj[:, :, n_a:2 * n_a]), np.abs(proj[:, :, 2 * n_a:])
-    tx = 0.5 * camera.width_px / camera.focal_length_px
-    ty = 0.5 * camera.height_px / camera.focal_length_px
-    ok = (zc > 0) & (xc <= tx * zc) & (yc <= ty * zc) & (vis[:, :, None, :] >= 0)  # (B, G, A, I)
-    okf = ok.reshape(B, G, len(ox), n_f, n_s)
-    good = okf.any(axis=-1)
-    first_s = np.argmax(okf, axis=-1)[..., None]
-    visf = np.broadcast_to(vis.reshape(B, G, 1, n_f, n_s), okf.shape)
-    target = np.where(good, np.take_along_axis(visf, first_s, axis=-1)[..., 0], -1)
+    # on the grid: the nearest containing target, seen from behind, sight line clear, camera in front, framed
+    from pihim.planning import _kernels
+
+    good, target = _kernels.facet_grid(
+        np.ascontiguousarray(s, dtype=np.float64), np.ascontiguousarray(valid), r_lo, r_hi, np.ascontiguousarray(back),
+        np.ascontiguousarray(tgt, dtype=np.int64), b_lo, b_hi, np.ascontiguousarray(f_lo), np.ascontiguousarray(f_hi),
+        np.ascontiguousarray(q), np.ascontiguousarray(cam), np.ascontiguousarray(fwd), np.ascontiguousarray(right),
+        np.ascontiguousarray(down), n_f, 0.5 * camera.width_px / camera.focal_length_px,
+        0.5 * camera.height_px / camera.focal_length_px)
     return {"k": kk, "s": s, "cam": cam, "good": good, "target": target, "aims": aims, "head": head,
             "pitch": pitch}
 

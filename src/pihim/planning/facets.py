@@ -157,30 +157,24 @@ def _first_hits_among(p0: NDArray[np.float64], d: NDArray[np.float64], table: ND
     padded); each chunk of ``chunk`` consecutive rays is tested against the
     union of its rows (a superset), so group the rays by row.
     """
+    from pihim.planning import _kernels
+
     spec = pose.field.spec
     hw, hh = float(spec.mirror_half_width_m), float(spec.mirror_half_height_m)
     n_r = len(p0)
     out = np.full(n_r, -1, dtype=np.int64)
-    t_lim = np.broadcast_to(np.asarray(t_max, float), (n_r,))
+    t_lim = np.ascontiguousarray(np.broadcast_to(np.asarray(t_max, float), (n_r,)))
+    p0, d, skip = np.ascontiguousarray(p0, float), np.ascontiguousarray(d, float), np.ascontiguousarray(skip, np.int64)
     for a in range(0, n_r, chunk):
         sl = slice(a, a + chunk)
         u = np.unique(table[np.unique(row[sl])])
         u = u[u >= 0]
         if len(u) == 0:
             continue
-        nrm, cen = pose.normals[u], pose.mirror_centres[u]
-        xa, ya = pose.rotations[u][:, :, 0], pose.rotations[u][:, :, 1]
-        den = d[sl] @ nrm.T  # (n, U)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (np.sum(cen * nrm, axis=1)[None, :] - p0[sl] @ nrm.T) / den
-            px = p0[sl] @ xa.T + t * (d[sl] @ xa.T) - np.sum(cen * xa, axis=1)[None, :]
-            py = p0[sl] @ ya.T + t * (d[sl] @ ya.T) - np.sum(cen * ya, axis=1)[None, :]
-        hit = (np.abs(px) <= hw) & (np.abs(py) <= hh) & (t > 1e-9) & (t < t_lim[sl, None])
-        hit &= u[None, :] != skip[sl, None]
-        t = np.where(hit, t, np.inf)
-        k = np.argmin(t, axis=1)
-        rows = np.arange(len(k))
-        out[sl] = np.where(hit[rows, k], u[k], -1)
+        rot = pose.rotations[u]
+        out[sl] = _kernels.first_hits_among(p0[sl], d[sl], u, skip[sl], t_lim[sl], pose.normals[u],
+                                            pose.mirror_centres[u], np.ascontiguousarray(rot[:, :, 0]),
+                                            np.ascontiguousarray(rot[:, :, 1]), hw, hh)
     return out
 
 

@@ -62,10 +62,10 @@ from pihim.field.geodesy import as_origin
 from pihim.planning.endurance import (
     DroneEndurance,
     _build,
-    _detour,
     _keepout,
     _leg_waypoints,
     _time_and_distance,
+    keepout_array,
     split_flights,
 )
 from pihim.planning.model import Flight, ScanPass, Waypoint
@@ -174,42 +174,25 @@ class _Costs:
         self.home_pass = len(passes)  # a pseudo-pass at home (both ends), to pin the ends of a flight
         self.turn_cost_m = float(turn_cost_m)
         self.keepout = keepout
+        self.keep = keepout_array(keepout)
         self.inner = np.array([_path_length(p.waypoints) for p in passes] + [0.0])
         self._cache: dict[tuple[int, int], float] = {}
         self._home: dict[int, float] = {}
 
     def _straight(self, a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
-        d = float(math.hypot(b[0] - a[0], b[1] - a[1]))
-        if self.keepout is not None and max(a[2], b[2]) < self.keepout[2]:
-            route = _detour(a, b, self.keepout)
-            if route:
-                pts = [a[:2], *route, b[:2]]
-                d = sum(float(np.linalg.norm(q - p)) for p, q in zip(pts[:-1], pts[1:], strict=True))
-        return d + abs(float(b[2] - a[2]))
+        from pihim.planning import _kernels
 
-    def _turns(self, e1: int, e2: int, leg: NDArray[np.float64]) -> int:
-        """Turns of more than 30 deg a transit along ``leg`` (horizontal) makes out of end e1 and into end e2.
-
-        Leaving a pass at e1 the drone travels along ``out[e1]``; entering
-        the next at e2 it travels along ``-out[e2]`` (a zero vector: no turn
-        there is charged). Symmetric in (e1, e2) with ``leg`` reversed.
-        """
-        cos30 = _COS_TURN
-        a, b = self.out[e1], -self.out[e2]
-        n = math.hypot(leg[0], leg[1])
-        if n < 0.5:  # no horizontal transit: the turn, if any, is from one pass straight into the other
-            return int(bool(a.any() and b.any()) and float(a @ b) < cos30)
-        u = leg[:2] / n
-        return int(bool(a.any()) and float(a @ u) < cos30) + int(bool(b.any()) and float(u @ b) < cos30)
+        return _kernels.straight(np.asarray(a, float), np.asarray(b, float), self.keep)
 
     def d(self, e1: int, e2: int) -> float:
-        """Transit from end point e1 to end point e2, metres, plus ``turn_cost_m`` per turn it makes."""
+        """Transit from end point e1 to end point e2, metres, plus ``turn_cost_m`` per turn it makes
+        (:func:`pihim.planning._kernels.transit`)."""
         key = (e1, e2) if e1 <= e2 else (e2, e1)
         v = self._cache.get(key)
         if v is None:
-            v = self._straight(self.pts[e1], self.pts[e2])
-            if self.turn_cost_m:
-                v += self.turn_cost_m * self._turns(e1, e2, self.pts[e2] - self.pts[e1])
+            from pihim.planning import _kernels
+
+            v = _kernels.transit(self.pts, self.out, e1, e2, self.keep, self.turn_cost_m, _COS_TURN)
             self._cache[key] = v
         return v
 
@@ -279,62 +262,18 @@ def _improve(order: list[int], costs: _Costs, st: RouteSettings, *, pinned: bool
     lo_i, hi_i = (1, n - 2) if pinned else (0, n - 1)  # positions that may move
     if hi_i - lo_i < 1 or st.sweeps == 0 or st.window == 0:
         return order
+    from pihim.planning import _kernels
+
     _, dirs = orient_passes(order, costs)
-    d = costs.d
-
-    def s_(i: int) -> int:  # start end point of position i
-        return 2 * order[i] + dirs[i]
-
-    def e_(i: int) -> int:  # finish end point of position i
-        return 2 * order[i] + 1 - dirs[i]
-
+    order_a = np.array(order, dtype=np.int64)
     for _ in range(st.sweeps):
-        improved = False
-        # 2-opt: reverse positions i..j
-        for i in range(lo_i, hi_i):
-            for j in range(i + 1, min(hi_i + 1, i + st.window + 1)):
-                old = (d(e_(i - 1), s_(i)) if i > 0 else 0.0) + (d(e_(j), s_(j + 1)) if j < n - 1 else 0.0)
-                new = (d(e_(i - 1), e_(j)) if i > 0 else 0.0) + (d(s_(i), s_(j + 1)) if j < n - 1 else 0.0)
-                if new < old - 1e-6:
-                    order[i:j + 1] = order[i:j + 1][::-1]
-                    dirs[i:j + 1] = [1 - x for x in dirs[i:j + 1][::-1]]
-                    improved = True
-        # Or-opt: move positions i..i+L-1 between positions p-1 and p (p outside the run), maybe reversed
-        for length in (1, 2, 3):
-            i = lo_i
-            while i + length - 1 <= hi_i:
-                j = i + length - 1
-                a, b = s_(i), e_(j)
-                gain = ((d(e_(i - 1), a) if i > 0 else 0.0) + (d(b, s_(j + 1)) if j < n - 1 else 0.0)
-                        - (d(e_(i - 1), s_(j + 1)) if 0 < i and j < n - 1 else 0.0))
-                best = (1e-6, -1, False)
-                for p in range(max(lo_i, i - st.window), min(hi_i + 1, j + 1 + st.window) + 1):
-                    if i <= p <= j + 1:
-                        continue
-                    left = e_(p - 1) if p > 0 else None
-                    right = s_(p) if p < n else None
-                    base = d(left, right) if left is not None and right is not None else 0.0
-                    for rev in (False, True):
-                        x, y = (b, a) if rev else (a, b)
-                        add = (d(left, x) if left is not None else 0.0) + (d(y, right) if right is not None else 0.0)
-                        delta = gain - (add - base)
-                        if delta > best[0]:
-                            best = (delta, p, rev)
-                if best[1] >= 0:
-                    p, rev = best[1], best[2]
-                    seg_o, seg_d = order[i:j + 1], dirs[i:j + 1]
-                    if rev:
-                        seg_o, seg_d = seg_o[::-1], [1 - x for x in seg_d[::-1]]
-                    rest_o, rest_d = order[:i] + order[j + 1:], dirs[:i] + dirs[j + 1:]
-                    q = p if p < i else p - length
-                    order[:] = rest_o[:q] + seg_o + rest_o[q:]
-                    dirs[:] = rest_d[:q] + seg_d + rest_d[q:]
-                    improved = True
-                i += 1
-        _, dirs = orient_passes(order, costs)
+        dirs_a = np.array(dirs, dtype=np.int64)
+        improved = _kernels.improve_sweep(order_a, dirs_a, costs.pts, costs.out, costs.keep, costs.turn_cost_m,
+                                          _COS_TURN, lo_i, hi_i, st.window)
+        _, dirs = orient_passes(order_a.tolist(), costs)
         if not improved:
             break
-    return order
+    return order_a.tolist()
 
 
 # --------------------------------------------------------------------------- flights

@@ -1,0 +1,222 @@
+"""The planner's compiled inner loops (:mod:`pihim.planning._kernels`) against plain-loop oracles."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from pihim.planning import _kernels
+from pihim.planning.facet_captures import _cone_intervals, _polygon_terms, cone_interval
+
+RNG = np.random.default_rng(20261126)
+
+
+def _random_quads(rng, shape):
+    """Random planar convex quads (shape..., 4, 3): rotated, scaled squares."""
+    square = np.array([[1.0, 1, 0], [-1, 1, 0], [-1, -1, 0], [1, -1, 0]])
+    out = np.empty((*shape, 4, 3))
+    for idx in np.ndindex(*shape):
+        rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        out[idx] = square @ rot.T * rng.uniform(0.5, 3.0) + rng.normal(size=3) * 4
+    return out
+
+
+@pytest.mark.parametrize("negative", [False, True])
+def test_cone_intervals_agree_with_the_closed_form_one_at_a_time(negative):
+    rng = np.random.default_rng(11)
+    B, I, J = 4, 8, 5
+    quads = _random_quads(rng, (B, J))
+    q = rng.normal(size=(B, I, 3)) * 3
+    a = rng.normal(size=(B, I, 3)) * 6
+    e = rng.normal(size=(B, I, 3))
+    idx = np.tile(np.arange(J), (B, 1))
+    idx[1, 2] = -1  # padding
+    window = (np.full(B, -8.0), np.full(B, 8.0))
+    lo, hi = _cone_intervals(q, a, e, _polygon_terms(quads), idx, window, negative)
+    met = missed = 0
+    for b, i, j in itertools.product(range(B), range(I), range(J)):
+        got = (lo[b, i, j], hi[b, i, j])
+        if idx[b, j] < 0:
+            assert got == (math.inf, -math.inf)
+            continue
+        want_lo, want_hi = cone_interval(q[b, i], quads[b, j], a[b, i], e[b, i], negative=negative)
+        if want_lo > want_hi:  # misses the cone: an empty interval
+            assert got[0] > got[1]
+            missed += 1
+            continue
+        if want_lo > 8.0 or want_hi < -8.0:  # misses the window: marked empty
+            assert got == (math.inf, -math.inf)
+            missed += 1
+            continue
+        met += 1
+        assert got == pytest.approx((float(want_lo), float(want_hi)), rel=1e-9, abs=1e-9)
+    assert met >= 5 and missed >= 5  # both outcomes exercised
+
+
+def _facet_grid_oracle(s, valid, r_lo, r_hi, back, tgt, b_lo, b_hi, f_lo, f_hi, q, cam, fwd, right, down,
+                       n_f, tx, ty):
+    B, G, A = fwd.shape[:3]
+    n_i = q.shape[1]
+    n_s = n_i // n_f
+    good = np.zeros((B, G, A, n_f), bool)
+    target = np.full((B, G, A, n_f), -1)
+    for b, g in itertools.product(range(B), range(G)):
+        sg = s[b, g]
+        vis = []
+        for i in range(n_i):
+            inside = [j for j in range(r_lo.shape[2]) if r_lo[b, i, j] <= sg <= r_hi[b, i, j]]
+            ok = (valid[b, g] and f_lo[b, i] < sg < f_hi[b, i] and bool(inside) and back[b, i, inside[0]]
+                  and not any(b_lo[b, i, j] <= sg <= b_hi[b, i, j] for j in range(b_lo.shape[2])))
+            vis.append(tgt[b, inside[0]] if ok else -1)
+        for a, f in itertools.product(range(A), range(n_f)):
+            for k in range(n_s):
+                i = f * n_s + k
+                v = q[b, i] - cam[b, g]
+                z, x, y = fwd[b, g, a] @ v, right[b, g, a] @ v, down[b, g, a] @ v
+                if vis[i] >= 0 and z > 0 and abs(x) <= tx * z and abs(y) <= ty * z:
+                    good[b, g, a, f], target[b, g, a, f] = True, vis[i]
+                    break
+    return good, target
+
+
+def test_facet_grid_agrees_with_plain_loops():
+    B, G, A, n_f, n_s, J, Jb = 2, 5, 3, 4, 3, 4, 2
+    n_i = n_f * n_s
+    s = np.sort(RNG.uniform(-5, 5, size=(B, G)), axis=1)
+    valid = RNG.random((B, G)) > 0.2
+
+    def intervals(j):
+        c = RNG.uniform(-5, 5, size=(B, n_i, j))
+        w = RNG.uniform(0, 4, size=(B, n_i, j))
+        lo, hi = c - w, c + w
+        miss = RNG.random((B, n_i, j)) < 0.3
+        return np.where(miss, np.inf, lo), np.where(miss, -np.inf, hi)
+
+    r_lo, r_hi = intervals(J)
+    b_lo, b_hi = intervals(Jb)
+    back = RNG.random((B, n_i, J)) > 0.3
+    tgt = RNG.integers(0, 50, size=(B, J))
+    f_lo, f_hi = RNG.uniform(-8, 0, size=(B, n_i)), RNG.uniform(0, 8, size=(B, n_i))
+    q = RNG.normal(size=(B, n_i, 3)) * 2
+    cam = RNG.normal(size=(B, G, 3)) * 2 + np.array([0.0, 0.0, 10.0])
+    axes = np.linalg.qr(RNG.normal(size=(B * G * A, 3, 3)))[0].reshape(B, G, A, 3, 3)
+    fwd, right, down = (np.ascontiguousarray(axes[..., k]) for k in range(3))
+    args = (s, valid, r_lo, r_hi, back, tgt, b_lo, b_hi, f_lo, f_hi, q, cam, fwd, right, down, n_f, 1.2, 1.0)
+    good, target = _kernels.facet_grid(*args)
+    want_good, want_target = _facet_grid_oracle(*args)
+    assert want_good.any() and not want_good.all()
+    np.testing.assert_array_equal(good, want_good)
+    np.testing.assert_array_equal(target, want_target)
+
+
+def test_first_hits_among_agrees_with_plain_loops():
+    n_m, n_r = 6, 200
+    centres = RNG.uniform(-10, 10, size=(n_m, 3))
+    rot = np.linalg.qr(RNG.normal(size=(n_m, 3, 3)))[0]
+    x, y, normals = (np.ascontiguousarray(rot[:, :, k]) for k in range(3))
+    mirrors = np.array([3, 7, 8, 11, 20, 21])
+    p0 = RNG.uniform(-15, 15, size=(n_r, 3))
+    aim = centres[RNG.integers(0, n_m, n_r)] + RNG.normal(size=(n_r, 3))  # most rays pass near a mirror
+    d = (aim - p0) / np.linalg.norm(aim - p0, axis=1, keepdims=True)
+    skip = np.where(RNG.random(n_r) < 0.2, mirrors[RNG.integers(0, n_m, n_r)], -1)
+    t_max = RNG.uniform(5, 40, n_r)
+    hw, hh = 1.5, 1.0
+    got = _kernels.first_hits_among(p0, d, mirrors, skip, t_max, normals, centres, x, y, hw, hh)
+    want = np.full(n_r, -1)
+    for r in range(n_r):
+        best = math.inf
+        for m in range(n_m):
+            den = d[r] @ normals[m]
+            if mirrors[m] == skip[r] or den == 0:
+                continue
+            t = (centres[m] - p0[r]) @ normals[m] / den
+            hit = p0[r] + t * d[r] - centres[m]
+            if 1e-9 < t < min(t_max[r], best) and abs(hit @ x[m]) <= hw and abs(hit @ y[m]) <= hh:
+                best, want[r] = t, mirrors[m]
+    assert (want >= 0).sum() > 20 and (want < 0).sum() > 20
+    np.testing.assert_array_equal(got, want)
+
+
+def _path_clear(p, r, keep):
+    return not _kernels.crosses(p[0], p[1], r[0], r[1], keep)
+
+
+def test_detour_is_the_shortest_clear_path_around_the_rectangle():
+    keep = np.array([-5.0, -3.0, 5.0, 3.0, 40.0])
+    corners = [np.array(c) for c in ((-5.0, -3.0), (5.0, -3.0), (5.0, 3.0), (-5.0, 3.0))]
+    crossed = 0
+    for _ in range(300):
+        a, b = RNG.uniform(-15, 15, size=2), RNG.uniform(-15, 15, size=2)
+        if (np.abs(a) < [5, 3]).all() or (np.abs(b) < [5, 3]).all():
+            continue
+        path, n = _kernels.detour(a[0], a[1], b[0], b[1], keep)
+        pts = [a, *path[:n], b]
+        assert all(_path_clear(p, r, keep) for p, r in zip(pts[:-1], pts[1:], strict=True))
+        length = sum(float(np.linalg.norm(r - p)) for p, r in zip(pts[:-1], pts[1:], strict=True))
+        best = math.inf  # every sequence of distinct corners whose legs stay clear of the rectangle
+        for k in range(5):
+            for seq in itertools.permutations(corners, k):
+                route = [a, *seq, b]
+                if all(_path_clear(p, r, keep) for p, r in zip(route[:-1], route[1:], strict=True)):
+                    best = min(best, sum(float(np.linalg.norm(r - p)) for p, r in
+                                         zip(route[:-1], route[1:], strict=True)))
+        assert length == pytest.approx(best, rel=1e-12)
+        crossed += n > 0
+        # straight(): the same length plus the climb, and only below the top
+        za, zb = RNG.uniform(0, 30, size=2)
+        assert _kernels.straight(np.r_[a, za], np.r_[b, zb], keep) == pytest.approx(length + abs(zb - za), rel=1e-12)
+        high = _kernels.straight(np.r_[a, 50.0], np.r_[b, 45.0], keep)
+        assert high == pytest.approx(math.hypot(*(b - a)) + 5.0, rel=1e-12)
+    assert crossed > 50
+
+
+def test_transit_is_symmetric_and_charges_turns():
+    pts = np.array([[0.0, 0, 10], [0, 20, 10], [10, 20, 12], [10, 0, 12]])
+    out = np.array([[0.0, -1], [0, 1], [0, 1], [0, -1]])  # pass 0 runs north, pass 1 south
+    none = np.empty(0)
+    cos30 = math.cos(math.radians(30.0))
+    for e1, e2 in itertools.product(range(4), repeat=2):
+        if e1 == e2:
+            continue
+        plain = _kernels.transit(pts, out, e1, e2, none, 0.0, cos30)
+        assert plain == _kernels.transit(pts, out, e2, e1, none, 0.0, cos30)
+        assert plain == pytest.approx(math.hypot(*(pts[e2, :2] - pts[e1, :2])) + abs(pts[e2, 2] - pts[e1, 2]))
+    # north end of pass 0 (row 1) -> north end of pass 1 (row 2): east across, two 90 deg turns
+    assert _kernels.transit(pts, out, 1, 2, none, 7.0, cos30) == pytest.approx(10.0 + 2.0 + 14.0)
+    # north end of pass 0 -> south end of pass 1: out north, leg south-east (> 30 deg), in north (> 30 deg)
+    assert _kernels.transit(pts, out, 1, 3, none, 7.0, cos30) == pytest.approx(math.hypot(10, 20) + 2.0 + 14.0)
+
+
+def _leg(pts, out, e1, e2):
+    if e1 < 0 or e2 < 0:
+        return 0.0
+    return _kernels.transit(pts, out, e1, e2, np.empty(0), 0.0, 0.5)
+
+
+def test_improve_sweep_leaves_no_improving_reversal_or_move():
+    n = 14
+    pts = np.repeat(RNG.uniform(0, 100, size=(n, 1, 3)), 2, axis=1).reshape(2 * n, 3)
+    pts[1::2, :2] += RNG.normal(size=(n, 2)) * 5  # each pass a short segment
+    out = np.zeros((2 * n, 2))
+    order = RNG.permutation(n).astype(np.int64)
+    dirs = np.zeros(n, np.int64)
+    start = order.copy()
+
+    def length(o, dr):
+        return sum(_leg(pts, out, 2 * o[i] + 1 - dr[i], 2 * o[i + 1] + dr[i + 1]) for i in range(n - 1))
+
+    before = length(order, dirs)
+    for _ in range(50):
+        if not _kernels.improve_sweep(order, dirs, pts, out, np.empty(0), 0.0, 0.5, 0, n - 1, n):
+            break
+    assert sorted(order.tolist()) == sorted(start.tolist())  # a permutation: every pass once
+    after = length(order, dirs)
+    assert after < before
+    # converged: no segment reversal (2-opt) shortens the path
+    for i, j in itertools.combinations(range(n), 2):
+        o2, d2 = order.copy(), dirs.copy()
+        o2[i:j + 1], d2[i:j + 1] = o2[i:j + 1][::-1].copy(), 1 - d2[i:j + 1][::-1]
+        assert length(o2, d2) >= after - 1e-6
