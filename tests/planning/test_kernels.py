@@ -220,3 +220,61 @@ def test_improve_sweep_leaves_no_improving_reversal_or_move():
         o2, d2 = order.copy(), dirs.copy()
         o2[i:j + 1], d2[i:j + 1] = o2[i:j + 1][::-1].copy(), 1 - d2[i:j + 1][::-1]
         assert length(o2, d2) >= after - 1e-6
+
+
+def _greedy_oracle(good, target, kk, used, passes, commit, max_captures, min_gain):
+    """Plain loops: rounds over the instances, each taking its best (position, aim) by facets added."""
+    B, G, A, F = good.shape
+    tie = np.abs(np.arange(G) - G // 2)[:, None] * 1e-3 + np.arange(A)[None, :] * 1e-5
+    cov = np.zeros((B, F), bool)
+    used = {k: set(v) for k, v in used.items()}
+    mine = [set() for _ in range(B)]
+    active = [True] * B
+    picks = [[] for _ in range(B)]
+    for _ in range(max_captures):
+        for b in range(B):
+            if not active[b]:
+                continue
+            taken = used.get(passes[b], set()) | mine[b]
+            best = None
+            for g, a in itertools.product(range(G), range(A)):
+                gain = -1.0 if kk[b, g] in taken else float(np.sum(good[b, g, a] & ~cov[b]))
+                if best is None or gain - tie[g, a] > best[0]:
+                    best = (gain - tie[g, a], g, a, gain)
+            _, g, a, gain = best
+            if gain < min_gain:
+                active[b] = False
+                continue
+            new = good[b, g, a] & ~cov[b]
+            shown = sorted(int(t) for t in target[b, g, a][new] if t >= 0)
+            top = max(shown, key=lambda t: (shown.count(t), -t)) if shown else -1
+            picks[b].append((g, a, new.tolist(), top))
+            cov[b] |= new
+            mine[b].add(int(kk[b, g]))
+            if commit:
+                used.setdefault(passes[b], set()).add(int(kk[b, g]))
+    return picks
+
+
+@pytest.mark.parametrize("commit", [True, False])
+def test_greedy_captures_agree_with_plain_loops(commit):
+    from pihim.planning.facet_captures import FacetCaptureSettings, _greedy, _Instance
+
+    rng = np.random.default_rng(5)
+    B, G, A, F = 5, 7, 3, 12
+    good = rng.random((B, G, A, F)) < 0.35
+    target = np.where(good, rng.integers(0, 4, size=(B, G, A, F)), -1)
+    passes = [0, 0, 1, 0, 2]  # three instances on one pass line: they share its grid positions
+    k0 = np.array([0, 2, 5, 3, 0])
+    kk = k0[:, None] + np.arange(G)[None, :]
+    used = {0: {4}, 2: {1, 2}}
+    st = FacetCaptureSettings(max_captures=3, min_gain=2)
+    inst = [_Instance(hua=b, pass_k=p, s0=0.0) for b, p in enumerate(passes)]
+    want = _greedy_oracle(good, target, kk, used, passes, commit, st.max_captures, st.min_gain)
+    mutable = {k: set(v) for k, v in used.items()}
+    got = _greedy({"good": good, "target": target, "k": kk}, inst, mutable, st, commit=commit)
+    assert [[(g, a, m.tolist(), t) for g, a, m, t in pk] for pk in got] == want
+    assert sum(len(pk) for pk in want) >= 8
+    assert mutable == ({k: set(v) for k, v in used.items()} if not commit else
+                       {p: used.get(p, set()) | {int(kk[b, g]) for b in range(B) if passes[b] == p
+                                                 for g, _, _, _ in want[b]} for p in set(passes) | set(used)})

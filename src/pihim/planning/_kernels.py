@@ -490,3 +490,70 @@ def improve_sweep(order: NDArray, dirs: NDArray, pts: NDArray, out: NDArray, kee
                 improved = True
             i += 1
     return improved
+
+
+@njit(cache=True)
+def greedy_captures(good: NDArray, target: NDArray, kk: NDArray, taken: NDArray, pass_id: NDArray, commit: bool,
+                    max_captures: int, min_gain: float, tie: NDArray) -> tuple:  # pragma: no cover - compiled
+    """Greedy captures per instance (:func:`pihim.planning.facet_captures._greedy`), in rounds: in each,
+    every instance still active, in order, takes the (position, aim) adding the most facets not yet covered
+    (``good`` (B, G, A, F); less ``tie`` (G, A) to break ties; the first maximum), skipping grid positions
+    already ``taken`` (B, G: by its own picks, and with ``commit`` by any instance of the same pass,
+    ``pass_id``, which share the grid indices ``kk``), and stops when the best adds fewer than
+    ``min_gain``. Returns per instance and pick: position, aim (-1: none), the new facets and the target most
+    of them show (the least heliostat index among equals; -1 none)."""
+    n_b, n_g, n_a, n_f = good.shape
+    pick_g = np.full((n_b, max_captures), -1, np.int64)
+    pick_a = np.full((n_b, max_captures), -1, np.int64)
+    pick_new = np.zeros((n_b, max_captures, n_f), np.bool_)
+    pick_t = np.full((n_b, max_captures), -1, np.int64)
+    cov = np.zeros((n_b, n_f), np.bool_)
+    active = np.ones(n_b, np.bool_)
+    vals = np.empty(n_f, np.int64)
+    for r in range(max_captures):
+        if not active.any():
+            break
+        for b in range(n_b):
+            if not active[b]:
+                continue
+            best, best_g, best_a, best_gain = -np.inf, 0, 0, 0.0
+            for g in range(n_g):
+                for a in range(n_a):
+                    gain = -1.0
+                    if not taken[b, g]:
+                        cnt = 0
+                        for f in range(n_f):
+                            if good[b, g, a, f] and not cov[b, f]:
+                                cnt += 1
+                        gain = float(cnt)
+                    score = gain - tie[g, a]
+                    if score > best:
+                        best, best_g, best_a, best_gain = score, g, a, gain
+            if best_gain < min_gain:
+                active[b] = False
+                continue
+            n_v = 0
+            for f in range(n_f):
+                new = good[b, best_g, best_a, f] and not cov[b, f]
+                pick_new[b, r, f] = new
+                if new:
+                    cov[b, f] = True
+                    if target[b, best_g, best_a, f] >= 0:
+                        vals[n_v] = target[b, best_g, best_a, f]
+                        n_v += 1
+            if n_v:
+                v = np.sort(vals[:n_v])
+                top, top_n, run = v[0], 0, 0
+                for m in range(n_v):
+                    run = run + 1 if m > 0 and v[m] == v[m - 1] else 1
+                    if run > top_n:
+                        top, top_n = v[m], run
+                pick_t[b, r] = top
+            pick_g[b, r], pick_a[b, r] = best_g, best_a
+            k = kk[b, best_g]
+            for b2 in range(n_b):
+                if b2 == b or (commit and pass_id[b2] == pass_id[b]):
+                    for g in range(n_g):
+                        if kk[b2, g] == k:
+                            taken[b2, g] = True
+    return pick_g, pick_a, pick_new, pick_t

@@ -494,38 +494,34 @@ def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, came
 
 def _greedy(ev: dict[str, NDArray], inst: Sequence[_Instance], used: dict[int, set[int]],
             st: FacetCaptureSettings, commit: bool = True) -> list[list[tuple[int, int, NDArray[np.bool_], int]]]:
-    """Greedy captures per instance: lists of (grid column, aim, new facets mask, target)."""
+    """Greedy captures per instance (:func:`pihim.planning._kernels.greedy_captures`): lists of (grid column,
+    aim, new facets mask, target). Grid positions in ``used`` (per pass) are skipped; with ``commit`` the
+    picks are added to it."""
+    from pihim.planning import _kernels
+
     good, target, kk = ev["good"], ev["target"], ev["k"]
     B, G, A, F = good.shape
-    cov = np.zeros((B, F), dtype=bool)
-    picks: list[list[tuple[int, int, NDArray[np.bool_], int]]] = [[] for _ in range(B)]
     half = G // 2
     tie = (np.abs(np.arange(G) - half)[:, None] * 1e-3 + np.arange(A)[None, :] * 1e-5)  # nearer, centre aim
-    active = np.ones(B, dtype=bool)
-    mine: list[set[int]] = [set() for _ in range(B)]  # this call's own picks (not committed with commit=False)
-    for _ in range(st.max_captures):
-        if not active.any():
-            break
-        gain = (good & ~cov[:, None, None, :]).sum(axis=-1).astype(float)  # (B, G, A)
-        for b in np.flatnonzero(active).tolist():
-            taken = used.get(inst[b].pass_k, set()) | mine[b]
-            g_b = gain[b]
-            if taken:
-                mask = np.isin(kk[b], np.fromiter(taken, dtype=np.int64, count=len(taken)))
-                g_b = np.where(mask[:, None], -1.0, g_b)
-            score = g_b - tie
-            g, a_ = np.unravel_index(int(np.argmax(score)), score.shape)
-            if g_b[g, a_] < st.min_gain:
-                active[b] = False
-                continue
-            new = good[b, g, a_] & ~cov[b]
-            tg = target[b, g, a_][new]
-            vals, counts = np.unique(tg[tg >= 0], return_counts=True)
-            picks[b].append((int(g), int(a_), new, int(vals[np.argmax(counts)]) if len(vals) else -1))
-            cov[b] |= new
-            mine[b].add(int(kk[b, g]))
-            if commit:
-                used.setdefault(inst[b].pass_k, set()).add(int(kk[b, g]))
+    taken = np.zeros((B, G), dtype=bool)
+    for b, i in enumerate(inst):
+        got = used.get(i.pass_k)
+        if got:
+            taken[b] = np.isin(kk[b], np.fromiter(got, dtype=np.int64, count=len(got)))
+    passes = [i.pass_k for i in inst]
+    pass_id = np.unique(np.array(passes, dtype=np.int64), return_inverse=True)[1].astype(np.int64)
+    pick_g, pick_a, pick_new, pick_t = _kernels.greedy_captures(
+        np.ascontiguousarray(good), np.ascontiguousarray(target, dtype=np.int64),
+        np.ascontiguousarray(kk, dtype=np.int64), taken, pass_id, bool(commit), int(st.max_captures),
+        float(st.min_gain), tie)
+    picks: list[list[tuple[int, int, NDArray[np.bool_], int]]] = []
+    for b in range(B):
+        mine = [(int(g), int(a_), pick_new[b, r].copy(), int(pick_t[b, r]))
+                for r, (g, a_) in enumerate(zip(pick_g[b].tolist(), pick_a[b].tolist(), strict=True)) if g >= 0]
+        picks.append(mine)
+        if commit:
+            for g, _, _, _ in mine:
+                used.setdefault(passes[b], set()).add(int(kk[b, g]))
     return picks
 
 
