@@ -614,10 +614,9 @@ def plan_facet_captures(
 
         ctx["keepout"] = tower_box(tower, 5.0)
     if aim_point is not None:
-        from pihim.planning.flux import beam_concentration
+        from pihim.planning.flux import Beams
 
-        aim = np.asarray(aim_point, float)
-        ctx["flux"] = lambda pts: beam_concentration(pts, pose, aim)
+        ctx["flux"] = Beams(pose, np.asarray(aim_point, float)).concentration  # indexed once (one k-d tree)
     # instances: every HUA captured in a pass, at its first capture
     inst: list[_Instance] = []
     seen_hua: set[int] = set()

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from pihim.field.kinematics import FieldPose
 from pihim.planning.sightlines import dot
 
-__all__ = ["beam_concentration"]
+__all__ = ["Beams", "beam_concentration"]
 
 
 def beam_concentration(points: ArrayLike, pose: FieldPose, aim_point: ArrayLike, *,
@@ -45,49 +45,70 @@ def beam_concentration(points: ArrayLike, pose: FieldPose, aim_point: ArrayLike,
     ndarray, shape (M,)
         Suns (1 is direct sunlight; 0 outside every beam).
     """
-    pts = np.atleast_2d(np.asarray(points, float))
-    a = np.asarray(aim_point, float)
-    spec = pose.field.spec  # type: ignore[attr-defined]
-    r0 = math.sqrt(4.0 * spec.mirror_half_width_m * spec.mirror_half_height_m / math.pi)
-    theta = divergence_mrad * 1e-3
-    c = pose.mirror_centres
-    axis = a - c
-    length = np.linalg.norm(axis, axis=1)
-    dirs = -axis / length[:, None]  # unit vectors from the aim point toward the mirrors
-    tree = cKDTree(dirs)
-    out = np.zeros(len(pts))
-    rmax = max(r0, float(length.max()) * theta)  # no beam is wider between its mirror and its focus
-    lmax = float(length.max())
-    z_lo, z_hi = float(c[:, 2].min()), float(c[:, 2].max())
-    for s0 in range(0, len(pts), 20_000):
-        p = pts[s0:s0 + 20_000]
-        v = p - a
-        dist = np.linalg.norm(v, axis=1)
-        # a beam holding a point at height z is at most f_max of its way to the aim point there (its axis is
-        # within the beam radius r of z), and r <= r0 + f_max L theta there: a narrower cone to search than rmax
-        # for points low above the field (the flights). Fixed point of the two bounds, from rmax down.
-        rad = np.full(len(p), rmax)
-        if a[2] > z_hi:
-            for _ in range(3):
-                f_max = np.clip((p[:, 2] + rad - z_lo) / (a[2] - z_hi), 0.0, 1.0)
-                rad = np.minimum(rmax, np.maximum(r0, r0 + f_max * lmax * theta))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            q = v / dist[:, None]
-            half = np.where(dist > rad, np.arcsin(np.minimum(1.0, rad / dist)), np.pi)
-        q = np.where(np.isfinite(q), q, 0.0)
-        lists = tree.query_ball_point(q, np.minimum(2.0, 2.0 * np.sin(np.minimum(half, np.pi / 2)) + 1e-12),
-                                      return_sorted=False)
-        lens = np.fromiter(map(len, lists), dtype=np.int64, count=len(p))
-        if lens.sum() == 0:
-            continue
-        pi = np.repeat(np.arange(len(p)), lens)
-        hi = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lens.sum()))
-        w = p[pi] - c[hi]
-        e = axis[hi] / length[hi, None]
-        along = dot(w, e)
-        f = along / length[hi]
-        perp = np.linalg.norm(w - along[:, None] * e, axis=1)
-        radius = (1.0 - f) * r0 + f * length[hi] * theta
-        inside = (f > 0) & (f <= 1.0) & (perp <= radius)
-        np.add.at(out, s0 + pi[inside], (r0 / np.maximum(radius[inside], 1e-9)) ** 2)
-    return out
+    return Beams(pose, aim_point, divergence_mrad=divergence_mrad).concentration(points)
+
+
+class Beams:
+    """The beams of a tracked field toward its aim point, indexed once for many
+    :meth:`concentration` calls (:func:`beam_concentration` for the model).
+
+    Parameters
+    ----------
+    pose : FieldPose
+    aim_point : array_like, shape (3,)
+        ENU metres.
+    divergence_mrad : float
+        Beam half-angle at the focus, mrad.
+    """
+
+    def __init__(self, pose: FieldPose, aim_point: ArrayLike, *, divergence_mrad: float = 7.0) -> None:
+        self.aim = np.asarray(aim_point, float)
+        spec = pose.field.spec  # type: ignore[attr-defined]
+        self.r0 = math.sqrt(4.0 * spec.mirror_half_width_m * spec.mirror_half_height_m / math.pi)
+        self.theta = divergence_mrad * 1e-3
+        self.centres = pose.mirror_centres
+        self.axis = self.aim - self.centres
+        self.length = np.linalg.norm(self.axis, axis=1)
+        self.tree = cKDTree(-self.axis / self.length[:, None])  # unit vectors from the aim point toward the mirrors
+
+    def concentration(self, points: ArrayLike) -> NDArray[np.float64]:
+        """Suns at ``points`` (M, 3), ENU metres: shape (M,)."""
+        pts = np.atleast_2d(np.asarray(points, float))
+        a, r0, theta, c, axis, length, tree = (self.aim, self.r0, self.theta, self.centres, self.axis, self.length,
+                                               self.tree)
+        out = np.zeros(len(pts))
+        rmax = max(r0, float(length.max()) * theta)  # no beam is wider between its mirror and its focus
+        lmax = float(length.max())
+        z_lo, z_hi = float(c[:, 2].min()), float(c[:, 2].max())
+        for s0 in range(0, len(pts), 20_000):
+            p = pts[s0:s0 + 20_000]
+            v = p - a
+            dist = np.linalg.norm(v, axis=1)
+            # a beam holding a point at height z is at most f_max of its way to the aim point there (its axis is
+            # within the beam radius r of z), and r <= r0 + f_max L theta there: a narrower cone to search than rmax
+            # for points low above the field (the flights). Fixed point of the two bounds, from rmax down.
+            rad = np.full(len(p), rmax)
+            if a[2] > z_hi:
+                for _ in range(3):
+                    f_max = np.clip((p[:, 2] + rad - z_lo) / (a[2] - z_hi), 0.0, 1.0)
+                    rad = np.minimum(rmax, np.maximum(r0, r0 + f_max * lmax * theta))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                q = v / dist[:, None]
+                half = np.where(dist > rad, np.arcsin(np.minimum(1.0, rad / dist)), np.pi)
+            q = np.where(np.isfinite(q), q, 0.0)
+            lists = tree.query_ball_point(q, np.minimum(2.0, 2.0 * np.sin(np.minimum(half, np.pi / 2)) + 1e-12),
+                                          return_sorted=False)
+            lens = np.fromiter(map(len, lists), dtype=np.int64, count=len(p))
+            if lens.sum() == 0:
+                continue
+            pi = np.repeat(np.arange(len(p)), lens)
+            hi = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lens.sum()))
+            w = p[pi] - c[hi]
+            e = axis[hi] / length[hi, None]
+            along = dot(w, e)
+            f = along / length[hi]
+            perp = np.linalg.norm(w - along[:, None] * e, axis=1)
+            radius = (1.0 - f) * r0 + f * length[hi] * theta
+            inside = (f > 0) & (f <= 1.0) & (perp <= radius)
+            np.add.at(out, s0 + pi[inside], (r0 / np.maximum(radius[inside], 1e-9)) ** 2)
+        return out
