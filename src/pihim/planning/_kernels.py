@@ -312,7 +312,7 @@ def first_hits_among(p0: NDArray, d: NDArray, mirrors: NDArray, skip: NDArray, t
 # --------------------------------------------------------------------------- transits and the route
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def crosses(ax: float, ay: float, bx: float, by: float, keep: NDArray) -> bool:  # pragma: no cover - compiled
     """Whether the 2-D segment a-b passes through the open rectangle ``keep[0:2]`` (low corner) -
     ``keep[2:4]`` (high corner), shrunk by 1e-6 m (Liang-Barsky)."""
@@ -378,21 +378,41 @@ def detour(ax: float, ay: float, bx: float, by: float, keep: NDArray) -> tuple: 
     return path[:n][::-1].copy(), n
 
 
+@njit(cache=True, inline="always")
+def straight(ax: float, ay: float, az: float, bx: float, by: float, bz: float,
+             keep: NDArray) -> float:  # pragma: no cover - compiled
+    """Transit a -> b, metres: across (around the keep-out ``keep`` = low x, low y, high x, high y, top z when
+    both ends are below its top; ``keep`` empty: none), plus the climb or descent."""
+    d = math.hypot(bx - ax, by - ay)
+    if keep.shape[0] and max(az, bz) < keep[4] and crosses(ax, ay, bx, by, keep):
+        path, n = detour(ax, ay, bx, by, keep)
+        px, py = ax, ay
+        d = 0.0
+        for k in range(n + 1):
+            qx, qy = (path[k, 0], path[k, 1]) if k < n else (bx, by)
+            d += math.sqrt((qx - px) ** 2 + (qy - py) ** 2)
+            px, py = qx, qy
+    return d + abs(bz - az)
+
+
 @njit(cache=True)
-def straight(a: NDArray, b: NDArray, keep: NDArray) -> float:  # pragma: no cover - compiled
-    """Transit a -> b (3-D points), metres: across (around the keep-out ``keep`` = low x, low y, high x, high y,
-    top z when both ends are below its top; ``keep`` empty: none), plus the climb or descent."""
-    d = math.hypot(b[0] - a[0], b[1] - a[1])
-    if keep.shape[0] and max(a[2], b[2]) < keep[4]:
-        path, n = detour(a[0], a[1], b[0], b[1], keep)
-        if n:
-            px, py = a[0], a[1]
-            d = 0.0
-            for k in range(n + 1):
-                qx, qy = (path[k, 0], path[k, 1]) if k < n else (b[0], b[1])
-                d += math.sqrt((qx - px) ** 2 + (qy - py) ** 2)
-                px, py = qx, qy
-    return d + abs(b[2] - a[2])
+def _transit(ax: float, ay: float, az: float, oax: float, oay: float, bx: float, by: float, bz: float, obx: float,
+             oby: float, keep: NDArray, turn_cost: float, cos_turn: float) -> float:  # pragma: no cover - compiled
+    """:func:`transit` from the ends' coordinates and outward directions (scalars: a cheap call)."""
+    v = straight(ax, ay, az, bx, by, bz, keep)
+    if turn_cost != 0.0:
+        obx, oby = -obx, -oby
+        a_any, b_any = oax != 0.0 or oay != 0.0, obx != 0.0 or oby != 0.0
+        lx, ly = bx - ax, by - ay
+        n = math.hypot(lx, ly)
+        turns = 0
+        if n < 0.5:  # no horizontal transit: the turn, if any, is from one pass straight into the other
+            turns = int(a_any and b_any and oax * obx + oay * oby < cos_turn)
+        else:
+            ux, uy = lx / n, ly / n
+            turns = int(a_any and oax * ux + oay * uy < cos_turn) + int(b_any and ux * obx + uy * oby < cos_turn)
+        v += turn_cost * turns
+    return v
 
 
 @njit(cache=True)
@@ -403,29 +423,8 @@ def transit(pts: NDArray, out: NDArray, e1: int, e2: int, keep: NDArray, turn_co
     ``-out[e2]``); the same both ways (computed from the lower end)."""
     if e2 < e1:
         e1, e2 = e2, e1
-    v = straight(pts[e1], pts[e2], keep)
-    if turn_cost != 0.0:
-        ax, ay, bx, by = out[e1, 0], out[e1, 1], -out[e2, 0], -out[e2, 1]
-        a_any, b_any = ax != 0.0 or ay != 0.0, bx != 0.0 or by != 0.0
-        lx, ly = pts[e2, 0] - pts[e1, 0], pts[e2, 1] - pts[e1, 1]
-        n = math.hypot(lx, ly)
-        turns = 0
-        if n < 0.5:  # no horizontal transit: the turn, if any, is from one pass straight into the other
-            turns = int(a_any and b_any and ax * bx + ay * by < cos_turn)
-        else:
-            ux, uy = lx / n, ly / n
-            turns = int(a_any and ax * ux + ay * uy < cos_turn) + int(b_any and ux * bx + uy * by < cos_turn)
-        v += turn_cost * turns
-    return v
-
-
-@njit(cache=True)
-def _leg(pts: NDArray, out: NDArray, e1: int, e2: int, keep: NDArray, turn_cost: float,
-         cos_turn: float) -> float:  # pragma: no cover - compiled
-    """:func:`transit`, 0 where either end is missing (-1: the route's start or end)."""
-    if e1 < 0 or e2 < 0:
-        return 0.0
-    return transit(pts, out, e1, e2, keep, turn_cost, cos_turn)
+    return _transit(pts[e1, 0], pts[e1, 1], pts[e1, 2], out[e1, 0], out[e1, 1], pts[e2, 0], pts[e2, 1], pts[e2, 2],
+                    out[e2, 0], out[e2, 1], keep, turn_cost, cos_turn)
 
 
 @njit(cache=True)
@@ -445,12 +444,18 @@ def improve_sweep(order: NDArray, dirs: NDArray, pts: NDArray, out: NDArray, kee
     def e_(i: int) -> int:
         return 2 * order[i] + 1 - dirs[i] if 0 <= i < n else -1
 
+    def leg(e1: int, e2: int) -> float:  # the transit between two ends, 0 where either is missing (-1)
+        if e1 < 0 or e2 < 0:
+            return 0.0
+        if e2 < e1:
+            e1, e2 = e2, e1
+        return _transit(pts[e1, 0], pts[e1, 1], pts[e1, 2], out[e1, 0], out[e1, 1], pts[e2, 0], pts[e2, 1],
+                        pts[e2, 2], out[e2, 0], out[e2, 1], keep, turn_cost, cos_turn)
+
     for i in range(lo_i, hi_i):
         for j in range(i + 1, min(hi_i + 1, i + window + 1)):
-            old = _leg(pts, out, e_(i - 1), s_(i), keep, turn_cost, cos_turn) + _leg(
-                pts, out, e_(j), s_(j + 1), keep, turn_cost, cos_turn)
-            new = _leg(pts, out, e_(i - 1), e_(j), keep, turn_cost, cos_turn) + _leg(
-                pts, out, s_(i), s_(j + 1), keep, turn_cost, cos_turn)
+            old = leg(e_(i - 1), s_(i)) + leg(e_(j), s_(j + 1))
+            new = leg(e_(i - 1), e_(j)) + leg(s_(i), s_(j + 1))
             if new < old - 1e-6:
                 order[i:j + 1] = order[i:j + 1][::-1].copy()
                 dirs[i:j + 1] = 1 - dirs[i:j + 1][::-1]
@@ -461,19 +466,18 @@ def improve_sweep(order: NDArray, dirs: NDArray, pts: NDArray, out: NDArray, kee
             j = i + length - 1
             a, b = s_(i), e_(j)
             before, after = e_(i - 1), s_(j + 1)
-            gain = (_leg(pts, out, before, a, keep, turn_cost, cos_turn)
-                    + _leg(pts, out, b, after, keep, turn_cost, cos_turn)
-                    - _leg(pts, out, before, after, keep, turn_cost, cos_turn))
+            gain = (leg(before, a)
+                    + leg(b, after)
+                    - leg(before, after))
             best, best_p, best_rev = 1e-6, -1, False
             for p in range(max(lo_i, i - window), min(hi_i + 1, j + 1 + window) + 1):
                 if i <= p <= j + 1:
                     continue
                 left, right = e_(p - 1), s_(p)
-                base = _leg(pts, out, left, right, keep, turn_cost, cos_turn)
+                base = leg(left, right)
                 for rev in (False, True):
                     x, y = (b, a) if rev else (a, b)
-                    add = _leg(pts, out, left, x, keep, turn_cost, cos_turn) + _leg(
-                        pts, out, y, right, keep, turn_cost, cos_turn)
+                    add = leg(left, x) + leg(y, right)
                     delta = gain - (add - base)
                     if delta > best:
                         best, best_p, best_rev = delta, p, rev

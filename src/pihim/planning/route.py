@@ -182,7 +182,7 @@ class _Costs:
     def _straight(self, a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
         from pihim.planning import _kernels
 
-        return _kernels.straight(np.asarray(a, float), np.asarray(b, float), self.keep)
+        return _kernels.straight(float(a[0]), float(a[1]), float(a[2]), float(b[0]), float(b[1]), float(b[2]), self.keep)
 
     def d(self, e1: int, e2: int) -> float:
         """Transit from end point e1 to end point e2, metres, plus ``turn_cost_m`` per turn it makes
