@@ -278,3 +278,13 @@ def test_greedy_captures_agree_with_plain_loops(commit):
     assert mutable == ({k: set(v) for k, v in used.items()} if not commit else
                        {p: used.get(p, set()) | {int(kk[b, g]) for b in range(B) if passes[b] == p
                                                  for g, _, _, _ in want[b]} for p in set(passes) | set(used)})
+
+
+def test_row_modes_is_the_most_frequent_value_least_among_equals():
+    rng = np.random.default_rng(2)
+    rows = np.where(rng.random((500, 9)) < 0.4, -1, rng.integers(0, 5, size=(500, 9)))
+    rows[0] = -1  # nothing shown
+    got = _kernels.row_modes(rows)
+    for r, row in enumerate(rows.tolist()):
+        vals = [v for v in row if v >= 0]
+        assert got[r] == (min(set(vals), key=lambda v: (-vals.count(v), v)) if vals else -1)

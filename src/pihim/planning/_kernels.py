@@ -497,6 +497,35 @@ def improve_sweep(order: NDArray, dirs: NDArray, pts: NDArray, out: NDArray, kee
 
 
 @njit(cache=True)
+def _mode(vals: NDArray) -> int:  # pragma: no cover - compiled
+    """The most frequent of ``vals`` (the least among equals); -1 for none."""
+    if vals.shape[0] == 0:
+        return -1
+    v = np.sort(vals)
+    top, top_n, run = v[0], 0, 0
+    for m in range(v.shape[0]):
+        run = run + 1 if m > 0 and v[m] == v[m - 1] else 1
+        if run > top_n:
+            top, top_n = v[m], run
+    return top
+
+
+@njit(cache=True)
+def row_modes(rows: NDArray) -> NDArray:  # pragma: no cover - compiled
+    """Per row of ``rows`` (R, K): the most frequent value >= 0 (the least among equals), -1 for none."""
+    out = np.full(rows.shape[0], -1, np.int64)
+    buf = np.empty(rows.shape[1], np.int64)
+    for r in range(rows.shape[0]):
+        n = 0
+        for k in range(rows.shape[1]):
+            if rows[r, k] >= 0:
+                buf[n] = rows[r, k]
+                n += 1
+        out[r] = _mode(buf[:n])
+    return out
+
+
+@njit(cache=True)
 def greedy_captures(good: NDArray, target: NDArray, kk: NDArray, taken: NDArray, pass_id: NDArray, commit: bool,
                     max_captures: int, min_gain: float, tie: NDArray) -> tuple:  # pragma: no cover - compiled
     """Greedy captures per instance (:func:`pihim.planning.facet_captures._greedy`), in rounds: in each,
@@ -545,14 +574,7 @@ def greedy_captures(good: NDArray, target: NDArray, kk: NDArray, taken: NDArray,
                     if target[b, best_g, best_a, f] >= 0:
                         vals[n_v] = target[b, best_g, best_a, f]
                         n_v += 1
-            if n_v:
-                v = np.sort(vals[:n_v])
-                top, top_n, run = v[0], 0, 0
-                for m in range(n_v):
-                    run = run + 1 if m > 0 and v[m] == v[m - 1] else 1
-                    if run > top_n:
-                        top, top_n = v[m], run
-                pick_t[b, r] = top
+            pick_t[b, r] = _mode(vals[:n_v])
             pick_g[b, r], pick_a[b, r] = best_g, best_a
             k = kk[b, best_g]
             for b2 in range(n_b):

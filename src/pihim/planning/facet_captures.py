@@ -68,6 +68,7 @@ References
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -359,17 +360,25 @@ def _grid_points(corners: NDArray[np.float64], samples: int) -> NDArray[np.float
 
 def _neighbours(tree: cKDTree, centres_xy: NDArray[np.float64], huas: NDArray[np.int64], radius: float,
                 keep: Any, limit: int) -> NDArray[np.int64]:
-    """Up to ``limit`` heliostats within ``radius`` of each HUA (nearest first) passing ``keep``; -1 padded."""
+    """Up to ``limit`` heliostats within ``radius`` of each HUA (nearest first; equals in the k-d tree's order)
+    passing ``keep(huas, candidates) -> bool`` (elementwise); -1 padded."""
+    huas = np.asarray(huas, dtype=np.int64)
     lists = tree.query_ball_point(centres_xy[huas], radius, return_sorted=False)
+    lens = np.fromiter(map(len, lists), dtype=np.int64, count=len(huas))
+    cand = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lens.sum()))
+    row = np.repeat(np.arange(len(huas)), lens)
+    ok = cand != huas[row]
+    cand, row = cand[ok], row[ok]
+    ok = keep(huas[row], cand)
+    cand, row = cand[ok], row[ok]
+    d = np.linalg.norm(centres_xy[cand] - centres_xy[huas[row]], axis=1)
+    order = np.lexsort((d, row))  # by HUA, then distance; stable: equals keep the tree's order
+    cand, row = cand[order], row[order]
+    start = np.searchsorted(row, np.arange(len(huas)))
+    rank = np.arange(len(row)) - start[row]
     out = np.full((len(huas), limit), -1, dtype=np.int64)
-    for b, (h, lst) in enumerate(zip(huas.tolist(), lists, strict=True)):
-        cand = np.asarray([j for j in lst if j != h], dtype=np.int64)
-        if len(cand) == 0:
-            continue
-        cand = cand[keep(h, cand)]
-        d = np.linalg.norm(centres_xy[cand] - centres_xy[h], axis=1)
-        cand = cand[np.argsort(d, kind="stable")][:limit]
-        out[b, :len(cand)] = cand
+    first = rank < limit
+    out[row[first], rank[first]] = cand[first]
     return out
 
 
@@ -596,9 +605,8 @@ def plan_facet_captures(
     tree = cKDTree(cxy)
     n_f = pose.facet_centres.shape[1]
 
-    def front_of(hh: int, cand: NDArray[np.int64]) -> NDArray[np.bool_]:
-        d = c[cand] - c[hh]
-        return dot(d, pose.normals[hh]) > 0
+    def front_of(hh: NDArray[np.int64], cand: NDArray[np.int64]) -> NDArray[np.bool_]:
+        return dot(c[cand] - c[hh], pose.normals[hh]) > 0
 
     j_max = 24
     ctx: dict[str, Any] = {

@@ -32,6 +32,7 @@ single-target test without occlusion (one capture, one named target).
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -182,11 +183,13 @@ def _near(tree: cKDTree, xy: NDArray[np.float64], radius: NDArray[np.float64], s
           ) -> NDArray[np.int64]:
     """Heliostats within ``radius`` (horizontal) of each point, except ``skip``: (N, J) -1 padded."""
     lists = tree.query_ball_point(xy, radius, return_sorted=False)
-    width = max((len(x) for x in lists), default=0)
-    out = np.full((len(xy), max(width, 1)), -1, dtype=np.int64)
-    for k, (lst, sk) in enumerate(zip(lists, skip.tolist(), strict=True)):
-        lst = [j for j in lst if j != sk]
-        out[k, :len(lst)] = lst
+    lens = np.fromiter(map(len, lists), dtype=np.int64, count=len(xy))
+    out = np.full((len(xy), max(int(lens.max(initial=0)), 1)), -1, dtype=np.int64)
+    flat = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lens.sum()))
+    row = np.repeat(np.arange(len(xy)), lens)
+    keep = flat != np.asarray(skip)[row]
+    flat, row = flat[keep], row[keep]
+    out[row, np.arange(len(row)) - np.searchsorted(row, np.arange(len(xy)))[row]] = flat  # in the tree's order
     return out
 
 
@@ -319,10 +322,10 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
     which.reshape(-1)[sel] = trace(sel)
     out = np.where(which[..., mid] >= 0, which[..., mid], -1) if mid is not None else out
     todo = np.flatnonzero(((out < 0) & (which >= 0).any(axis=-1)).ravel())
-    for k in todo.tolist():  # the heliostat most of the facet's other points show
-        row = which.reshape(-1, n_s)[k]
-        vals, counts = np.unique(row[row >= 0], return_counts=True)
-        out.reshape(-1)[k] = vals[np.argmax(counts)]
+    if len(todo):  # the heliostat most of the facet's other points show (the least index among equals)
+        from pihim.planning import _kernels
+
+        out.reshape(-1)[todo] = _kernels.row_modes(np.ascontiguousarray(which.reshape(-1, n_s)[todo]))
     return out
 
 
