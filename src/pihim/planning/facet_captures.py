@@ -426,9 +426,18 @@ def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, came
         lo_b, hi_b = ctx["keepout"]
         valid &= ~np.all((cam >= lo_b) & (cam <= hi_b), axis=-1)
     if ctx.get("flux") is not None and valid.any():
-        flux = np.zeros(valid.shape)
-        flux[valid] = ctx["flux"](cam[valid])
-        valid &= flux <= st.flux_limit_suns
+        # one estimate per camera position (pass line, grid index), kept for the other HUAs of the line
+        known: dict[int, bool] = ctx.setdefault("flux_ok", {})
+        vb, vg = np.nonzero(valid)
+        lk = np.array([i.pass_k for i in inst], dtype=np.int64)
+        keys = ((lk[vb] << 32) + (kk[vb, vg] + (1 << 31))).tolist()
+        ok = [known.get(key) for key in keys]
+        miss = [j for j, v in enumerate(ok) if v is None]
+        if miss:
+            m = np.array(miss)
+            for j, v in zip(miss, (ctx["flux"](cam[vb[m], vg[m]]) <= st.flux_limit_suns).tolist(), strict=True):
+                known[keys[j]] = ok[j] = v
+        valid[vb, vg] = ok
     # facet samples of the HUAs
     corners = facet_corners(pose.rotations[h], ch, spec.facet_centroids, pose.facet_normals_local[h],
                             spec.facet_width_m, spec.facet_height_m)  # (B, F, 4, 3)
