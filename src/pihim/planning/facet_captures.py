@@ -680,14 +680,27 @@ def plan_facet_captures(
         line_k = np.array([k for k, ln in enumerate(lines) if k in extent and ln is not None], dtype=np.int64)
         line_a = np.array([lines[k].a[:2] for k in line_k]).reshape(-1, 2)
         line_e = np.array([lines[k].e for k in line_k]).reshape(-1, 2)
-        pending: list[tuple[int, list[_Instance]]] = []
-        for hh in todo:
-            rel = c[hh, :2] - line_a  # to every flown line at once (a loop over lines per HUA grew as N^2)
-            near = np.flatnonzero(np.abs(rel[:, 0] * line_e[:, 1] - rel[:, 1] * line_e[:, 0]) <= st.rescue_reach_m)
-            along = np.sum(rel[near] * line_e[near], axis=1)
-            pending.append((hh, [_Instance(hh, int(line_k[j]), float(s_))
-                                 for j, s_ in zip(near.tolist(), along.tolist(), strict=True)]))
-        for hh, cand, ev in _evaluated(pending, lines, pose, camera, st, ctx):
+        pending: list[tuple[int, NDArray[np.int64], NDArray[np.float64]]] = []
+        for c0 in range(0, len(todo), 256):  # to every flown line at once (a loop over lines per HUA grew as N^2)
+            hs = np.asarray(todo[c0:c0 + 256], dtype=np.int64)
+            rel = c[hs, None, :2] - line_a[None]  # (H, L, 2)
+            near = np.abs(rel[..., 0] * line_e[None, :, 1] - rel[..., 1] * line_e[None, :, 0]) <= st.rescue_reach_m
+            for r, hh in enumerate(hs.tolist()):
+                j = np.flatnonzero(near[r])
+                pending.append((hh, line_k[j], np.sum(rel[r, j] * line_e[j], axis=1)))
+        half_w = round(st.window_m / st.step_m) * st.step_m
+        reach = st.batch * st.rescue_max_extension_m + st.rescue_max_extension_m + 1e-6
+
+        def admit(ks: NDArray[np.int64], along: NDArray[np.float64]) -> NDArray[np.bool_]:
+            """Lines whose candidate positions (the window around ``along``) can still be within the allowed
+            extension of their pass when the HUA's turn comes: the passes' extents grow only by rescues, at
+            most ``rescue_max_extension_m`` each, and at most ``st.batch`` HUAs of a batch decide before it."""
+            mid = np.round(along / st.step_m) * st.step_m
+            lo = np.array([extent[int(k)][0] for k in ks.tolist()], dtype=float).reshape(-1)
+            hi = np.array([extent[int(k)][1] for k in ks.tolist()], dtype=float).reshape(-1)
+            return (mid - half_w <= hi + reach) & (mid + half_w >= lo - reach)
+
+        for hh, cand, ev in _evaluated(pending, admit, lines, pose, camera, st, ctx):
             if not cand:
                 left.append(hh)
                 continue
@@ -832,11 +845,13 @@ def _trim(chosen: list[tuple[Any, Any, int, list]], n_f: int, target: float) -> 
             heapq.heappush(heap, (int(picks[-1][2].sum()), k))
 
 
-def _evaluated(pending: Sequence[tuple[int, list[_Instance]]], lines: Sequence[_Line | None], pose: Any,
-               camera: CameraModel, st: FacetCaptureSettings, ctx: dict[str, Any]
-               ) -> Iterator[tuple[int, list[_Instance], dict[str, NDArray] | None]]:
+def _evaluated(pending: Sequence[tuple[int, NDArray[np.int64], NDArray[np.float64]]], admit: Any,
+               lines: Sequence[_Line | None], pose: Any, camera: CameraModel, st: FacetCaptureSettings,
+               ctx: dict[str, Any]) -> Iterator[tuple[int, list[_Instance], dict[str, NDArray] | None]]:
     """``(hua, candidates, evaluation)`` in order, the candidates of several HUAs evaluated in one batch.
 
+    ``pending`` holds per HUA its candidate pass lines and positions along them; ``admit(lines, positions)``,
+    asked when a batch is formed (after the decisions on the HUAs before), says which can still be chosen.
     An instance's evaluation depends neither on the others in its batch nor on the grid positions already
     used (only :func:`_greedy` does), so a batch of up to ``st.batch`` instances serves several HUAs: a
     100,000-heliostat field has about 25,000 HUAs to rescue, one small evaluation each before.
@@ -844,13 +859,20 @@ def _evaluated(pending: Sequence[tuple[int, list[_Instance]]], lines: Sequence[_
     k0 = 0
     while k0 < len(pending):
         k1, n = k0, 0
-        while k1 < len(pending) and (k1 == k0 or n + len(pending[k1][1]) <= st.batch):
-            n += len(pending[k1][1])
+        batch: list[tuple[int, list[_Instance]]] = []
+        while k1 < len(pending):
+            hh, ks, along = pending[k1]
+            ok = admit(ks, along)
+            cand = [_Instance(hh, k, s_) for k, s_ in zip(ks[ok].tolist(), along[ok].tolist(), strict=True)]
+            if batch and n + len(cand) > st.batch:
+                break
+            batch.append((hh, cand))
+            n += len(cand)
             k1 += 1
-        flat = [i for _, cand in pending[k0:k1] for i in cand]
+        flat = [i for _, cand in batch for i in cand]
         ev = _evaluate(flat, lines, pose, camera, st, ctx) if flat else {}
         off = 0
-        for hh, cand in pending[k0:k1]:
+        for hh, cand in batch:
             yield hh, cand, ({k: v[off:off + len(cand)] for k, v in ev.items()} if cand else None)
             off += len(cand)
         k0 = k1
