@@ -302,30 +302,69 @@ def _transit(a: tuple[float, float, float], b: tuple[float, float, float], z: fl
 def _build(passes: Sequence[ScanPass], home: Waypoint, keepout: Any, model: DroneEndurance,
            transit_altitude_m: float | None) -> list[_Leg]:
     """Legs of one flight: take-off, climb, passes with transits, return, landing."""
-    z_c = max(p.altitude_m for p in passes) if transit_altitude_m is None else transit_altitude_m
-    h = _xyz(home)
-    legs = [_Leg(h, home.heading_deg, 0.0, 0.0, "takeoff")]
-    cur = h
-    for k, p in enumerate(passes):
+    return _FlightLegs.of(passes, home, keepout, model, transit_altitude_m).legs()
+
+
+@dataclass(frozen=True)
+class _FlightLegs:
+    """A flight's legs up to its last pass (internal), to grow pass by pass (:meth:`plus`) and close
+    (:meth:`legs`): trying one more pass costs its own legs and the return, not the whole flight again.
+    ``body`` as built, ``fast`` the same legs at their turn-limited speeds (:func:`_turn_speeds`: each leg's
+    speed depends on it and the leg before only)."""
+
+    body: tuple[_Leg, ...]
+    fast: tuple[_Leg, ...]
+    z_c: float  # altitude of the climb, the first transit and the return
+    home: Waypoint
+    keepout: Any
+    model: DroneEndurance
+    transit_altitude_m: float | None
+
+    @classmethod
+    def of(cls, passes: Sequence[ScanPass], home: Waypoint, keepout: Any, model: DroneEndurance,
+           transit_altitude_m: float | None) -> _FlightLegs:
+        z_c = max(p.altitude_m for p in passes) if transit_altitude_m is None else transit_altitude_m
+        body = [_Leg(_xyz(home), home.heading_deg, 0.0, 0.0, "takeoff")]
+        for k, p in enumerate(passes):
+            body += cls._pass_legs(body[-1], k, p, z_c, keepout, model)
+        return cls(tuple(body), tuple(_turn_speeds(body, model)), z_c, home, keepout, model, transit_altitude_m)
+
+    @staticmethod
+    def _pass_legs(last: _Leg, k: int, p: ScanPass, z_c: float, keepout: Any, model: DroneEndurance) -> list[_Leg]:
+        """The transit from ``last`` (the take-off or the previous pass's end) to pass ``k`` of the flight, and
+        the pass."""
         first = p.waypoints[0]
-        z = z_c if k == 0 else max(cur[2], first.z_m)
-        legs += _transit(cur, _xyz(first), z, keepout, model, start_heading=legs[-1].heading_deg,
-                         heading=first.heading_deg, pitch=first.gimbal_pitch_deg, direct=True)
+        z = z_c if k == 0 else max(last.xyz[2], first.z_m)
+        legs = _transit(last.xyz, _xyz(first), z, keepout, model, start_heading=last.heading_deg,
+                        heading=first.heading_deg, pitch=first.gimbal_pitch_deg, direct=True)
         for i, w in enumerate(p.waypoints):
             if i == 0:  # the pass is reached at the transit speed
                 w = replace(w, speed_m_s=model.transit_speed_m_s)
             legs.append(_Leg(_xyz(w), w.heading_deg, w.gimbal_pitch_deg, w.speed_m_s, w.kind, w.capture, w.hua, w,
                              pass_start=i == 0))
-        cur = _xyz(p.waypoints[-1])
-    back = _transit(cur, h, z_c, keepout, model, start_heading=legs[-1].heading_deg)
-    if back:
-        back[-1] = replace(back[-1], kind="return")
-    if not back or math.dist(back[-1].xyz, (h[0], h[1], z_c)) > 1e-9:  # above home before landing
-        back.append(_Leg((h[0], h[1], z_c), legs[-1].heading_deg if not back else back[-1].heading_deg, 0.0,
-                         model.transit_speed_m_s, "return"))
-    legs += back
-    legs.append(_Leg(h, legs[-1].heading_deg, 0.0, 0.0, "land"))
-    return _turn_speeds(legs, model)
+        return legs
+
+    def plus(self, p: ScanPass, k: int) -> _FlightLegs | None:
+        """The flight with pass ``p`` (its ``k``-th) added; None when it must be built again (a higher pass
+        raises the climb and the first transit)."""
+        z_c = max(self.z_c, p.altitude_m) if self.transit_altitude_m is None else self.transit_altitude_m
+        if z_c != self.z_c:
+            return None
+        new = self._pass_legs(self.body[-1], k, p, z_c, self.keepout, self.model)
+        return replace(self, body=self.body + tuple(new),
+                       fast=self.fast + tuple(_turn_speeds([self.body[-1], *new], self.model)[1:]))
+
+    def legs(self) -> list[_Leg]:
+        """The whole flight at its turn-limited speeds: the body, the return and the landing."""
+        h, z_c, last = _xyz(self.home), self.z_c, self.body[-1]
+        back = _transit(last.xyz, h, z_c, self.keepout, self.model, start_heading=last.heading_deg)
+        if back:
+            back[-1] = replace(back[-1], kind="return")
+        if not back or math.dist(back[-1].xyz, (h[0], h[1], z_c)) > 1e-9:  # above home before landing
+            back.append(_Leg((h[0], h[1], z_c), last.heading_deg if not back else back[-1].heading_deg, 0.0,
+                             self.model.transit_speed_m_s, "return"))
+        back.append(_Leg(h, back[-1].heading_deg, 0.0, 0.0, "land"))
+        return [*self.fast, *_turn_speeds([last, *back], self.model)[1:]]
 
 
 def _turn_speeds(legs: list[_Leg], model: DroneEndurance) -> list[_Leg]:
@@ -502,13 +541,17 @@ def split_flights(
     flights: list[Flight] = []
     current: list[ScanPass] = []
     best_legs: list[_Leg] | None = None
+    grown: _FlightLegs | None = None  # the legs of ``current`` up to its last pass
     for p in todo:
         trial = current + [p]
-        legs = _build(trial, home, keepout, model, transit_altitude_m)
+        nxt = grown.plus(p, len(current)) if grown is not None else None
+        if nxt is None:
+            nxt = _FlightLegs.of(trial, home, keepout, model, transit_altitude_m)
+        legs = nxt.legs()
         t, _ = _time_and_distance(legs, model)
         why = over(legs, t)
         if why is None:
-            current, best_legs = trial, legs
+            current, best_legs, grown = trial, legs, nxt
             continue
         if not current:
             if unflyable is None:
@@ -518,14 +561,15 @@ def split_flights(
         assert best_legs is not None
         flights.append(_finish(len(flights), tuple(q.index for q in current), best_legs, current, org, model))
         current = [p]
-        best_legs = _build(current, home, keepout, model, transit_altitude_m)
+        grown = _FlightLegs.of(current, home, keepout, model, transit_altitude_m)
+        best_legs = grown.legs()
         t, _ = _time_and_distance(best_legs, model)
         why = over(best_legs, t)
         if why is not None:
             if unflyable is None:
                 raise PihimInputError(f"pass {p.index} alone needs {why}")
             unflyable.append(p.index)
-            current, best_legs = [], None
+            current, best_legs, grown = [], None, None
     if current and best_legs is not None:
         flights.append(_finish(len(flights), tuple(q.index for q in current), best_legs, current, org, model))
     return tuple(flights)
