@@ -167,7 +167,8 @@ def test_detour_is_the_shortest_clear_path_around_the_rectangle():
         crossed += n > 0
         # straight(): the same length plus the climb, and only below the top
         za, zb = RNG.uniform(0, 30, size=2)
-        assert _kernels.straight(a[0], a[1], za, b[0], b[1], zb, keep) == pytest.approx(length + abs(zb - za), rel=1e-12)
+        assert _kernels.straight(a[0], a[1], za, b[0], b[1], zb, keep) == pytest.approx(length + abs(zb - za),
+                                                                                rel=1e-12)
         high = _kernels.straight(a[0], a[1], 50.0, b[0], b[1], 45.0, keep)
         assert high == pytest.approx(math.hypot(*(b - a)) + 5.0, rel=1e-12)
     assert crossed > 50

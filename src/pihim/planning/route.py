@@ -122,7 +122,7 @@ def reverse_pass(p: ScanPass) -> ScanPass:
     dropped (their waypoint indices change: score the pass again).
     """
     swap = {"lead_in": "run_past", "run_past": "lead_in"}
-    wps = tuple(dataclasses.replace(w, kind=swap.get(w.kind, w.kind))  # type: ignore[arg-type]
+    wps = tuple(dataclasses.replace(w, kind=swap[w.kind]) if w.kind in swap else w  # type: ignore[arg-type]
                 for w in reversed(p.waypoints))
     return dataclasses.replace(p, waypoints=wps, pairs=tuple(reversed(p.pairs)), predictions=(),
                                azimuth_deg=(p.azimuth_deg + 180.0) % 360.0)
@@ -182,7 +182,8 @@ class _Costs:
     def _straight(self, a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
         from pihim.planning import _kernels
 
-        return _kernels.straight(float(a[0]), float(a[1]), float(a[2]), float(b[0]), float(b[1]), float(b[2]), self.keep)
+        return _kernels.straight(float(a[0]), float(a[1]), float(a[2]), float(b[0]), float(b[1]), float(b[2]),
+                                 self.keep)
 
     def d(self, e1: int, e2: int) -> float:
         """Transit from end point e1 to end point e2, metres, plus ``turn_cost_m`` per turn it makes

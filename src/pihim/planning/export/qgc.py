@@ -323,15 +323,21 @@ def _options(autopilot: Any = "ardupilot", condition_yaw: Any = None, yaw_rate_d
                     _nonneg("acceptance_radius_m", acceptance_radius_m), speed_commands, end)
 
 
-def _build_items(wps: Sequence[Waypoint], home: Waypoint, alt: Any, frame: int, o: _Options) -> list[MissionItem]:
-    """Mission items for a waypoint sequence (module docstring, "Mission layout")."""
+def _build_items(wps: Sequence[Waypoint], home: Waypoint, alt: Any, frame: int, o: _Options,
+                 count_only: bool = False) -> list[MissionItem]:
+    """Mission items for a waypoint sequence (module docstring, "Mission layout"); with ``count_only`` the
+    same sequence of placeholders (None), for :func:`count_mission_items`."""
 
     def nav(command: int, w: Waypoint, p1: float, p2: float, p4: float, target: Waypoint | None,
             altitude: float | None = None) -> MissionItem:
+        if count_only:
+            return None  # type: ignore[return-value]
         z = alt(w) if altitude is None else altitude
         return MissionItem(command, frame, (p1, p2, 0.0, p4, w.latitude_deg, w.longitude_deg, z), True, target)
 
     def do(command: int, params: tuple[float, ...], w: Waypoint | None) -> MissionItem:
+        if count_only:
+            return None  # type: ignore[return-value]
         return MissionItem(command, MAV_FRAME_MISSION, params, True, w)  # type: ignore[arg-type]
 
     items: list[MissionItem] = []
@@ -419,7 +425,8 @@ def count_mission_items(waypoints: Sequence[Waypoint], **mission_options: Any) -
         raise PihimInputError("no waypoints to count")
     opts = {k: v for k, v in mission_options.items() if k not in ("altitude_frame", "geoid_undulation_m", "flight")}
     o = _options(**opts)
-    items = _build_items(tuple(waypoints), waypoints[0], lambda w: 0.0, MAV_FRAME_GLOBAL_RELATIVE_ALT, o)
+    items = _build_items(tuple(waypoints), waypoints[0], lambda w: 0.0, MAV_FRAME_GLOBAL_RELATIVE_ALT, o,
+                         count_only=True)
     return len(items) + 1
 
 
