@@ -420,24 +420,11 @@ def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, came
     s = kk * st.step_m
     cam = a[:, None, :] + s[..., None] * e3[:, None, :]  # (B, G, 3)
     ch = pose.mirror_centres[h]
-    # camera range, keep-outs and flux
+    # camera range and keep-outs (the flux below, where it matters)
     valid = np.linalg.norm(cam - ch[:, None, :], axis=-1) <= st.max_range_m
     if ctx.get("keepout") is not None:
         lo_b, hi_b = ctx["keepout"]
         valid &= ~np.all((cam >= lo_b) & (cam <= hi_b), axis=-1)
-    if ctx.get("flux") is not None and valid.any():
-        # one estimate per camera position (pass line, grid index), kept for the other HUAs of the line
-        known: dict[int, bool] = ctx.setdefault("flux_ok", {})
-        vb, vg = np.nonzero(valid)
-        lk = np.array([i.pass_k for i in inst], dtype=np.int64)
-        keys = ((lk[vb] << 32) + (kk[vb, vg] + (1 << 31))).tolist()
-        ok = [known.get(key) for key in keys]
-        miss = [j for j, v in enumerate(ok) if v is None]
-        if miss:
-            m = np.array(miss)
-            for j, v in zip(miss, (ctx["flux"](cam[vb[m], vg[m]]) <= st.flux_limit_suns).tolist(), strict=True):
-                known[keys[j]] = ok[j] = v
-        valid[vb, vg] = ok
     # facet samples of the HUAs
     corners = facet_corners(pose.rotations[h], ch, spec.facet_centroids, pose.facet_normals_local[h],
                             spec.facet_width_m, spec.facet_height_m)  # (B, F, 4, 3)
@@ -506,6 +493,22 @@ def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, came
         np.ascontiguousarray(q), np.ascontiguousarray(cam), np.ascontiguousarray(fwd), np.ascontiguousarray(right),
         np.ascontiguousarray(down), n_f, 0.5 * camera.width_px / camera.focal_length_px,
         0.5 * camera.height_px / camera.focal_length_px)
+    if ctx.get("flux") is not None:
+        # in concentrated sunlight a position covers nothing: asked only where it would cover facets (the same
+        # as refusing the position before), once per camera position (pass line, grid index) for every HUA
+        known: dict[int, bool] = ctx.setdefault("flux_ok", {})
+        vb, vg = np.nonzero(good.any(axis=(2, 3)))
+        lk = np.array([i.pass_k for i in inst], dtype=np.int64)
+        keys = ((lk[vb] << 32) + (kk[vb, vg] + (1 << 31))).tolist()
+        ok = [known.get(key) for key in keys]
+        miss = [j for j, v in enumerate(ok) if v is None]
+        if miss:
+            m = np.array(miss)
+            for j, v in zip(miss, (ctx["flux"](cam[vb[m], vg[m]]) <= st.flux_limit_suns).tolist(), strict=True):
+                known[keys[j]] = ok[j] = v
+        hot = ~np.array(ok, dtype=bool)
+        good[vb[hot], vg[hot]] = False
+        target[vb[hot], vg[hot]] = -1
     return {"k": kk, "s": s, "cam": cam, "good": good, "target": target, "aims": aims, "head": head,
             "pitch": pitch}
 
