@@ -692,15 +692,17 @@ def plan_facet_captures(
                 j = np.flatnonzero(near[r])
                 pending.append((hh, line_k[j], np.sum(rel[r, j] * line_e[j], axis=1)))
         half_w = round(st.window_m / st.step_m) * st.step_m
-        reach = st.batch * st.rescue_max_extension_m + st.rescue_max_extension_m + 1e-6
 
-        def admit(ks: NDArray[np.int64], along: NDArray[np.float64]) -> NDArray[np.bool_]:
+        def admit(ks: NDArray[np.int64], along: NDArray[np.float64], before: dict[int, int]) -> NDArray[np.bool_]:
             """Lines whose candidate positions (the window around ``along``) can still be within the allowed
-            extension of their pass when the HUA's turn comes: the passes' extents grow only by rescues, at
-            most ``rescue_max_extension_m`` each, and at most ``st.batch`` HUAs of a batch decide before it."""
+            extension of their pass when the HUA's turn comes. The passes' extents grow only by rescues, each by
+            at most ``rescue_max_extension_m``, and before this HUA decides only by the HUAs ahead of it in its
+            batch: ``before[k]`` of them may extend pass ``k``."""
             mid = np.round(along / st.step_m) * st.step_m
             lo = np.array([extent[int(k)][0] for k in ks.tolist()], dtype=float).reshape(-1)
             hi = np.array([extent[int(k)][1] for k in ks.tolist()], dtype=float).reshape(-1)
+            reach = (np.array([before.get(int(k), 0) for k in ks.tolist()], dtype=float).reshape(-1) + 1.0) \
+                * st.rescue_max_extension_m + 1e-6
             return (mid - half_w <= hi + reach) & (mid + half_w >= lo - reach)
 
         for hh, cand, ev in _evaluated(pending, admit, lines, pose, camera, st, ctx):
@@ -853,8 +855,9 @@ def _evaluated(pending: Sequence[tuple[int, NDArray[np.int64], NDArray[np.float6
                ctx: dict[str, Any]) -> Iterator[tuple[int, list[_Instance], dict[str, NDArray] | None]]:
     """``(hua, candidates, evaluation)`` in order, the candidates of several HUAs evaluated in one batch.
 
-    ``pending`` holds per HUA its candidate pass lines and positions along them; ``admit(lines, positions)``,
-    asked when a batch is formed (after the decisions on the HUAs before), says which can still be chosen.
+    ``pending`` holds per HUA its candidate pass lines and positions along them; ``admit(lines, positions,
+    before)``, asked when a batch is formed (after the decisions on the HUAs of the batches before), says which
+    can still be chosen, ``before`` counting per pass line the HUAs ahead in the batch that may extend it.
     An instance's evaluation depends neither on the others in its batch nor on the grid positions already
     used (only :func:`_greedy` does), so a batch of up to ``st.batch`` instances serves several HUAs: a
     100,000-heliostat field has about 25,000 HUAs to rescue, one small evaluation each before.
@@ -863,13 +866,16 @@ def _evaluated(pending: Sequence[tuple[int, NDArray[np.int64], NDArray[np.float6
     while k0 < len(pending):
         k1, n = k0, 0
         batch: list[tuple[int, list[_Instance]]] = []
+        before: dict[int, int] = {}
         while k1 < len(pending):
             hh, ks, along = pending[k1]
-            ok = admit(ks, along)
+            ok = admit(ks, along, before)
             cand = [_Instance(hh, k, s_) for k, s_ in zip(ks[ok].tolist(), along[ok].tolist(), strict=True)]
             if batch and n + len(cand) > st.batch:
                 break
             batch.append((hh, cand))
+            for k in {i.pass_k for i in cand}:
+                before[k] = before.get(k, 0) + 1
             n += len(cand)
             k1 += 1
         flat = [i for _, cand in batch for i in cand]
