@@ -425,3 +425,31 @@ def test_facet_capture_settings_are_checked():
                 {"min_planned_coverage": -0.1}):
         with pytest.raises(PihimInputError):
             FacetCaptureSettings(**bad)
+
+
+def test_huas_left_without_a_pass_are_rescued_or_given_their_own(plan10):
+    """Half of the passes withheld: their HUAs are imaged from the nearest remaining lines (rescue) or from
+    short passes of their own, each with at least ``rescue_min_fraction`` of its facets predicted, and the
+    traced report confirms most of those facets."""
+    from pihim.planning.facet_captures import plan_facet_captures
+    from pihim.planning.facets import facet_coverage
+
+    plan, field_, pose, _ = plan10
+    base = build_plan(field_, parse_time(TIME), NSTTF, facet_captures=False, route=False, facet_report=False)
+    flown = [p for p in base.passes if p.feasible]
+    kept, withheld = flown[1::2], flown[::2]
+    orphans = sorted({w.hua for p in withheld for w in p.waypoints if w.capture and w.hua} -
+                     {w.hua for p in kept for w in p.waypoints if w.capture and w.hua})
+    st = FacetCaptureSettings()
+    fplan = plan_facet_captures(kept, pose, origin=NSTTF, tower=field_.tower, aim_point=plan.aim_point,
+                                unassessed=orphans, settings=st)
+    n_f = pose.facet_centres.shape[1]
+    own = [p for p in fplan.passes if any("short pass of its own" in i for i in p.issues)]
+    helped = set(fplan.rescued)
+    assert len(orphans) > 20 and len(helped) > 10 and own  # both routes taken
+    for h in helped:  # each with enough facets predicted, captured on some pass
+        assert len(fplan.predicted[h]) >= st.rescue_min_fraction * n_f
+        assert any(w.hua == h and w.capture for p in fplan.passes for w in p.waypoints)
+    traced = facet_coverage(fplan.passes, pose, tower=field_.tower)
+    got = sum(len(set(traced[h].covered) & set(fplan.predicted[h])) for h in helped)
+    assert got >= 0.9 * sum(len(fplan.predicted[h]) for h in helped)

@@ -141,7 +141,7 @@ class FacetCaptureSettings:
         pass line that needs the least extension is chosen).
     min_planned_coverage : float
         HUAs that no planned line images even so get short passes of their
-        own (:func:`_own_line`), nearest to the planned captures first, until
+        own (:func:`_own_lines`), nearest to the planned captures first, until
         this share of the field's heliostats is imaged (0: never).
     lead_in_m, run_past_m : float
         Straight flight before the first and after the last capture of each
@@ -676,6 +676,8 @@ def plan_facet_captures(
             lo, hi = extent[i.pass_k]
             s_caps = [float(ev["s"][best, g]) for g, _, _, _ in pk]
             extent[i.pass_k] = (min(lo, *s_caps), max(hi, *s_caps))
+            if i.pass_k < len(ext_lo):
+                ext_lo[i.pass_k], ext_hi[i.pass_k] = extent[i.pass_k]
             coverable[names[i.hua]] = int(ev["good"][best].any(axis=(0, 1)).sum())
             chosen.append((i, _slice(ev, best), 0, pk))
             rescued.append(names[i.hua])
@@ -692,6 +694,10 @@ def plan_facet_captures(
                 j = np.flatnonzero(near[r])
                 pending.append((hh, line_k[j], np.sum(rel[r, j] * line_e[j], axis=1)))
         half_w = round(st.window_m / st.step_m) * st.step_m
+        ext_lo = np.full(len(lines), np.nan)  # the extents as arrays, for admit (kept equal by commit)
+        ext_hi = np.full(len(lines), np.nan)
+        for k, (lo_k, hi_k) in extent.items():
+            ext_lo[k], ext_hi[k] = lo_k, hi_k
 
         def admit(ks: NDArray[np.int64], along: NDArray[np.float64], before: dict[int, int]) -> NDArray[np.bool_]:
             """Lines whose candidate positions (the window around ``along``) can still be within the allowed
@@ -699,11 +705,9 @@ def plan_facet_captures(
             at most ``rescue_max_extension_m``, and before this HUA decides only by the HUAs ahead of it in its
             batch: ``before[k]`` of them may extend pass ``k``."""
             mid = np.round(along / st.step_m) * st.step_m
-            lo = np.array([extent[int(k)][0] for k in ks.tolist()], dtype=float).reshape(-1)
-            hi = np.array([extent[int(k)][1] for k in ks.tolist()], dtype=float).reshape(-1)
-            reach = (np.array([before.get(int(k), 0) for k in ks.tolist()], dtype=float).reshape(-1) + 1.0) \
-                * st.rescue_max_extension_m + 1e-6
-            return (mid - half_w <= hi + reach) & (mid + half_w >= lo - reach)
+            ahead = np.array([before.get(k, 0) for k in ks.tolist()], dtype=float) if before else 0.0
+            reach = (ahead + 1.0) * st.rescue_max_extension_m + 1e-6
+            return (mid - half_w <= ext_hi[ks] + reach) & (mid + half_w >= ext_lo[ks] - reach)
 
         for hh, cand, ev in _evaluated(pending, admit, lines, pose, camera, st, ctx):
             if not cand:
@@ -736,11 +740,18 @@ def plan_facet_captures(
             own = {"z": float(np.median(alts)) if alts else None,  # the own lines' altitude (their own adds keep it)
                    "index": max(q.index for q in passes) + 1}
             offers = []
+            own_pending = []  # every HUA's own lines first (their numbering), then evaluated in batches
             for hh in left:
-                got = _own_line(hh, pose, passes, lines, camera, st, ctx, used, n_f, own)
-                if got is None:
+                ks = _own_lines(hh, pose, passes, lines, ctx, own)
+                if ks is not None:
+                    own_pending.append((hh, ks, np.zeros(len(ks))))
+            for hh, cand_, ev_ in _evaluated(own_pending, lambda ks, _along, _before: np.ones(len(ks), bool), lines,
+                                             pose, camera, st, ctx):
+                picks_ = _greedy(ev_, cand_, used, st, commit=False)
+                total = [sum(int(m.sum()) for _, _, m, _ in pk) for pk in picks_]
+                b_ = int(np.argmax(total))
+                if total[b_] == 0 or total[b_] < st.rescue_min_fraction * n_f:
                     continue
-                cand_, ev_, picks_, b_ = got
                 got = ([cand_[b_]], {k: v[b_:b_ + 1].copy() for k, v in ev_.items()}, [picks_[b_]], 0)  # the best only
                 xy = ev_["cam"][b_, [g for g, _, _, _ in picks_[b_]], :2]
                 cost = 0.0
@@ -785,14 +796,12 @@ def plan_facet_captures(
     return FacetPlan(tuple(out), tuple(caps), predicted, coverable, tuple(rescued))
 
 
-def _own_line(hh: int, pose: Any, passes: list[ScanPass], lines: list[_Line | None], camera: CameraModel,
-              st: FacetCaptureSettings, ctx: dict[str, Any], used: dict[int, set[int]], n_f: int,
-              own: dict[str, Any]) -> Any:
-    """A line of its own for a HUA no planned line images: through the point that shows each candidate
+def _own_lines(hh: int, pose: Any, passes: list[ScanPass], lines: list[_Line | None], ctx: dict[str, Any],
+               own: dict[str, Any]) -> NDArray[np.int64] | None:
+    """Lines of its own for a HUA no planned line images: through the point that shows each candidate
     target's centre at the HUA's centre (``H + t w``, ``w`` the mirror image of the direction to the
     target), along the HUA's normals' plane, at the median pass altitude (``own["z"]``). Appends a line and
-    a placeholder pass (numbered from ``own["index"]``) per candidate; returns (instances, evaluation,
-    picks, best) or None."""
+    a placeholder pass (numbered from ``own["index"]``) per candidate; returns their indices or None."""
     z = own["z"]
     if z is None:
         return None
@@ -812,8 +821,7 @@ def _own_line(hh: int, pose: Any, passes: list[ScanPass], lines: list[_Line | No
     cam = c[hh] + ((z - c[hh, 2]) / w[:, 2])[:, None] * w
     b = n[hh, :2] / max(float(np.linalg.norm(n[hh, :2])), 1e-12)
     k0 = len(passes)
-    cand = []
-    for j, p0 in enumerate(cam):
+    for p0 in cam:
         lines.append(_Line(np.array([p0[0], p0[1], z]), b, z))
         own["index"] += 1
         passes.append(ScanPass(index=own["index"] - 1, azimuth_deg=float(azimuth_deg(b[0], b[1])),
@@ -821,14 +829,7 @@ def _own_line(hh: int, pose: Any, passes: list[ScanPass], lines: list[_Line | No
                                gimbal_pitch_deg=-90.0, pairs=(), waypoints=(), feasible=True,
                                issues=(f"{pose.field.names[hh]}: imaged from a short pass of its own (no planned "
                                        "line shows its facets a heliostat's back)",)))
-        cand.append(_Instance(hh, k0 + j, 0.0))
-    ev = _evaluate(cand, lines, pose, camera, st, ctx)
-    picks = _greedy(ev, cand, used, st, commit=False)
-    total = [sum(int(m.sum()) for _, _, m, _ in pk) for pk in picks]
-    best = int(np.argmax(total))
-    if total[best] == 0 or total[best] < st.rescue_min_fraction * n_f:
-        return None
-    return cand, ev, picks, best
+    return np.arange(k0, k0 + len(cam), dtype=np.int64)
 
 
 def _trim(chosen: list[tuple[Any, Any, int, list]], n_f: int, target: float) -> None:

@@ -70,6 +70,9 @@ class Beams:
         self.axis = self.aim - self.centres
         self.length = np.linalg.norm(self.axis, axis=1)
         self.tree = cKDTree(-self.axis / self.length[:, None])  # unit vectors from the aim point toward the mirrors
+        self.lmax = float(self.length.max())
+        self.rmax = max(self.r0, self.lmax * self.theta)  # no beam is wider between its mirror and its focus
+        self.z_lo, self.z_hi = float(self.centres[:, 2].min()), float(self.centres[:, 2].max())
 
     def concentration(self, points: ArrayLike) -> NDArray[np.float64]:
         """Suns at ``points`` (M, 3), ENU metres: shape (M,)."""
@@ -77,9 +80,7 @@ class Beams:
         a, r0, theta, c, axis, length, tree = (self.aim, self.r0, self.theta, self.centres, self.axis, self.length,
                                                self.tree)
         out = np.zeros(len(pts))
-        rmax = max(r0, float(length.max()) * theta)  # no beam is wider between its mirror and its focus
-        lmax = float(length.max())
-        z_lo, z_hi = float(c[:, 2].min()), float(c[:, 2].max())
+        rmax, lmax, z_lo, z_hi = self.rmax, self.lmax, self.z_lo, self.z_hi
         for s0 in range(0, len(pts), 20_000):
             p = pts[s0:s0 + 20_000]
             v = p - a
