@@ -733,6 +733,16 @@ def test_export_all_bad_plan_writes_nothing(plan, tmp_path):
         export_all(bad, tmp_path / "out")
 
 
+def test_a_checked_plan_is_remembered_by_identity_only(plan):
+    from pihim.planning.export._common import _CHECKED, check_plan
+
+    assert check_plan(plan) is plan and _CHECKED.get(id(plan)) is plan  # export_all asks once per file
+    bad = _nan_latitude_plan(plan)  # a new plan, equal but for one waypoint: checked in full
+    with pytest.raises(PihimInputError, match="latitude_deg is nan"):
+        check_plan(bad)
+    assert _CHECKED.get(id(bad)) is None
+
+
 def test_failed_write_keeps_the_previous_file(plan, tmp_path):
     path = write_qgc_plan(plan, tmp_path / "mission.plan")
     before = path.read_bytes()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import weakref
 from pathlib import Path
 from typing import Any
 
@@ -81,6 +82,8 @@ def check_plan(plan: Any) -> Plan:
     """
     if not isinstance(plan, Plan):
         raise PihimInputError(f"expected a pihim Plan, got {type(plan).__name__}")
+    if _CHECKED.get(id(plan)) is plan:  # checked before, and immutable: every exporter, every flight asks
+        return plan
     if not plan.passes:
         raise PihimInputError("the plan has no scan passes: nothing to export")
     check_waypoint(plan.home, "home")
@@ -92,7 +95,14 @@ def check_plan(plan: Any) -> Plan:
     for f in plan.flights:
         for j, w in enumerate(f.waypoints):
             check_waypoint(w, f"flight {f.index} waypoint {j}")
+    if isinstance(plan.passes, tuple) and isinstance(plan.flights, tuple):
+        _CHECKED[id(plan)] = plan
     return plan
+
+
+#: Plans :func:`check_plan` accepted, by identity (a frozen Plan of tuples of frozen passes, flights and
+#: waypoints cannot change): exporting a plan of 4,000 flights checked all of it for every file of every flight.
+_CHECKED: weakref.WeakValueDictionary[int, Plan] = weakref.WeakValueDictionary()
 
 
 def mission_waypoints(plan: Plan, flight: int | None = None) -> tuple[Waypoint, ...]:
