@@ -175,7 +175,17 @@ def _place_pass_labels(fig: Any, ax: Any, starts: list[tuple[int, NDArray[np.flo
     origin = inv.transform((0.0, 0.0))
     per_px = np.abs(inv.transform((1.0, 1.0)) - origin)
     px = fontsize * fig.dpi / 72.0
-    placed: list[tuple[float, float, float, float]] = []
+    # placed boxes in a grid of cells at least as large as any label: a box that overlaps another shares a cell
+    # with it, so each spot is checked against a few boxes, not all (a 100,000-heliostat plan has 34,000 labels)
+    widest = max((len(str(index)) for index, _ in starts), default=1)
+    cell = max((0.62 * px * widest + 4) * per_px[0], (px + 4) * per_px[1])
+    grid: dict[tuple[int, int], list[tuple[float, float, float, float]]] = {}
+
+    def cells(box: tuple[float, float, float, float]) -> list[tuple[int, int]]:
+        i0, i1 = math.floor(box[0] / cell), math.floor(box[2] / cell)
+        j0, j1 = math.floor(box[1] / cell), math.floor(box[3] / cell)
+        return [(i, j) for i in range(i0, i1 + 1) for j in range(j0, j1 + 1)]
+
     for index, xy in starts:
         text = str(index)
         w, h = (0.62 * px * len(text) + 4) * per_px[0], (px + 4) * per_px[1]
@@ -188,14 +198,17 @@ def _place_pass_labels(fig: Any, ax: Any, starts: list[tuple[int, NDArray[np.flo
             for v in (-d, side, -side, -d + side, -d - side):
                 c = start + r * v / np.linalg.norm(v)
                 box = (c[0] - w / 2, c[1] - h / 2, c[0] + w / 2, c[1] + h / 2)
-                if not any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in placed):
+                if not any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3]
+                           for key in cells(box) for b in grid.get(key, ())):
                     spot = c
                     break
             if spot is not None:
                 break
         if spot is None:
             spot = start
-        placed.append((spot[0] - w / 2, spot[1] - h / 2, spot[0] + w / 2, spot[1] + h / 2))
+        box = (spot[0] - w / 2, spot[1] - h / 2, spot[0] + w / 2, spot[1] + h / 2)
+        for key in cells(box):
+            grid.setdefault(key, []).append(box)
         ax.annotate(text, xy=start, xytext=spot, fontsize=fontsize, ha="center", va="center", zorder=7,
                     bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "0.5", "lw": 0.5, "alpha": 0.85},
                     arrowprops={"arrowstyle": "-", "color": "0.4", "lw": 0.5, "shrinkA": 0, "shrinkB": 0})
