@@ -415,7 +415,7 @@ def _transit(ax: float, ay: float, az: float, oax: float, oay: float, bx: float,
     return v
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def transit(pts: NDArray, out: NDArray, e1: int, e2: int, keep: NDArray, turn_cost: float,
             cos_turn: float) -> float:  # pragma: no cover - compiled
     """Transit from pass end ``e1`` to pass end ``e2`` (rows of ``pts``), plus ``turn_cost`` for each turn
@@ -445,12 +445,7 @@ def improve_sweep(order: NDArray, dirs: NDArray, pts: NDArray, out: NDArray, kee
         return 2 * order[i] + 1 - dirs[i] if 0 <= i < n else -1
 
     def leg(e1: int, e2: int) -> float:  # the transit between two ends, 0 where either is missing (-1)
-        if e1 < 0 or e2 < 0:
-            return 0.0
-        if e2 < e1:
-            e1, e2 = e2, e1
-        return _transit(pts[e1, 0], pts[e1, 1], pts[e1, 2], out[e1, 0], out[e1, 1], pts[e2, 0], pts[e2, 1],
-                        pts[e2, 2], out[e2, 0], out[e2, 1], keep, turn_cost, cos_turn)
+        return transit(pts, out, e1, e2, keep, turn_cost, cos_turn) if e1 >= 0 and e2 >= 0 else 0.0
 
     for i in range(lo_i, hi_i):
         for j in range(i + 1, min(hi_i + 1, i + window + 1)):
