@@ -588,6 +588,40 @@ def test_plan_figure_pass_labels_never_overlap_when_drawn(monkeypatch):
         assert np.hypot(*(spot - start)) < 25.0
 
 
+def test_plan_figure_of_a_large_plan_leaves_out_numbers_and_lists_flights_in_one_entry(monkeypatch):
+    """Above MAX_LABELLED_PASSES passes no pass numbers, arrowheads or image marks are drawn (the title says so),
+    and above MAX_LEGEND_FLIGHTS flights the legend holds one entry with their count and totals; at the limits
+    (lowered here to 3 passes and 1 flight) the small plan's figure keeps all of them."""
+    import pihim.planning.export.figure as figure_module
+    from pihim.planning.export.figure import plan_figure
+
+    base = make_plan()
+    f0 = base.flights[0]
+    two = replace(base, flights=(f0, replace(f0, index=1, duration_s=300.0, distance_m=550.0)))
+
+    def drawn(plan):
+        ax = plan_figure(plan, field=make_field()).axes[0]
+        numbers = sorted(int(t.get_text()) for t in ax.texts if t.get_text().isdigit())
+        arrows = [t for t in ax.texts if t.get_text() == ""]
+        marks = sum(len(c.get_offsets()) for c in ax.collections if c.get_label() != "heliostats"
+                    and hasattr(c, "get_sizes") and len(c.get_sizes()) and c.get_sizes()[0] == 14)
+        legend = [t.get_text() for t in ax.get_legend().get_texts()]
+        return numbers, len(arrows), marks, legend, ax.get_title()
+
+    monkeypatch.setattr(figure_module, "MAX_LABELLED_PASSES", 3)
+    monkeypatch.setattr(figure_module, "MAX_LEGEND_FLIGHTS", 2)
+    numbers, arrows, marks, legend, title = drawn(two)
+    assert numbers == [0, 1, 2] and arrows == 3 and marks == 9
+    assert "flight 1: 10.2 min, 1.45 km" in legend and "flight 2: 5.0 min, 0.55 km" in legend
+    assert "no pass numbers" not in title
+    monkeypatch.setattr(figure_module, "MAX_LABELLED_PASSES", 2)
+    monkeypatch.setattr(figure_module, "MAX_LEGEND_FLIGHTS", 1)
+    numbers, arrows, marks, legend, title = drawn(two)
+    assert numbers == [] and arrows == 0 and marks == 0
+    assert "2 flights: 15 min, 2.0 km in all" in legend and not any(t.startswith("flight ") for t in legend)
+    assert "over 2 passes: no pass numbers, arrows, image marks" in title
+
+
 # --------------------------------------------------------------------------- export_all and bad input
 
 

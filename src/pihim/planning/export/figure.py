@@ -14,6 +14,12 @@ contrast edge). Drawn with
 matplotlib's object-oriented API on an Agg canvas: no ``pyplot``, no global
 state, safe in threads and servers [1]_.
 
+Large plans stay legible: above :data:`MAX_LABELLED_PASSES` passes the pass
+numbers, arrowheads and capture marks are left out (the title says so;
+``plan.json`` and the KML hold every pass and image), and above :data:`MAX_LEGEND_FLIGHTS` flights the legend
+gives the flights' count and totals in one entry instead of one entry each
+(their colours repeat every ten flights).
+
 References
 ----------
 .. [1] matplotlib, "Embedding Matplotlib in graphical user interfaces" and
@@ -34,7 +40,13 @@ from pihim.errors import PihimInputError
 from pihim.planning.export._common import check_plan, plan_counts, write_export
 from pihim.planning.model import Plan
 
-__all__ = ["plan_figure", "plan_png_bytes", "write_plan_figure"]
+__all__ = ["MAX_LABELLED_PASSES", "MAX_LEGEND_FLIGHTS", "plan_figure", "plan_png_bytes", "write_plan_figure"]
+
+#: Most passes whose numbers and arrowheads are drawn; a 1,000-heliostat plan has about 300 passes, whose boxes
+#: would cover the map of a 1200 x 960 pixel figure.
+MAX_LABELLED_PASSES = 200
+#: Most flights listed one by one in the legend (``tab10`` has ten colours).
+MAX_LEGEND_FLIGHTS = 10
 
 
 def _check_size(figsize: tuple[float, float], dpi: float) -> None:
@@ -102,12 +114,21 @@ def plan_figure(
                                facecolor="0.35", edgecolor="black", label="tower", zorder=2))
 
     flight_colours = colormaps["tab10"]
-    for f in plan.flights:  # under the passes: the whole flight, so the transits between passes show
-        fxy = np.array([(w.x_m, w.y_m) for w in f.waypoints])
-        if len(fxy) >= 2:
+    drawn = [f for f in plan.flights if len(f.waypoints) >= 2]
+    if len(plan.flights) <= MAX_LEGEND_FLIGHTS:
+        for f in drawn:  # under the passes: the whole flight, so the transits between passes show
+            fxy = np.array([(w.x_m, w.y_m) for w in f.waypoints])
             ax.plot(fxy[:, 0], fxy[:, 1], ls=(0, (4, 2)), lw=1.1, color=flight_colours(f.index % 10), zorder=2.5,
                     label=f"flight {f.index + 1}: {f.duration_s / 60:.1f} min, {f.distance_m / 1000:.2f} km")
+    elif drawn:  # one artist for them all, one legend entry with the totals
+        minutes = sum(f.duration_s for f in plan.flights) / 60
+        km = sum(f.distance_m for f in plan.flights) / 1000
+        ax.add_collection(LineCollection(
+            [np.array([(w.x_m, w.y_m) for w in f.waypoints]) for f in drawn],
+            colors=[flight_colours(f.index % 10) for f in drawn], linestyles=[(0, (4, 2))], linewidths=1.1,
+            zorder=2.5, label=f"{len(plan.flights)} flights: {minutes:.0f} min, {km:.1f} km in all"), autolim=True)
 
+    labelled = len(plan.passes) <= MAX_LABELLED_PASSES
     starts = []
     segments, colours, styles, cap_xy, cap_colour = [], [], [], [], []
     for p in plan.passes:
@@ -116,7 +137,7 @@ def plan_figure(
         segments.append(xy)
         colours.append(colour)
         styles.append("-" if p.feasible else "--")
-        if len(xy) >= 2 and np.hypot(*(xy[-1] - xy[0])) > 0:
+        if labelled and len(xy) >= 2 and np.hypot(*(xy[-1] - xy[0])) > 0:
             ax.annotate("", xy=xy[-1], xytext=xy[-2], zorder=4,
                         arrowprops={"arrowstyle": "-|>", "color": colour, "lw": 1.5, "mutation_scale": 14})
         cap = [(w.x_m, w.y_m) for w in p.waypoints if w.capture]
@@ -126,16 +147,17 @@ def plan_figure(
     # one artist each for all the pass lines and all the capture marks (one per pass drew 2.5x slower)
     ax.add_collection(LineCollection(segments, colors=colours, linestyles=styles, linewidths=1.8, zorder=3),
                       autolim=True)
-    if cap_xy:
+    if cap_xy and labelled:
         cap_arr = np.array(cap_xy)
         ax.scatter(cap_arr[:, 0], cap_arr[:, 1], s=14, facecolors="white", edgecolors=cap_colour, linewidths=1.0,
                    marker="o", zorder=4)
     ax.plot([plan.home.x_m], [plan.home.y_m], marker="*", ms=12, color="crimson", ls="none", label="home", zorder=6)
 
     counts = plan_counts(plan)
+    unlabelled = "" if labelled else f" (over {MAX_LABELLED_PASSES} passes: no pass numbers, arrows, image marks)"
     ax.set_title(f"pihim plan {plan.time_iso}\n{counts['passes']} passes ({counts['feasible_passes']} feasible), "
-                 f"{counts['flights']} flights, {counts['capture_waypoints']} images\n{_coverage_text(plan)}",
-                 fontsize=10)
+                 f"{counts['flights']} flights, {counts['capture_waypoints']} images{unlabelled}\n"
+                 f"{_coverage_text(plan)}", fontsize=10)
     ax.set_xlabel("East (m)")
     ax.set_ylabel("North (m)")
     ax.set_aspect("equal", adjustable="datalim")
@@ -144,7 +166,8 @@ def plan_figure(
     sm = ScalarMappable(norm=norm, cmap=cmap)
     sm.set_array([])
     fig.colorbar(sm, ax=ax, label="share of the pass's images predicted with a usable contrast edge", shrink=0.8)
-    _place_pass_labels(fig, ax, starts)
+    if labelled:
+        _place_pass_labels(fig, ax, starts)
     return fig
 
 
