@@ -17,6 +17,10 @@ from typing import Any, Literal
 WaypointKind = Literal["takeoff", "transit", "lead_in", "scan", "run_past", "return", "land"]
 PLAN_SCHEMA_ID = "pihim.plan/1"
 
+# Plan.to_dict: values copied as they are, and the field names of each dataclass met (dataclasses.fields is slow)
+_PLAIN_SCALARS = frozenset({str, int, float, bool, type(None)})
+_FIELD_NAMES: dict[type, tuple[str, ...]] = {}
+
 
 @dataclass(frozen=True)
 class Waypoint:
@@ -179,8 +183,14 @@ class Plan:
         """JSON-ready nested dictionaries (schema ``pihim.plan/1``)."""
 
         def conv(obj: Any) -> Any:
-            if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-                d = {f.name: conv(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+            kind = type(obj)
+            if kind in _PLAIN_SCALARS:
+                return obj
+            names = _FIELD_NAMES.get(kind)
+            if names is None and dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+                names = _FIELD_NAMES.setdefault(kind, tuple(f.name for f in dataclasses.fields(obj)))
+            if names is not None:
+                d = {name: conv(getattr(obj, name)) for name in names}
                 if isinstance(obj, ScanPass):
                     d["heliostats"] = list(obj.heliostats)
                     d["usable_fraction"] = obj.usable_fraction

@@ -214,8 +214,16 @@ def site_origin(plan: Plan) -> Any:
     return GeodeticOrigin(*vals)  # type: ignore[arg-type]
 
 
+_KEPT = frozenset({str, int, bool, type(None)})
+
+
 def json_ready(obj: Any) -> Any:
     """A copy of nested dicts/lists with non-finite floats replaced by None (JSON has no NaN)."""
+    kind = type(obj)
+    if kind is float:
+        return obj if math.isfinite(obj) else None
+    if kind in _KEPT:
+        return obj
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
     if isinstance(obj, dict):

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import pihim
+from pihim._jsontext import json_text
 from pihim.planning.export._common import (
     check_plan,
     json_ready,
@@ -81,8 +82,12 @@ def plan_document(plan: Plan) -> dict[str, Any]:
 
 
 def plan_json_text(plan: Plan) -> str:
-    """The ``plan.json`` text: :func:`plan_document`, indented by two spaces."""
-    return json.dumps(plan_document(plan), indent=2, allow_nan=False) + "\n"
+    """The ``plan.json`` text: :func:`plan_document` indented by two spaces, one waypoint or prediction per line.
+
+    Members nested four levels deep (a pass's or flight's waypoints and
+    predictions, a mission's entries) are each written on one line.
+    """
+    return json_text(plan_document(plan), indent=2, inline_depth=4) + "\n"
 
 
 def write_plan_json(plan: Plan, path: str | Path) -> Path:
