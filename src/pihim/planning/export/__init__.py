@@ -58,11 +58,13 @@ from pihim.planning.export.qgc import (
     MissionItem,
     count_mission_items,
     mission_items,
+    qgc_document_text,
+    qgc_mission_document,
     qgc_plan_document,
     qgc_plan_text,
     write_qgc_plan,
 )
-from pihim.planning.export.wpl import wpl_text, write_wpl
+from pihim.planning.export.wpl import wpl_mission_text, wpl_text, write_wpl
 from pihim.planning.model import Plan
 
 __all__ = [
@@ -134,7 +136,7 @@ def _check_limit(value: Any) -> int:
 def _mission_files(plan: Plan, flight: int | None, stem: str, *, max_items: int, geofence_margin_m: float | None,
                    litchi_hover_ms: int, opts: dict[str, Any]) -> dict[str, tuple[str, str | bytes]]:
     """``{key: (file name, content)}`` of one flight's missions (or of a plan without flights)."""
-    mission = mission_items(plan, flight=flight, **opts)
+    mission = mission_items(plan, flight=flight, **opts)  # built once for the .plan and .waypoints files
     n_items = len(mission.items) + 1
     if n_items > max_items:
         which = "the plan" if flight is None else f"flight {flight + 1}"
@@ -144,9 +146,9 @@ def _mission_files(plan: Plan, flight: int | None, stem: str, *, max_items: int,
         )
     key = stem.replace(".", "_")
     out: dict[str, tuple[str, str | bytes]] = {
-        f"{key}_plan": (f"{stem}.plan", qgc_plan_text(plan, flight=flight, geofence_margin_m=geofence_margin_m,
-                                                      **opts)),
-        f"{key}_waypoints": (f"{stem}.waypoints", wpl_text(plan, flight=flight, **opts)),
+        f"{key}_plan": (f"{stem}.plan", qgc_document_text(qgc_mission_document(plan, mission, geofence_margin_m,
+                                                                               flight))),
+        f"{key}_waypoints": (f"{stem}.waypoints", wpl_mission_text(mission)),
     }
     if flight is None:  # a plan without flights: its passes, if Litchi takes them
         if len(litchi_waypoints(plan)) <= LITCHI_MAX_WAYPOINTS:

@@ -118,7 +118,6 @@ References
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import statistics
 from collections.abc import Sequence
@@ -126,6 +125,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+from pihim._jsontext import json_text
 from pihim.errors import PihimInputError
 from pihim.planning.export._common import (
     check_plan,
@@ -592,11 +592,16 @@ def qgc_plan_document(
         and ``rallyPoints`` (version 2); NaN parameters are ``None``.
     """
     mission = mission_items(plan, **mission_options)
+    return qgc_mission_document(plan, mission, geofence_margin_m, mission_options.get("flight"))
+
+
+def qgc_mission_document(plan: Plan, mission: Mission, geofence_margin_m: float | None,
+                         flight: int | None) -> dict[str, Any]:
+    """:func:`qgc_plan_document` of ``mission``, the mission of ``flight`` of ``plan``."""
     fence: list[dict[str, Any]] = []
     if geofence_margin_m is not None:
         margin = _nonneg("geofence_margin_m", geofence_margin_m)
-        flight = resolve_flight(plan, mission_options.get("flight"))
-        fence.append(_fence_circle(plan, mission_waypoints(plan, flight), margin))
+        fence.append(_fence_circle(plan, mission_waypoints(plan, resolve_flight(plan, flight)), margin))
     doc = {
         "fileType": "Plan",
         "geoFence": {"circles": fence, "polygons": [], "version": 2},
@@ -651,7 +656,8 @@ def write_qgc_plan(
     -----
     The file validates against ``pihim/schemas/qgc-plan.schema.json``,
     written from QGroundControl's loader rules [1]_. Keys are sorted and
-    indented by four spaces as QGroundControl writes them.
+    indented by four spaces as QGroundControl writes them, each mission item
+    on one line (a few times faster to write for long missions).
     """
     text = qgc_plan_text(plan, geofence_margin_m=geofence_margin_m, **mission_options)
     return write_export(path, text)
@@ -659,5 +665,9 @@ def write_qgc_plan(
 
 def qgc_plan_text(plan: Plan, *, geofence_margin_m: float | None = None, **mission_options: Any) -> str:
     """The ``.plan`` file text (see :func:`write_qgc_plan`)."""
-    doc = qgc_plan_document(plan, geofence_margin_m=geofence_margin_m, **mission_options)
-    return json.dumps(doc, indent=4, sort_keys=True, allow_nan=False) + "\n"
+    return qgc_document_text(qgc_plan_document(plan, geofence_margin_m=geofence_margin_m, **mission_options))
+
+
+def qgc_document_text(doc: dict[str, Any]) -> str:
+    """The text of a :func:`qgc_plan_document` (keys sorted, indented by four spaces, one mission item per line)."""
+    return json_text(doc, indent=4, sort_keys=True, inline_depth=3) + "\n"

@@ -39,6 +39,7 @@ from pihim.planning.export._common import write_export
 from pihim.planning.export.qgc import (
     MAV_CMD_NAV_WAYPOINT,
     MAV_FRAME_GLOBAL,
+    Mission,
     MissionItem,
     mission_items,
 )
@@ -68,7 +69,11 @@ def _row(index: int, current: int, item: MissionItem) -> str:
 
 def wpl_text(plan: Plan, **mission_options: Any) -> str:
     """The ``QGC WPL 110`` file text (see :func:`write_wpl`)."""
-    mission = mission_items(plan, **mission_options)
+    return wpl_mission_text(mission_items(plan, **mission_options))
+
+
+def wpl_mission_text(mission: Mission) -> str:
+    """The ``QGC WPL 110`` text of ``mission`` (see :func:`write_wpl`)."""
     lat, lon, amsl = mission.home
     home = MissionItem(MAV_CMD_NAV_WAYPOINT, MAV_FRAME_GLOBAL, (0.0, 0.0, 0.0, 0.0, lat, lon, amsl))
     lines = [WPL_HEADER, _row(0, 1, home)]
