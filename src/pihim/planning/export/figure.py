@@ -162,7 +162,7 @@ def plan_figure(
     ax.set_ylabel("North (m)")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, lw=0.3, alpha=0.5)
-    ax.legend(loc="lower right", fontsize=7, framealpha=0.9)
+    ax.legend(loc="lower right", fontsize=7, framealpha=0.9).set_zorder(8)  # above the pass numbers
     sm = ScalarMappable(norm=norm, cmap=cmap)
     sm.set_array([])
     fig.colorbar(sm, ax=ax, label="share of the pass's images predicted with a usable contrast edge", shrink=0.8)
