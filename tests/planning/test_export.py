@@ -421,6 +421,24 @@ def test_wpl_round_trip(plan, tmp_path):
     assert sum(r["command"] == MAV_CMD_IMAGE_START_CAPTURE for r in rows) == 9
 
 
+def test_wpl_cells_write_zero_as_0_and_keep_8_or_10_decimals():
+    """Zero, negative zero, values that print as zero and NaN are "0"; other numbers keep 8 decimals (10 for the
+    latitude and longitude of an item with a position), the sign and the digits."""
+    from pihim.planning.export.qgc import MAV_FRAME_GLOBAL_RELATIVE_ALT, Mission, MissionItem
+    from pihim.planning.export.wpl import wpl_mission_text
+
+    params = (0.0, -0.0, 4e-9, math.nan, 34.9622760001, -106.50960600004, -3e-9)
+    items = (MissionItem(MAV_CMD_NAV_WAYPOINT, MAV_FRAME_GLOBAL_RELATIVE_ALT, params),
+             MissionItem(MAV_CMD_CONDITION_YAW, MAV_FRAME_GLOBAL_RELATIVE_ALT, (-90.5, 30.0, -1.0, 0.0, 0.0, 0.0,
+                                                                                -0.00000001)))
+    mission = Mission(items=items, home=(34.96, -106.5, 1650.0), altitude_frame=MAV_FRAME_GLOBAL_RELATIVE_ALT,
+                      firmware_type=3, hover_speed_m_s=2.0, cruise_speed_m_s=5.0, geoid_undulation_m=-21.7)
+    rows = _parse_wpl(wpl_mission_text(mission))
+    assert rows[1]["text"][4:11] == ["0", "0", "0", "0", "34.9622760001", "-106.5096060000", "0"]
+    assert rows[2]["text"][4:11] == ["-90.50000000", "30.00000000", "-1.00000000", "0", "0", "0", "-0.00000001"]
+    assert rows[0]["text"][4:11] == ["0", "0", "0", "0", "34.9600000000", "-106.5000000000", "1650.00000000"]
+
+
 def test_wpl_takes_the_mission_options(plan, tmp_path):
     rows = _parse_wpl(write_wpl(plan, tmp_path / "m.waypoints", autopilot="px4", flight=0).read_text())
     cmds = [r["command"] for r in rows]

@@ -544,7 +544,7 @@ def _json_item(item: MissionItem, jump_id: int) -> dict[str, Any]:
     }
     if item.specifies_coordinate:  # QGC writes these three only for items with an altitude
         d["AMSLAltAboveTerrain"] = None
-        d["Altitude"] = item.params[6]
+        d["Altitude"] = d["params"][6]
         d["AltitudeMode"] = _QGC_ALT_MODE[item.frame]
     return d
 
@@ -611,7 +611,7 @@ def qgc_mission_document(plan: Plan, mission: Mission, geofence_margin_m: float 
             "firmwareType": mission.firmware_type,
             "globalPlanAltitudeMode": _QGC_ALT_MODE[mission.altitude_frame],
             "hoverSpeed": mission.hover_speed_m_s,
-            "items": [_json_item(it, k) for k, it in enumerate(mission.items, start=1)],
+            "items": [],  # below: _json_item writes them JSON-ready (the bulk of the file, walked once)
             "plannedHomePosition": list(mission.home),
             "vehicleType": MAV_TYPE_QUADROTOR,
             "version": 2,
@@ -619,7 +619,9 @@ def qgc_mission_document(plan: Plan, mission: Mission, geofence_margin_m: float 
         "rallyPoints": {"points": [], "version": 2},
         "version": 1,
     }
-    return json_ready(doc)
+    doc = json_ready(doc)
+    doc["mission"]["items"] = [_json_item(it, k) for k, it in enumerate(mission.items, start=1)]
+    return doc
 
 
 def write_qgc_plan(

@@ -32,6 +32,7 @@ References
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -51,20 +52,18 @@ __all__ = ["WPL_HEADER", "wpl_text", "write_wpl"]
 WPL_HEADER = "QGC WPL 110"
 
 
-def _num(v: float, decimals: int) -> str:
-    if not math.isfinite(v):
-        v = 0.0
-    text = f"{v:.{decimals}f}"
-    return "0" if float(text) == 0.0 else text  # no "-0.00000000"
+#: A parameter cell that printed as zero ("0.00000000", "-0.0000000000"): the file writes it "0".
+_ZERO_CELL = re.compile(r"(?<=\t)-?0\.0+(?=\t)")
+_CELLS = {xy: ("{:.8f}\t{:.8f}\t{:.8f}\t{:.8f}\t{:.%df}\t{:.%df}\t{:.8f}" % (xy, xy)).format for xy in (8, 10)}
 
 
 def _row(index: int, current: int, item: MissionItem) -> str:
-    p = item.params
-    xy = 10 if item.specifies_coordinate else 8
-    cells = [str(index), str(current), str(item.frame), str(item.command),
-             *(_num(v, 8) for v in p[:4]), _num(p[4], xy), _num(p[5], xy), _num(p[6], 8),
-             "1" if item.autocontinue else "0"]
-    return "\t".join(cells)
+    """One line: index, current, frame, command, the seven parameters (NaN as 0; 10 decimals for latitude and
+    longitude of items with a position, else 8) and autocontinue; zero cells are fixed by :data:`_ZERO_CELL`."""
+    p = item.params if all(map(math.isfinite, item.params)) else tuple(
+        v if math.isfinite(v) else 0.0 for v in item.params)
+    cells = _CELLS[10 if item.specifies_coordinate else 8](*p)
+    return f"{index}\t{current}\t{item.frame}\t{item.command}\t{cells}\t{1 if item.autocontinue else 0}"
 
 
 def wpl_text(plan: Plan, **mission_options: Any) -> str:
@@ -78,7 +77,7 @@ def wpl_mission_text(mission: Mission) -> str:
     home = MissionItem(MAV_CMD_NAV_WAYPOINT, MAV_FRAME_GLOBAL, (0.0, 0.0, 0.0, 0.0, lat, lon, amsl))
     lines = [WPL_HEADER, _row(0, 1, home)]
     lines += [_row(k, 0, it) for k, it in enumerate(mission.items, start=1)]
-    return "\n".join(lines) + "\n"
+    return _ZERO_CELL.sub("0", "\n".join(lines) + "\n")
 
 
 def write_wpl(plan: Plan, path: str | Path, **mission_options: Any) -> Path:
