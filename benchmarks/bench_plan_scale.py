@@ -35,6 +35,18 @@ What ``pihim plan`` runs
     traced facet report (``facet_coverage``). Same targets, reported apart
     (``--pipeline-sizes``; default the same sizes).
 
+``pihim plan`` as a whole process
+    For the ``--process-sizes`` (default 1,000, 10,000 and 30,000; 100,000
+    takes about ten minutes, give it explicitly): the size-N field written
+    as an OpenCSP heliostat CSV (untimed), then ``python -m pihim plan
+    --field FIELD.csv --time ... --aim 0,0,195 --out DIR --json`` timed as
+    a child process: wall, CPU (user + system of the child, from
+    ``os.wait4``), peak resident memory, the files written and their size,
+    and the command's own split (``seconds`` of its JSON: planning stages,
+    and ``total_with_export``; the exports are the difference). The command
+    puts the NSTTF tower box at the origin (``--field`` CSVs carry no tower),
+    so its plan differs a little from ``build_plan``'s on the same field.
+
 ``--figure PATH`` (default ``docs/figures/plan_scale.png``) draws the
 log-log figure. Run ``python benchmarks/run.py --only bench_plan_scale`` or
 this file directly (``--sizes 1000 10000``).
@@ -155,6 +167,49 @@ def child_pipeline(n: int) -> dict[str, Any]:
             "load_avg": round((load0 + os.getloadavg()[0]) / 2.0, 2)}
 
 
+def _write_opencsp_csv(field: Any, path: Path) -> None:
+    """The field's heliostats as an OpenCSP heliostat CSV (the layout ``pihim.field.load_field`` reads)."""
+    spec = field.spec
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write("Name,X,Y,Z,Num. Facets,Num. Rows,Num. Cols,Pivot Height,Pivot Offset,Facet Width,Facet Height\n")
+        for name, (x, y, z) in zip(field.names, field.pivots, strict=True):
+            fh.write(f"{name},{x:.3f},{y:.3f},{z:.3f},{spec.rows * spec.cols},{spec.rows},{spec.cols},"
+                     f"{spec.pivot_height_m},{spec.pivot_offset_m},{spec.facet_width_m},{spec.facet_height_m}\n")
+
+
+def child_process(n: int) -> dict[str, Any]:
+    """``pihim plan`` on the size-``n`` field from a CSV, as a child process (see the module docstring)."""
+    import tempfile
+
+    from bench_plan import BIG_TOWER
+
+    from pihim.field.layout import radial_staggered_field
+
+    with tempfile.TemporaryDirectory(prefix="pihim-plan-scale-") as tmp:
+        csv = Path(tmp) / "field.csv"
+        _write_opencsp_csv(radial_staggered_field(n, tower=BIG_TOWER), csv)
+        out = Path(tmp) / "out"
+        cmd = [sys.executable, "-m", "pihim", "plan", "--field", str(csv), "--time", CASE_TIME, "--aim", "0,0,195",
+               "--out", str(out), "--json"]
+        load0 = os.getloadavg()[0]
+        t0 = time.perf_counter()
+        with open(Path(tmp) / "stdout.json", "w+", encoding="utf-8") as stdout:
+            proc = subprocess.Popen(cmd, stdout=stdout, stderr=subprocess.PIPE, text=True)
+            _, status, usage = os.wait4(proc.pid, 0)
+            wall = time.perf_counter() - t0
+            proc.returncode = os.waitstatus_to_exitcode(status)
+            if proc.returncode != 0:
+                raise RuntimeError(f"pihim plan exited with {proc.returncode}: {proc.stderr.read().strip()[-300:]}")
+            stdout.seek(0)
+            summary = json.load(stdout)
+        files = [p for p in out.rglob("*") if p.is_file()]
+        return {"heliostats": n, "passes": summary["passes"], "flights": summary["flights"],
+                "wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime, "peak_rss_mb": usage.ru_maxrss / 1024.0,
+                "command_seconds": summary["seconds"], "files": len(files),
+                "files_mb": sum(p.stat().st_size for p in files) / 1e6,
+                "load_avg": round((load0 + os.getloadavg()[0]) / 2.0, 2)}
+
+
 def _run_child(flag: str, n: int) -> dict[str, Any]:
     out = subprocess.run([sys.executable, str(Path(__file__).resolve()), flag, str(n)], capture_output=True,
                          text=True, env=dict(os.environ), check=False)
@@ -163,7 +218,8 @@ def _run_child(flag: str, n: int) -> dict[str, Any]:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def run_benchmark(sizes: Sequence[int], pipeline_sizes: Sequence[int] = ()) -> dict[str, Any]:
+def run_benchmark(sizes: Sequence[int], pipeline_sizes: Sequence[int] = (),
+                  process_sizes: Sequence[int] = ()) -> dict[str, Any]:
     rows = []
     for n in sizes:
         rows.append(_run_child("--child", n))
@@ -177,6 +233,13 @@ def run_benchmark(sizes: Sequence[int], pipeline_sizes: Sequence[int] = ()) -> d
             r = pipeline_rows[-1]
             print(f"  build_plan {n:,}: {r['total_wall_s']:.1f} s wall, {r['total_cpu_s']:.1f} s CPU, "
                   f"{r['peak_rss_mb']:.0f} MB", flush=True)
+    process_rows = []
+    for n in process_sizes:
+        process_rows.append(_run_child("--child-process", n))
+        if "error" not in process_rows[-1]:
+            r = process_rows[-1]
+            print(f"  pihim plan {n:,}: {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU, {r['peak_rss_mb']:.0f} MB, "
+                  f"{r['files']:,} files", flush=True)
     ok = [r for r in rows if "error" not in r]
     fit = {}
     if len(ok) >= 2:
@@ -197,8 +260,15 @@ def run_benchmark(sizes: Sequence[int], pipeline_sizes: Sequence[int] = ()) -> d
                                    big_p and big_p["total_wall_s"], 300.0, "s"),
                     harness.target("100,000 heliostats, build_plan, peak memory",
                                    big_p and big_p["peak_rss_mb"] / 1024.0, 8.0, "GB")]
+    big_c = next((r for r in process_rows if "error" not in r and r["heliostats"] == 100_000), None)
+    if 100_000 in process_sizes:
+        targets += [harness.target("100,000 heliostats, pihim plan as a process (plan and all its files), wall",
+                                   big_c and big_c["wall_s"], 300.0, "s"),
+                    harness.target("100,000 heliostats, pihim plan as a process, peak memory",
+                                   big_c and big_c["peak_rss_mb"] / 1024.0, 8.0, "GB")]
     return {"benchmark": "bench_plan_scale", "sizes": list(sizes), "rows": rows, "pipeline_sizes": list(pipeline_sizes),
-            "pipeline_rows": pipeline_rows, "loglog_slope": fit, "targets": targets, "machine": harness.machine_info()}
+            "pipeline_rows": pipeline_rows, "process_sizes": list(process_sizes), "process_rows": process_rows,
+            "loglog_slope": fit, "targets": targets, "machine": harness.machine_info()}
 
 
 def markdown_report(report: dict[str, Any]) -> str:
@@ -235,6 +305,21 @@ def markdown_report(report: dict[str, Any]) -> str:
                          f"{r['load_avg']:.1f} |")
         if "pipeline_total_wall_s" in f:
             lines += ["", f"Log-log slope of build_plan's wall time: {f['pipeline_total_wall_s']:.2f}."]
+    if report.get("process_rows"):
+        lines += ["", "`pihim plan` as a whole process on the field from a CSV (plan, plan.json, KML, map and every "
+                  "flight's missions):", "",
+                  "| heliostats | passes | flights | planning s (the command's) | exports s | total wall s | "
+                  "total CPU s | peak RSS MB | files | MB written | load |",
+                  "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        for r in report["process_rows"]:
+            if "error" in r:
+                lines.append(f"| {r['heliostats']:,} | failed: {r['error']} |")
+                continue
+            sec = r["command_seconds"]
+            planning = sum(v for k, v in sec.items() if k != "total_with_export")
+            lines.append(f"| {r['heliostats']:,} | {r['passes']:,} | {r['flights']:,} | {planning:.1f} | "
+                         f"{sec['total_with_export'] - planning:.1f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
+                         f"{r['peak_rss_mb']:.0f} | {r['files']:,} | {r['files_mb']:.0f} | {r['load_avg']:.1f} |")
     lines += harness.target_table(report["targets"], spec=".1f")
     return "\n".join(lines)
 
@@ -292,17 +377,24 @@ def main(argv: Sequence[str] | None = None, *, quick: bool = False, json_path: P
         parser.add_argument("--figure", type=Path, default=FIGURE_PATH, metavar="PNG")
         parser.add_argument("--pipeline-sizes", type=int, nargs="*", metavar="N",
                             help="sizes for the build_plan rows (default: the --sizes; none: skip them)")
+        parser.add_argument("--process-sizes", type=int, nargs="*", metavar="N",
+                            help="sizes for the pihim plan process rows (default: those of the sizes up to 30,000; "
+                                 "none: skip them)")
 
     o = harness.options(argv, description="The planner at scale (radial fields).", counts=COUNTS, repeat=None,
                         warmup=None, quick=quick, json_path=json_path, configure=configure)
     sizes: Sequence[int] = (1_000, 10_000) if o.quick else SIZES
     fig_path: Path | None = None if o.quick else FIGURE_PATH
     pipeline_sizes: Sequence[int] = sizes
+    process_sizes: Sequence[int] | None = None
     if o.args is not None:
         sizes = tuple(o.args.sizes) if o.args.sizes else sizes
         pipeline_sizes = sizes if o.args.pipeline_sizes is None else tuple(o.args.pipeline_sizes)
+        process_sizes = None if o.args.process_sizes is None else tuple(o.args.process_sizes)
         fig_path = o.args.figure
-    report = run_benchmark(sizes, pipeline_sizes)
+    if process_sizes is None:
+        process_sizes = tuple(n for n in sizes if n <= 30_000)
+    report = run_benchmark(sizes, pipeline_sizes, process_sizes)
     if echo:
         print(markdown_report(report))
     if fig_path is not None and sum("error" not in r for r in report["rows"]) >= 2:
@@ -317,5 +409,7 @@ if __name__ == "__main__":
         print(json.dumps(child(int(sys.argv[2]))))
     elif len(sys.argv) == 3 and sys.argv[1] == "--child-pipeline":
         print(json.dumps(child_pipeline(int(sys.argv[2]))))
+    elif len(sys.argv) == 3 and sys.argv[1] == "--child-process":
+        print(json.dumps(child_process(int(sys.argv[2]))))
     else:
         main(sys.argv[1:] or None)
