@@ -222,6 +222,25 @@ def test_plan_json_non_finite_prediction_becomes_null(plan, tmp_path):
     jsonschema.validate(doc, load_plan_schema(), cls=jsonschema.Draft202012Validator)
 
 
+def test_plan_to_dict_finite_equals_json_ready_of_to_dict(plan):
+    """The one-pass conversion plan.json uses gives what json_ready makes of to_dict: NaN, inf and numpy NaN as
+    None, numpy scalars as Python numbers, everything else unchanged."""
+    from pihim.planning.export._common import json_ready
+
+    p0 = plan.passes[0]
+    bad = replace(p0, predictions=(replace(p0.predictions[0], reflection_dolp=math.nan,
+                                           sky_dolp_difference=-math.inf), *p0.predictions[1:]))
+    summary = {"a": np.float64(0.25), "b": np.float32(np.nan), "c": [np.int64(3), np.bool_(True), math.inf],
+               "d": {"e": (1.5, None, "x")}}
+    odd = replace(plan, passes=(bad, *plan.passes[1:]), summary=summary)
+    doc = odd.to_dict(finite=True)
+    assert doc == json_ready(odd.to_dict())
+    assert doc["summary"] == {"a": 0.25, "b": None, "c": [3, True, None], "d": {"e": [1.5, None, "x"]}}
+    assert [type(v) for v in doc["summary"]["c"]] == [int, bool, type(None)] and type(doc["summary"]["a"]) is float
+    pred = doc["passes"][0]["predictions"][0]
+    assert pred["reflection_dolp"] is None and pred["sky_dolp_difference"] is None
+    assert math.isnan(odd.to_dict()["passes"][0]["predictions"][0]["reflection_dolp"])  # the default keeps NaN
+
 # --------------------------------------------------------------------------- QGroundControl .plan
 
 

@@ -11,6 +11,7 @@ from North; gimbal pitch is degrees, negative below the horizon.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -179,11 +180,17 @@ class Plan:
     flights: tuple[Flight, ...] = ()
     summary: dict[str, Any] = field(default_factory=dict)
 
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready nested dictionaries (schema ``pihim.plan/1``)."""
+    def to_dict(self, *, finite: bool = False) -> dict[str, Any]:
+        """JSON-ready nested dictionaries (schema ``pihim.plan/1``).
+
+        With ``finite``, non-finite floats become None and numpy scalars
+        Python numbers (what ``plan.json`` holds; JSON has no NaN).
+        """
 
         def conv(obj: Any) -> Any:
             kind = type(obj)
+            if kind is float and finite:
+                return obj if math.isfinite(obj) else None
             if kind in _PLAIN_SCALARS:
                 return obj
             names = _FIELD_NAMES.get(kind)
@@ -201,6 +208,10 @@ class Plan:
                 return [conv(x) for x in obj]
             if isinstance(obj, dict):
                 return {k: conv(v) for k, v in obj.items()}
+            if finite and isinstance(obj, float):
+                return float(obj) if math.isfinite(obj) else None
+            if finite and hasattr(obj, "item") and callable(obj.item) and getattr(obj, "ndim", None) == 0:
+                return conv(obj.item())  # numpy scalar
             return obj
 
         return {"schema": PLAN_SCHEMA_ID, **conv(self)}

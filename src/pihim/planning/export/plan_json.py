@@ -71,7 +71,7 @@ def plan_document(plan: Plan) -> dict[str, Any]:
         Plan without passes or with a non-finite waypoint number.
     """
     check_plan(plan)
-    doc = json_ready(plan.to_dict())
+    doc = plan.to_dict(finite=True)
     doc["schema"] = PLAN_SCHEMA_ID
     doc["export"] = {
         "generator": f"pihim {pihim.__version__}",
