@@ -401,6 +401,30 @@ class _Line:
     z: float
 
 
+class _Extents:
+    """Planned extent ``(lo, hi)`` of each pass along its line (its captures, metres), by pass position (internal).
+
+    Arrays ``lo`` and ``hi`` (NaN: no extent), read whole by the rescue's admission test, grown when the rescue
+    adds passes of its own.
+    """
+
+    def __init__(self, n: int) -> None:
+        self.lo = np.full(n, np.nan)
+        self.hi = np.full(n, np.nan)
+
+    def __contains__(self, k: int) -> bool:
+        return k < len(self.lo) and not math.isnan(self.lo[k])
+
+    def __getitem__(self, k: int) -> tuple[float, float]:
+        return float(self.lo[k]), float(self.hi[k])
+
+    def __setitem__(self, k: int, lo_hi: tuple[float, float]) -> None:
+        if k >= len(self.lo):
+            pad = np.full(k + 1 - len(self.lo), np.nan)
+            self.lo, self.hi = np.concatenate([self.lo, pad]), np.concatenate([self.hi, pad])
+        self.lo[k], self.hi[k] = lo_hi
+
+
 def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, camera: CameraModel,
               st: FacetCaptureSettings, ctx: dict[str, Any]) -> dict[str, NDArray]:
     """For each instance: the facets each (position, aim) candidate covers and the target shown.
@@ -661,7 +685,7 @@ def plan_facet_captures(
     # rescue: requested HUAs no pass images, from the nearest pass lines
     rescued: list[str] = []
     if st.rescue:
-        extent = {}  # planned extent of each pass along its line (its captures)
+        extent = _Extents(len(lines))
         for k, (p, ln) in enumerate(zip(passes, lines, strict=True)):
             if ln is not None and p.feasible:
                 s_ = [float(dot(np.array([w.x_m, w.y_m]) - ln.a[:2], ln.e)) for w in p.waypoints if w.capture]
@@ -676,8 +700,6 @@ def plan_facet_captures(
             lo, hi = extent[i.pass_k]
             s_caps = [float(ev["s"][best, g]) for g, _, _, _ in pk]
             extent[i.pass_k] = (min(lo, *s_caps), max(hi, *s_caps))
-            if i.pass_k < len(ext_lo):
-                ext_lo[i.pass_k], ext_hi[i.pass_k] = extent[i.pass_k]
             coverable[names[i.hua]] = int(ev["good"][best].any(axis=(0, 1)).sum())
             chosen.append((i, _slice(ev, best), 0, pk))
             rescued.append(names[i.hua])
@@ -694,10 +716,6 @@ def plan_facet_captures(
                 j = np.flatnonzero(near[r])
                 pending.append((hh, line_k[j], np.sum(rel[r, j] * line_e[j], axis=1)))
         half_w = round(st.window_m / st.step_m) * st.step_m
-        ext_lo = np.full(len(lines), np.nan)  # the extents as arrays, for admit (kept equal by commit)
-        ext_hi = np.full(len(lines), np.nan)
-        for k, (lo_k, hi_k) in extent.items():
-            ext_lo[k], ext_hi[k] = lo_k, hi_k
 
         def admit(ks: NDArray[np.int64], along: NDArray[np.float64], before: dict[int, int]) -> NDArray[np.bool_]:
             """Lines whose candidate positions (the window around ``along``) can still be within the allowed
@@ -707,7 +725,7 @@ def plan_facet_captures(
             mid = np.round(along / st.step_m) * st.step_m
             ahead = np.array([before.get(k, 0) for k in ks.tolist()], dtype=float) if before else 0.0
             reach = (ahead + 1.0) * st.rescue_max_extension_m + 1e-6
-            return (mid - half_w <= ext_hi[ks] + reach) & (mid + half_w >= ext_lo[ks] - reach)
+            return (mid - half_w <= extent.hi[ks] + reach) & (mid + half_w >= extent.lo[ks] - reach)
 
         for hh, cand, ev in _evaluated(pending, admit, lines, pose, camera, st, ctx):
             if not cand:
