@@ -463,16 +463,18 @@ def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, came
     outline = ctx["outline"]
 
     def intervals(idx: NDArray[np.int64], pts: NDArray[np.float64], a_: NDArray, e_: NDArray,
-                  negative: bool) -> tuple[NDArray, NDArray]:
-        """Intervals (B, I, J) of the polygons ``idx`` seen from ``pts``; empty where they miss the window."""
-        return _cone_intervals(pts, a_, e_, _polygon_terms(outline[np.maximum(idx, 0)]), idx, (s[:, 0], s[:, -1]),
-                               negative)
+                  negative: bool, margin: float = 0.0) -> tuple[NDArray, NDArray]:
+        """Intervals (B, I, J) of the polygons ``idx`` seen from ``pts``; empty where they miss the window
+        (widened by ``margin`` at both ends)."""
+        return _cone_intervals(pts, a_, e_, _polygon_terms(outline[np.maximum(idx, 0)]), idx,
+                               (s[:, 0] - margin, s[:, -1] + margin), negative)
 
     def shortlist(idx: NDArray[np.int64], a_: NDArray, e_: NDArray, negative: bool) -> NDArray[np.int64]:
         """Mirrors whose interval meets the window, widened, for some facet centre (cheap first pass), -1 padded.
 
         A mirror's image on the HUA is larger than a facet, so where a sample point shows it a facet centre
-        nearby does from a camera a little along the line; the window is widened by ``3 step_m``.
+        nearby does from a camera a little along the line; the window is widened by ``3 step_m`` (at least
+        3 m) at both ends.
         """
         pts = pose.facet_centres[h]
         nrm = pose.facet_normals[h]
@@ -481,9 +483,8 @@ def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, came
             e_c = e3[:, None, :] - 2.0 * dot(e3[:, None, :], nrm)[..., None] * nrm
         else:
             a_c, e_c = np.broadcast_to(a[:, None, :], pts.shape), np.broadcast_to(e3[:, None, :], pts.shape)
-        lo, hi = intervals(idx, pts, a_c, e_c, negative)
-        margin = max(3.0 * st.step_m, 3.0)
-        meets = ((lo - margin <= s[:, -1:, None]) & (hi + margin >= s[:, :1, None])).any(axis=1)  # (B, J)
+        lo, hi = intervals(idx, pts, a_c, e_c, negative, margin=max(3.0 * st.step_m, 3.0))
+        meets = (lo <= hi).any(axis=1)  # (B, J): some facet centre's interval meets the widened window
         keep = np.flatnonzero(meets.any(axis=0))
         return np.where(meets[:, keep], idx[:, keep], -1)
 
