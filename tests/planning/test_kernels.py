@@ -289,3 +289,31 @@ def test_row_modes_is_the_most_frequent_value_least_among_equals():
     for r, row in enumerate(rows.tolist()):
         vals = [v for v in row if v >= 0]
         assert got[r] == (min(set(vals), key=lambda v: (-vals.count(v), v)) if vals else -1)
+
+
+def test_segments_hit_box_is_the_numpy_slab_test_with_its_edge_cases():
+    """The compiled slab test against the numpy one on random segments, segments parallel to a slab (inside and
+    outside it), degenerate (zero-length) segments, segments starting or ending on a face, subnormal components
+    and NaN coordinates; and against geometry: a segment through the box's centre hits, one beside it misses."""
+    from pihim.planning.sightlines import _segments_hit_box_numpy, segments_hit_box
+
+    rng = np.random.default_rng(5)
+    lo, hi = np.array([-1.0, -2.0, 0.0]), np.array([1.0, 2.0, 3.0])
+    p0 = rng.uniform(-4, 4, size=(4000, 3))
+    p1 = rng.uniform(-4, 4, size=(4000, 3))
+    p1[:500, 0] = p0[:500, 0]  # parallel to the x slabs, inside or outside them
+    p1[500:700] = p0[500:700]  # zero length
+    p0[700:800, 2] = 3.0  # starting on the top face
+    p1[800:900, 0] = -1.0  # ending on a side face
+    p1[900:950, 1] = p0[900:950, 1] + 5e-324  # subnormal direction component
+    p0[950:960, 0] = np.nan
+    p1[960:970, 2] = np.nan
+    p0[970:975] = [[0.0, 2.0, 1.0]]  # on the y = hi face, moving along it
+    p1[970:975] = [[0.5, 2.0, 2.0]]
+    got = segments_hit_box(p0, p1, lo, hi)
+    want = _segments_hit_box_numpy(p0, p1, lo, hi)
+    np.testing.assert_array_equal(got, want)
+    assert 0.2 < got.mean() < 0.8 and got[970:975].all()  # (a NaN slab is ignored, as in numpy)
+    centre, beside = np.array([[0.0, 0.0, 1.5]]), np.array([[5.0, 0.0, 1.5]])
+    assert segments_hit_box(centre - [[3.0, 1.0, 0.5]], centre + [[3.0, 1.0, 0.5]], lo, hi)[0]
+    assert not segments_hit_box(beside - [[0.0, 3.0, 0.5]], beside + [[0.0, 3.0, 0.5]], lo, hi)[0]

@@ -30,6 +30,36 @@ def in_fov(points: NDArray, cam: NDArray, r: NDArray, dn: NDArray, f: NDArray, t
 
 
 @njit(cache=True)
+def segments_hit_box(p0: NDArray, p1: NDArray, lo: NDArray, hi: NDArray) -> NDArray:  # pragma: no cover - compiled
+    """Segments ``p0 -> p1`` (N, 3) crossing the box ``[lo, hi]``: the slab method of
+    :func:`pihim.planning.sightlines.segments_hit_box`, with its handling of parallel and NaN slabs, one pass."""
+    n = p0.shape[0]
+    out = np.empty(n, np.bool_)
+    for i in range(n):
+        enter = -np.inf
+        leave = np.inf
+        bad = False
+        for k in range(3):
+            dk = p1[i, k] - p0[i, k]
+            if dk == 0.0:  # parallel to the slab: inside it or never
+                inside = lo[k] <= p0[i, k] <= hi[k]
+                t_lo, t_hi = (-np.inf, np.inf) if inside else (np.inf, -np.inf)
+            else:
+                inv = 1.0 / dk
+                t1 = (lo[k] - p0[i, k]) * inv
+                t2 = (hi[k] - p0[i, k]) * inv
+                n1, n2 = math.isnan(t1), math.isnan(t2)
+                t_lo = -np.inf if n1 else (np.nan if n2 else min(t1, t2))
+                t_hi = np.inf if n2 else (np.nan if n1 else max(t1, t2))
+            if math.isnan(t_lo) or math.isnan(t_hi):
+                bad = True
+            enter = max(enter, t_lo)
+            leave = min(leave, t_hi)
+        out[i] = (not bad) and enter <= leave and leave >= 0.0 and enter <= 1.0
+    return out
+
+
+@njit(cache=True)
 def view_tests(pair: NDArray, ch_all: NDArray, nh_all: NDArray, w_all: NDArray, elev_all: NDArray,
                origin: NDArray, direction: NDArray, altitude: NDArray, nxy_all: NDArray, tc_all: NDArray,
                tn_all: NDArray, tx_all: NDArray, ty_all: NDArray,

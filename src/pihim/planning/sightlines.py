@@ -141,7 +141,22 @@ def tower_box(tower: Any, clearance: float = 0.0) -> tuple[NDArray[np.float64], 
 
 def segments_hit_box(p0: NDArray[np.float64], p1: NDArray[np.float64], lo: NDArray[np.float64],
                       hi: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """Segments p0->p1 (N, 3) crossing the axis-aligned box [lo, hi] (slab method)."""
+    """Segments p0->p1 (N, 3) crossing the axis-aligned box [lo, hi] (slab method).
+
+    One compiled pass (:func:`pihim.planning._kernels.segments_hit_box`); :func:`_segments_hit_box_numpy` is
+    the same test in numpy (the tests' oracle).
+    """
+    from pihim.planning import _kernels
+
+    p0 = np.ascontiguousarray(np.asarray(p0, float).reshape(-1, 3))
+    p1 = np.ascontiguousarray(np.asarray(p1, float).reshape(-1, 3))
+    return _kernels.segments_hit_box(p0, p1, np.ascontiguousarray(lo, float).reshape(3),
+                                     np.ascontiguousarray(hi, float).reshape(3))
+
+
+def _segments_hit_box_numpy(p0: NDArray[np.float64], p1: NDArray[np.float64], lo: NDArray[np.float64],
+                            hi: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """:func:`segments_hit_box` in numpy."""
     d = p1 - p0
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / d
