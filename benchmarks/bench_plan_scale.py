@@ -218,28 +218,26 @@ def _run_child(flag: str, n: int) -> dict[str, Any]:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def run_benchmark(sizes: Sequence[int], pipeline_sizes: Sequence[int] = (),
-                  process_sizes: Sequence[int] = ()) -> dict[str, Any]:
+def _run_children(flag: str, sizes: Sequence[int], line: Any) -> list[dict[str, Any]]:
+    """One child process per size, each result echoed by ``line(row)`` as it comes."""
     rows = []
     for n in sizes:
-        rows.append(_run_child("--child", n))
+        rows.append(_run_child(flag, n))
         if "error" not in rows[-1]:
-            print(f"  {n:,}: {rows[-1]['total_wall_s']:.1f} s wall, {rows[-1]['total_cpu_s']:.1f} s CPU, "
-                  f"{rows[-1]['peak_rss_mb']:.0f} MB", flush=True)
-    pipeline_rows = []
-    for n in pipeline_sizes:
-        pipeline_rows.append(_run_child("--child-pipeline", n))
-        if "error" not in pipeline_rows[-1]:
-            r = pipeline_rows[-1]
-            print(f"  build_plan {n:,}: {r['total_wall_s']:.1f} s wall, {r['total_cpu_s']:.1f} s CPU, "
-                  f"{r['peak_rss_mb']:.0f} MB", flush=True)
-    process_rows = []
-    for n in process_sizes:
-        process_rows.append(_run_child("--child-process", n))
-        if "error" not in process_rows[-1]:
-            r = process_rows[-1]
-            print(f"  pihim plan {n:,}: {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU, {r['peak_rss_mb']:.0f} MB, "
-                  f"{r['files']:,} files", flush=True)
+            print("  " + line(rows[-1]), flush=True)
+    return rows
+
+
+def run_benchmark(sizes: Sequence[int], pipeline_sizes: Sequence[int] = (),
+                  process_sizes: Sequence[int] = ()) -> dict[str, Any]:
+    rows = _run_children("--child", sizes, lambda r: f"{r['heliostats']:,}: {r['total_wall_s']:.1f} s wall, "
+                         f"{r['total_cpu_s']:.1f} s CPU, {r['peak_rss_mb']:.0f} MB")
+    pipeline_rows = _run_children("--child-pipeline", pipeline_sizes, lambda r: (
+        f"build_plan {r['heliostats']:,}: {r['total_wall_s']:.1f} s wall, {r['total_cpu_s']:.1f} s CPU, "
+        f"{r['peak_rss_mb']:.0f} MB"))
+    process_rows = _run_children("--child-process", process_sizes, lambda r: (
+        f"pihim plan {r['heliostats']:,}: {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU, "
+        f"{r['peak_rss_mb']:.0f} MB, {r['files']:,} files"))
     ok = [r for r in rows if "error" not in r]
     fit = {}
     if len(ok) >= 2:
