@@ -16,9 +16,10 @@ state, safe in threads and servers [1]_.
 
 Large plans stay legible: above :data:`MAX_LABELLED_PASSES` passes the pass
 numbers, arrowheads and capture marks are left out (the title says so;
-``plan.json`` and the KML hold every pass and image), and above :data:`MAX_LEGEND_FLIGHTS` flights the legend
-gives the flights' count and totals in one entry instead of one entry each
-(their colours repeat every ten flights).
+``plan.json`` and the KML hold every pass and image), and above
+:data:`MAX_LEGEND_FLIGHTS` flights the legend gives the flights' count and
+totals in one entry instead of one entry each (their colours repeat every
+ten flights).
 
 References
 ----------
@@ -42,8 +43,8 @@ from pihim.planning.model import Plan
 
 __all__ = ["MAX_LABELLED_PASSES", "MAX_LEGEND_FLIGHTS", "plan_figure", "plan_png_bytes", "write_plan_figure"]
 
-#: Most passes whose numbers and arrowheads are drawn; a 1,000-heliostat plan has about 300 passes, whose boxes
-#: would cover the map of a 1200 x 960 pixel figure.
+#: Most passes whose numbers, arrowheads and capture marks are drawn (a 1,000-heliostat radial field has about
+#: 190 passes; the 1,400 of a 10,000-heliostat field would bury a 1200 x 960 pixel map under their labels).
 MAX_LABELLED_PASSES = 200
 #: Most flights listed one by one in the legend (``tab10`` has ten colours).
 MAX_LEGEND_FLIGHTS = 10
