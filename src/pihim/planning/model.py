@@ -200,7 +200,7 @@ class Plan:
                 d = {name: conv(getattr(obj, name)) for name in names}
                 if isinstance(obj, ScanPass):
                     d["heliostats"] = list(obj.heliostats)
-                    d["usable_fraction"] = obj.usable_fraction
+                    d["usable_fraction"] = conv(obj.usable_fraction)
                 if isinstance(obj, PairPrediction):
                     d["usable"] = obj.usable
                 return d
