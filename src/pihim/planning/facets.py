@@ -165,6 +165,7 @@ def _first_hits_among(p0: NDArray[np.float64], d: NDArray[np.float64], table: ND
     n_r = len(p0)
     out = np.full(n_r, -1, dtype=np.int64)
     t_lim = np.ascontiguousarray(np.broadcast_to(np.asarray(t_max, float), (n_r,)))
+    t_lim.flags.writeable = False  # read-only whether broadcast or copied: one compiled signature of the kernel
     p0, d, skip = np.ascontiguousarray(p0, float), np.ascontiguousarray(d, float), np.ascontiguousarray(skip, np.int64)
     for a in range(0, n_r, chunk):
         sl = slice(a, a + chunk)

@@ -123,7 +123,9 @@ def in_fov(points: NDArray[np.float64], cam: NDArray[np.float64], heading: NDArr
     lead = np.broadcast_shapes(pts.shape[:-2], cam.shape[:-1], r.shape[:-1])
 
     def flat(a: NDArray, tail: tuple[int, ...]) -> NDArray:
-        return np.ascontiguousarray(np.broadcast_to(a, (*lead, *tail)).reshape(-1, *tail))
+        out = np.ascontiguousarray(np.broadcast_to(a, (*lead, *tail)).reshape(-1, *tail))
+        out.flags.writeable = False  # always read-only (broadcasts are, copies are not): one compiled signature
+        return out
 
     tx = 0.5 * camera.width_px / camera.focal_length_px
     ty = 0.5 * camera.height_px / camera.focal_length_px
