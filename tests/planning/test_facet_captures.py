@@ -176,6 +176,37 @@ def test_every_facet_imaged(plan10):
             assert np.linalg.norm(np.diff(cap_xy, axis=0), axis=1).min() >= 0.999
 
 
+def test_the_shortlist_of_targets_and_blockers_looks_over_a_widened_window(plan10, monkeypatch):
+    """The cheap first pass (mirrors seen from the facet centres) asks for intervals over the candidate window
+    widened by max(3 step_m, 3 m) at both ends; the exact pass over the sample points asks for the window itself."""
+    import pihim.planning.facet_captures as fc_module
+    from pihim.planning.scoring import score_passes
+    from pihim.planning.ufacet import plan_ufacet
+
+    plan, field_, pose, sun = plan10
+    calls = []
+    inner = fc_module._cone_intervals
+
+    def spy(q, a, e, terms, idx, window, negative):
+        calls.append((q.shape[1], np.array(window[0]), np.array(window[1]), negative))
+        return inner(q, a, e, terms, idx, window, negative)
+
+    monkeypatch.setattr(fc_module, "_cone_intervals", spy)
+    res = plan_ufacet(field_, pose, aim_point=plan.aim_point, origin=NSTTF,
+                      heliostats=[n for n in field_.names if n.startswith("10")])
+    st = FacetCaptureSettings(target_fraction=None, rescue=False)
+    fc_module.plan_facet_captures(score_passes(res.passes, pose, sun, search=None), pose, origin=NSTTF,
+                                  tower=field_.tower, aim_point=plan.aim_point, settings=st)
+    n_f = len(field_.spec.facet_centroids)
+    margin = max(3.0 * st.step_m, 3.0)
+    assert len(calls) >= 4 and len(calls) % 4 == 0
+    for short, exact in zip(calls[0::2], calls[1::2], strict=True):  # shortlist, then its exact pass
+        assert short[0] == n_f and exact[0] == n_f * st.samples**2 and short[3] == exact[3]
+        np.testing.assert_allclose(short[1], exact[1] - margin, atol=1e-9)
+        np.testing.assert_allclose(short[2], exact[2] + margin, atol=1e-9)
+        assert np.all(exact[2] > exact[1])
+
+
 def test_planner_prediction_agrees_with_the_traced_report(plan10):
     # the closed-form planner and the ray tracer count the same facets within a fraction of a percent
     from pihim.planning.facet_captures import plan_facet_captures
