@@ -484,3 +484,25 @@ def test_huas_left_without_a_pass_are_rescued_or_given_their_own(plan10):
     traced = facet_coverage(fplan.passes, pose, tower=field_.tower)
     got = sum(len(set(traced[h].covered) & set(fplan.predicted[h])) for h in helped)
     assert got >= 0.9 * sum(len(fplan.predicted[h]) for h in helped)
+
+
+def test_build_plan_names_each_stage_as_it_starts(monkeypatch):
+    """The progress callback hears the stages in order, only those that run, each before its work."""
+    import pihim.planning.pipeline as pipeline
+
+    seen: list[str] = []
+    inner = pipeline.plan_facet_captures
+
+    def announced(*args, **kwargs):  # the facet captures run after their stage was named, and only then
+        assert seen[-1] == "facet captures"
+        return inner(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "plan_facet_captures", announced)
+    field_ = nsttf_like_field()
+    rows = [n for n in field_.names if n.startswith("10")]
+    build_plan(field_, parse_time(TIME), NSTTF, heliostats=rows, progress=seen.append)
+    assert seen == ["passes", "scoring", "facet captures", "route and flights", "facet report"]
+    seen.clear()
+    build_plan(field_, parse_time(TIME), NSTTF, heliostats=rows, facet_captures=False, facet_report=False,
+               progress=seen.append)
+    assert seen == ["passes", "scoring", "route and flights"]

@@ -6,8 +6,10 @@ A thin layer over :func:`pihim.planning.pipeline.build_plan` and
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time as _time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Annotated
 
@@ -71,12 +73,16 @@ def plan(
     names = None if heliostats is None else [h for h in heliostats.split(",") if h.strip()]
     scoring = ScoringModel(sky=SkyModel(kind=sky_model, dmax=dmax), mirror=mirror_model(mirror))  # type: ignore[arg-type]
     options = {"autopilot": autopilot}
-    the_plan = build_plan(fld, when, site_obj, aim_point=aim_point, max_altitude_m=max_altitude, heliostats=names,
-                          scoring=scoring, shift=not no_shift, endurance=DroneEndurance(battery_min=battery_min),
-                          fleet_hours=fleet_hours, max_mission_items=max_mission_items, mission_options=options,
-                          facet_captures=(False if single_capture
-                                          else FacetCaptureSettings(target_fraction=facet_target)))
-    files = export_all(the_plan, make_out_dir(out), field=fld, max_mission_items=max_mission_items, **options)
+    with _stage_status(len(fld)) as stage:
+        the_plan = build_plan(fld, when, site_obj, aim_point=aim_point, max_altitude_m=max_altitude,
+                              heliostats=names, scoring=scoring, shift=not no_shift,
+                              endurance=DroneEndurance(battery_min=battery_min), fleet_hours=fleet_hours,
+                              max_mission_items=max_mission_items, mission_options=options,
+                              facet_captures=(False if single_capture
+                                              else FacetCaptureSettings(target_fraction=facet_target)),
+                              progress=stage)
+        stage(f"writing plan.json, plan.kml, plan.png and {len(the_plan.flights)} flights' missions")
+        files = export_all(the_plan, make_out_dir(out), field=fld, max_mission_items=max_mission_items, **options)
     summary = the_plan.summary
     summary["seconds"]["total_with_export"] = round(_time.perf_counter() - t0, 4)
     if json_out:
@@ -86,6 +92,21 @@ def plan(
     else:
         stderr_console.print(_human_summary(summary, files, out), highlight=False, soft_wrap=True)
     return 0
+
+
+@contextlib.contextmanager
+def _stage_status(n_heliostats: int) -> Iterator[Callable[[str], None]]:
+    """A one-line status on stderr naming the stage ``build_plan`` is in (only on a terminal)."""
+    if not stderr_console.is_terminal:
+        yield lambda _name: None
+        return
+    with stderr_console.status(f"pihim plan: {n_heliostats:,} heliostats ...") as status:
+        t0 = _time.perf_counter()
+
+        def stage(name: str) -> None:
+            status.update(f"pihim plan, {n_heliostats:,} heliostats, {_time.perf_counter() - t0:.0f} s in: {name} ...")
+
+        yield stage
 
 
 def _human_summary(summary: dict, files: dict[str, Path], out: Path) -> str:

@@ -11,7 +11,7 @@ import dataclasses
 import functools
 import math
 import time as _time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from datetime import datetime
 from typing import Any
 
@@ -64,6 +64,7 @@ def build_plan(
     facet_report: bool = True,
     facet_captures: bool | FacetCaptureSettings = True,
     route: bool | RouteSettings = True,
+    progress: Callable[[str], None] | None = None,
 ) -> Plan:
     """Plan, score and split an inspection of ``field`` at ``time``.
 
@@ -115,6 +116,11 @@ def build_plan(
         path (:func:`pihim.planning.route.plan_flights`); False flies them in
         the planner's order, cutting greedily
         (:func:`pihim.planning.endurance.split_flights`).
+    progress : callable, optional
+        Called with the name of each stage as it starts: ``"passes"``,
+        ``"scoring"``, ``"facet captures"`` (with ``facet_captures``),
+        ``"route and flights"``, ``"facet report"`` (with ``facet_report``).
+        A 100,000-heliostat plan takes minutes.
 
     Returns
     -------
@@ -134,6 +140,8 @@ def build_plan(
     camera = camera or CameraModel()
     endurance = endurance or DroneEndurance()
     scoring = scoring or ScoringModel()
+    stage = progress or (lambda _name: None)
+    stage("passes")
     sun, pose = track_at(field, time, aim_point=aim, site=site)
     planned = plan_ufacet(field, pose, aim_point=aim, origin=site, camera=camera,
                           max_altitude_m=max_altitude_m, heliostats=heliostats)
@@ -143,12 +151,14 @@ def build_plan(
         more = f" (and {len(planned.unassessed) - 3} more)" if len(planned.unassessed) > 3 else ""
         raise PihimInputError(f"no scan pass to fly: {first}{more}")
     t_plan = _time.perf_counter()
+    stage("scoring")
     scene = build_scene(pose, sun.vector, scoring)
     scored = score_passes(passes, pose, sun.vector, scene=scene, camera=camera, aim_point=aim, origin=site,
                           search=ShiftSearch(max_altitude_m=max_altitude_m) if shift else None)
     t_score = _time.perf_counter()
     rescued: tuple[str, ...] = ()
     if facet_captures is not False:
+        stage("facet captures")
         fc_settings = facet_captures if isinstance(facet_captures, FacetCaptureSettings) else None
         fplan = plan_facet_captures(scored, pose, origin=site, camera=camera, settings=fc_settings, tower=field.tower,
                                     aim_point=aim, unassessed=[n for n, _ in planned.unassessed])
@@ -156,6 +166,7 @@ def build_plan(
     elif steady_heading:
         scored = steady_headings(scored, pose, camera=camera)
     t_facets = _time.perf_counter()
+    stage("route and flights")
     home = home_waypoint(field, origin=site)
     counter = None
     if max_mission_items is not None:
@@ -210,6 +221,7 @@ def build_plan(
     if facet_report:
         from pihim.planning.facets import coverage_summary, facet_coverage
 
+        stage("facet report")
         t_rep = _time.perf_counter()
         per_hua = facet_coverage(scored, pose, camera=camera, tower=field.tower)
         summary["facet_coverage"] = {
