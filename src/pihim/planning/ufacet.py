@@ -569,12 +569,9 @@ def _config_scores(ctx: _Context, pairs: NDArray[np.int64], line_of: NDArray[np.
             sel = allowed[(ln * m + mi) * nz + zi]
             p, mi, zi, ln = p[sel], mi[sel], zi[sel], ln[sel]
         h = cand.hua[p]
-        v = ctx.views(p, ln, ctx.offsets[mi], ctx.altitudes[zi], trace=False)
-        s = np.flatnonzero(v.ok)  # cheap geometry first, then (optionally) the ray tests on the survivors
+        v = ctx.views(p, ln, ctx.offsets[mi], ctx.altitudes[zi], trace=trace)  # traces only the geometric survivors
+        s = np.flatnonzero(v.ok)
         cam = v.camera[s]
-        if trace and len(s):
-            v2 = ctx.views(p[s], ln[s], ctx.offsets[mi[s]], ctx.altitudes[zi[s]])
-            s, cam = s[v2.ok], v2.camera[v2.ok]
         keys.append(((ln[s] * m + mi[s]) * nz + zi[s]) * n_h + h[s])
         frames.append(ctx.facets_in_view(h[s], cam))
     key = np.concatenate(keys) if keys else np.zeros(0, np.int64)
