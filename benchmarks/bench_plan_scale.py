@@ -340,6 +340,10 @@ def figure(report: dict[str, Any], path: Path) -> None:
     if ok_p:
         ax.loglog([r["heliostats"] for r in ok_p], [r["total_wall_s"] for r in ok_p], "D-", color="tab:purple",
                   lw=2, ms=4, label="build_plan, what pihim plan runs (wall)")
+    ok_c = [r for r in report.get("process_rows", []) if "error" not in r]
+    if ok_c:
+        ax.loglog([r["heliostats"] for r in ok_c], [r["wall_s"] for r in ok_c], "P-", color="tab:brown", lw=2,
+                  ms=5, label="pihim plan as a process, with its files (wall)")
     ref = ok[0]["total_wall_s"] * n / n[0]
     ax.loglog(n, ref, ":", color="0.5", label="slope 1 (linear)")
     ax.axhline(300, color="r", lw=0.8)
@@ -354,6 +358,9 @@ def figure(report: dict[str, Any], path: Path) -> None:
     if ok_p:
         ax2.loglog([r["heliostats"] for r in ok_p], [r["peak_rss_mb"] for r in ok_p], "D-", color="tab:purple",
                    label="build_plan peak RSS, MB")
+    if ok_c:
+        ax2.loglog([r["heliostats"] for r in ok_c], [r["peak_rss_mb"] for r in ok_c], "P-", color="tab:brown",
+                   label="pihim plan process peak RSS, MB")
     ax2.loglog(n, n * ok[0]["passes"] / n[0], ":", color="0.5", label="slope 1")
     ax2.axhline(8192, color="r", lw=0.8)
     ax2.text(n[-1], 8800, "8 GB", color="r", fontsize=8, ha="right")
