@@ -187,17 +187,23 @@ class Plan:
         Python numbers (what ``plan.json`` holds; JSON has no NaN).
         """
 
+        kept = _PLAIN_SCALARS - {float} if finite else _PLAIN_SCALARS  # values copied as they are
+
         def conv(obj: Any) -> Any:
             kind = type(obj)
             if kind is float and finite:
                 return obj if math.isfinite(obj) else None
             if kind in _PLAIN_SCALARS:
                 return obj
+            if kind is dict:  # the summary: about a million values for a 10,000-heliostat plan's facet report
+                return {k: v if type(v) in kept else conv(v) for k, v in obj.items()}
+            if kind is list or kind is tuple:
+                return [x if type(x) in kept else conv(x) for x in obj]
             names = _FIELD_NAMES.get(kind)
             if names is None and dataclasses.is_dataclass(obj) and not isinstance(obj, type):
                 names = _FIELD_NAMES.setdefault(kind, tuple(f.name for f in dataclasses.fields(obj)))
             if names is not None:
-                d = {name: conv(getattr(obj, name)) for name in names}
+                d = {name: v if type(v := getattr(obj, name)) in kept else conv(v) for name in names}
                 if isinstance(obj, ScanPass):
                     d["heliostats"] = list(obj.heliostats)
                     d["usable_fraction"] = conv(obj.usable_fraction)
