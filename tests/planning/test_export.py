@@ -814,6 +814,26 @@ def test_a_checked_plan_is_remembered_by_identity_only(plan):
     assert _CHECKED.get(id(bad)) is None
 
 
+def test_the_plan_index_is_built_once_per_plan_and_dropped_with_it(plan):
+    """Flights and passes by index (the first of each), the same dicts for the same plan object, fresh ones for
+    another plan, and no entry left once a plan is gone; a flight lookup by index gives that flight's waypoints."""
+    import gc
+
+    from pihim.planning.export._common import _INDEXES, mission_waypoints, plan_index
+
+    flights, passes = plan_index(plan)
+    assert flights == {0: plan.flights[0]} and passes == {p.index: p for p in plan.passes}
+    assert plan_index(plan)[0] is flights and plan_index(plan)[1] is passes
+    twin = replace(plan, passes=(*plan.passes, replace(plan.passes[0], waypoints=plan.passes[1].waypoints)),
+                   flights=(*plan.flights, replace(plan.flights[0], index=7, waypoints=plan.passes[2].waypoints)))
+    f2, p2 = plan_index(twin)
+    assert p2[plan.passes[0].index] is plan.passes[0]  # the first pass of a repeated index
+    assert f2[7].waypoints == plan.passes[2].waypoints and mission_waypoints(twin, 7) == plan.passes[2].waypoints
+    key = id(twin)
+    del twin, f2, p2
+    gc.collect()
+    assert key not in _INDEXES  # the weak reference's callback removed it
+
 def test_failed_write_keeps_the_previous_file(plan, tmp_path):
     path = write_qgc_plan(plan, tmp_path / "mission.plan")
     before = path.read_bytes()

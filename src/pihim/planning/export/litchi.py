@@ -59,6 +59,7 @@ from pihim.planning.export._common import (
     check_plan,
     heading_0_360,
     mission_waypoints,
+    plan_index,
     resolve_flight,
     write_export,
 )
@@ -166,11 +167,10 @@ def litchi_missions(plan: Plan, max_waypoints: int = LITCHI_MAX_WAYPOINTS,
     if isinstance(max_waypoints, bool) or not isinstance(max_waypoints, int) or max_waypoints < 1:
         raise PihimInputError(f"max_waypoints must be a positive integer, got {max_waypoints!r}")
     missions: list[tuple[Waypoint, ...]] = []
-    for f in plan.flights:
-        if flight is not None and f.index != flight:
-            continue
+    flights_by_index, by_index = plan_index(plan)
+    chosen = plan.flights if flight is None else [f for f in (flights_by_index.get(flight),) if f is not None]
+    for f in chosen:
         wps = litchi_waypoints(plan, f.index)
-        by_index = {p.index: p for p in plan.passes}
         starts = {(w.x_m, w.y_m, w.z_m, w.kind, w.hua) for w in
                   (by_index[i].waypoints[0] for i in f.pass_indices if i in by_index and by_index[i].waypoints)}
         cuts = [k for k, w in enumerate(wps) if k == 0 or w.kind in ("lead_in", "transit")
