@@ -510,6 +510,43 @@ def test_kml_absolute_altitudes_use_the_geoid(plan, tmp_path):
     assert len(root.findall(f".//{_q('Placemark')}")) == 1 + 3 + 9 + 1
 
 
+def test_kml_stream_writes_what_elementtree_writes_for_the_same_tree():
+    """The streaming writer against ElementTree's indent + tostring, the same calls on both: nesting that returns
+    to ancestors, elements left empty, empty text, attributes and text with characters to escape, numbers."""
+    from pihim.planning.export.kml import _Stream
+
+    def build(sub, root):
+        doc = sub(root, "Document", id='a&b<"c">\n\t\r')
+        sub(doc, "name", "x & y < z > w \"quoted\" 'single'\nsecond line")
+        sub(doc, "open", 1)
+        sub(doc, "empty")
+        sub(doc, "blank", "")
+        folder = sub(doc, "Folder")
+        pm = sub(folder, "Placemark")
+        sub(sub(sub(pm, "Style"), "IconStyle"), "heading", 12.5)
+        pt = sub(pm, "Point")
+        sub(pt, "coordinates", "1,2,3 4,5,6")
+        sub(folder, "Placemark")  # back up two levels, then an element that stays empty
+        sub(doc, "Style", id="tower")
+
+    def et_sub(parent, tag, text=None, **attrib):
+        el = ET.SubElement(parent, tag, attrib)
+        if text is not None:
+            el.text = str(text)
+        return el
+
+    root = ET.Element("kml", {"xmlns": KML_NS})
+    build(et_sub, root)
+    stream = _Stream("kml", {"xmlns": KML_NS})
+    build(stream.sub, stream.root)
+    assert stream.text() == _elementtree_text(root)
+
+
+def _elementtree_text(root):
+    ET.indent(root, space=" ")
+    return ET.tostring(root, encoding="unicode")
+
+
 # --------------------------------------------------------------------------- Litchi
 
 
