@@ -540,6 +540,10 @@ def test_kml_stream_writes_what_elementtree_writes_for_the_same_tree():
     stream = _Stream("kml", {"xmlns": KML_NS})
     build(stream.sub, stream.root)
     assert stream.text() == _elementtree_text(root)
+    leaf_first = _Stream("kml", {})
+    leaf = leaf_first.sub(leaf_first.root, "name", "text")
+    with pytest.raises(ValueError, match="closed or holds text"):
+        leaf_first.sub(leaf, "child")
 
 
 def _elementtree_text(root):

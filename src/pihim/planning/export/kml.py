@@ -103,8 +103,10 @@ class _Stream:
 
     def sub(self, parent: _Node, tag: str, text: Any = None, **attrib: str) -> _Node:
         stack, lines = self.stack, self.lines
-        while stack[-1] is not parent:
+        while stack and stack[-1] is not parent:
             self._close()
+        if not stack:
+            raise ValueError(f"<{tag}>: its parent <{parent.tag}> is closed or holds text")
         if not parent.opened:
             lines.append(" " * parent.depth + f"<{parent.tag}{parent.attrs}>")
             parent.opened = True
