@@ -269,55 +269,55 @@ def run_benchmark(sizes: Sequence[int], pipeline_sizes: Sequence[int] = (),
             "loglog_slope": fit, "targets": targets, "machine": harness.machine_info()}
 
 
+def _table(rows: Sequence[dict[str, Any]], header: str, row: Any) -> list[str]:
+    """A markdown table: ``header`` (right-aligned columns), then ``row(r)`` per size (or its error)."""
+    lines = [header, "|" + "---:|" * (header.count("|") - 1)]
+    for r in rows:
+        lines.append(f"| {r['heliostats']:,} | failed: {r['error']} |" if "error" in r else row(r))
+    return lines
+
+
+def _pipeline_row(r: dict[str, Any]) -> str:
+    return (f"| {r['heliostats']:,} | {r['passes']:,} | {r['flights']:,} | {r['captures']:,} | "
+            + " | ".join(f"{r['wall_s'][s]:.1f}" for s in PIPELINE_STAGES)
+            + f" | {r['total_wall_s']:.1f} | {r['total_cpu_s']:.1f} | {r['peak_rss_mb']:.0f} | {r['load_avg']:.1f} |")
+
+
+def _process_row(r: dict[str, Any]) -> str:
+    sec = r["command_seconds"]
+    planning = sum(v for k, v in sec.items() if k != "total_with_export")
+    return (f"| {r['heliostats']:,} | {r['passes']:,} | {r['flights']:,} | {planning:.1f} | "
+            f"{sec['total_with_export'] - planning:.1f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
+            f"{r['peak_rss_mb']:.0f} | {r['files']:,} | {r['files_mb']:.0f} | {r['load_avg']:.1f} |")
+
+
 def markdown_report(report: dict[str, Any]) -> str:
-    lines = ["| heliostats | passes | passes per heliostat | assessed | flights | passes beyond the battery | track s | "
-             "plan s | score s | flights s | total wall s | total CPU s | peak RSS MB | load |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in report["rows"]:
-        if "error" in r:
-            lines.append(f"| {r['heliostats']:,} | failed: {r['error']} |")
-            continue
-        w = r["wall_s"]
-        lines.append(f"| {r['heliostats']:,} | {r['passes']:,} | {r['passes_per_heliostat']:.3f} | "
-                     f"{r['assessed']:,} | {r['flights']:,} | {r.get('passes_beyond_battery', 0):,} | "
-                     + " | ".join(f"{w[s]:.2f}" for s in STAGES)
-                     + f" | {r['total_wall_s']:.1f} | {r['total_cpu_s']:.1f} | {r['peak_rss_mb']:.0f} | "
-                     f"{r['load_avg']:.1f} |")
+    lines = _table(report["rows"], "| heliostats | passes | passes per heliostat | assessed | flights | passes beyond "
+                   "the battery | track s | plan s | score s | flights s | total wall s | total CPU s | peak RSS MB | "
+                   "load |", lambda r: (
+                       f"| {r['heliostats']:,} | {r['passes']:,} | {r['passes_per_heliostat']:.3f} | "
+                       f"{r['assessed']:,} | {r['flights']:,} | {r.get('passes_beyond_battery', 0):,} | "
+                       + " | ".join(f"{r['wall_s'][s]:.2f}" for s in STAGES)
+                       + f" | {r['total_wall_s']:.1f} | {r['total_cpu_s']:.1f} | {r['peak_rss_mb']:.0f} | "
+                       f"{r['load_avg']:.1f} |"))
     f = report["loglog_slope"]
     if "total_wall_s" in f:
         lines += ["", f"Log-log slopes from {min(report['sizes']):,} to {max(report['sizes']):,}: total wall time "
                   f"{f['total_wall_s']:.2f}, total CPU time {f['total_cpu_s']:.2f}, passes {f['passes']:.2f} "
                   "(1 = linear)."]
     if report.get("pipeline_rows"):
-        lines += ["", "`build_plan`, what `pihim plan` runs (seconds of wall time per stage):", "",
-                  "| heliostats | passes | flights | captures | passes s | scoring s | facet captures s | route s | "
-                  "facet report s | total wall s | total CPU s | peak RSS MB | load |",
-                  "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-        for r in report["pipeline_rows"]:
-            if "error" in r:
-                lines.append(f"| {r['heliostats']:,} | failed: {r['error']} |")
-                continue
-            lines.append(f"| {r['heliostats']:,} | {r['passes']:,} | {r['flights']:,} | {r['captures']:,} | "
-                         + " | ".join(f"{r['wall_s'][s]:.1f}" for s in PIPELINE_STAGES)
-                         + f" | {r['total_wall_s']:.1f} | {r['total_cpu_s']:.1f} | {r['peak_rss_mb']:.0f} | "
-                         f"{r['load_avg']:.1f} |")
+        lines += ["", "`build_plan`, what `pihim plan` runs (seconds of wall time per stage):", ""]
+        lines += _table(report["pipeline_rows"], "| heliostats | passes | flights | captures | passes s | scoring s | "
+                        "facet captures s | route s | facet report s | total wall s | total CPU s | peak RSS MB | "
+                        "load |", _pipeline_row)
         if "pipeline_total_wall_s" in f:
             lines += ["", f"Log-log slope of build_plan's wall time: {f['pipeline_total_wall_s']:.2f}."]
     if report.get("process_rows"):
         lines += ["", "`pihim plan` as a whole process on the field from a CSV (plan, plan.json, KML, map and every "
-                  "flight's missions):", "",
-                  "| heliostats | passes | flights | planning s (the command's) | exports s | total wall s | "
-                  "total CPU s | peak RSS MB | files | MB written | load |",
-                  "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-        for r in report["process_rows"]:
-            if "error" in r:
-                lines.append(f"| {r['heliostats']:,} | failed: {r['error']} |")
-                continue
-            sec = r["command_seconds"]
-            planning = sum(v for k, v in sec.items() if k != "total_with_export")
-            lines.append(f"| {r['heliostats']:,} | {r['passes']:,} | {r['flights']:,} | {planning:.1f} | "
-                         f"{sec['total_with_export'] - planning:.1f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
-                         f"{r['peak_rss_mb']:.0f} | {r['files']:,} | {r['files_mb']:.0f} | {r['load_avg']:.1f} |")
+                  "flight's missions):", ""]
+        lines += _table(report["process_rows"], "| heliostats | passes | flights | planning s (the command's) | "
+                        "exports s | total wall s | total CPU s | peak RSS MB | files | MB written | load |",
+                        _process_row)
     lines += harness.target_table(report["targets"], spec=".1f")
     return "\n".join(lines)
 
