@@ -846,13 +846,13 @@ def test_export_all_bad_plan_writes_nothing(plan, tmp_path):
 
 
 def test_a_checked_plan_is_remembered_by_identity_only(plan):
-    from pihim.planning.export._common import _CHECKED, check_plan
+    from pihim.planning.export._common import _KNOWN, check_plan
 
-    assert check_plan(plan) is plan and _CHECKED.get(id(plan)) is plan  # export_all asks once per file
+    assert check_plan(plan) is plan and _KNOWN[id(plan)].checked  # export_all asks once per file
     bad = _nan_latitude_plan(plan)  # a new plan, equal but for one waypoint: checked in full
     with pytest.raises(PihimInputError, match="latitude_deg is nan"):
         check_plan(bad)
-    assert _CHECKED.get(id(bad)) is None
+    assert id(bad) not in _KNOWN or not _KNOWN[id(bad)].checked
 
 
 def test_the_plan_index_is_built_once_per_plan_and_dropped_with_it(plan):
@@ -860,7 +860,7 @@ def test_the_plan_index_is_built_once_per_plan_and_dropped_with_it(plan):
     another plan, and no entry left once a plan is gone; a flight lookup by index gives that flight's waypoints."""
     import gc
 
-    from pihim.planning.export._common import _INDEXES, mission_waypoints, plan_index
+    from pihim.planning.export._common import _KNOWN, mission_waypoints, plan_index
 
     flights, passes = plan_index(plan)
     assert flights == {0: plan.flights[0]} and passes == {p.index: p for p in plan.passes}
@@ -873,7 +873,7 @@ def test_the_plan_index_is_built_once_per_plan_and_dropped_with_it(plan):
     key = id(twin)
     del twin, f2, p2
     gc.collect()
-    assert key not in _INDEXES  # the weak reference's callback removed it
+    assert key not in _KNOWN  # the weak reference's callback removed it
 
 def test_failed_write_keeps_the_previous_file(plan, tmp_path):
     path = write_qgc_plan(plan, tmp_path / "mission.plan")

@@ -82,7 +82,8 @@ def check_plan(plan: Any) -> Plan:
     """
     if not isinstance(plan, Plan):
         raise PihimInputError(f"expected a pihim Plan, got {type(plan).__name__}")
-    if _CHECKED.get(id(plan)) is plan:  # checked before, and immutable: every exporter, every flight asks
+    known = _known(plan)
+    if known is not None and known.checked:  # checked before, and immutable: every exporter, every flight asks
         return plan
     if not plan.passes:
         raise PihimInputError("the plan has no scan passes: nothing to export")
@@ -95,39 +96,57 @@ def check_plan(plan: Any) -> Plan:
     for f in plan.flights:
         for j, w in enumerate(f.waypoints):
             check_waypoint(w, f"flight {f.index} waypoint {j}")
-    if isinstance(plan.passes, tuple) and isinstance(plan.flights, tuple):
-        _CHECKED[id(plan)] = plan
+    if known is not None:
+        known.checked = True
     return plan
 
 
-#: Plans :func:`check_plan` accepted, by identity (a frozen Plan of tuples of frozen passes, flights and
-#: waypoints cannot change): exporting a plan of 4,000 flights checked all of it for every file of every flight.
-_CHECKED: weakref.WeakValueDictionary[int, Plan] = weakref.WeakValueDictionary()
+class _Known:
+    """What the exporters learnt about one plan: checked or not, and its flights and passes by index."""
+
+    __slots__ = ("checked", "index", "ref")
+
+    def __init__(self, ref: weakref.ref) -> None:
+        self.ref = ref
+        self.checked = False
+        self.index: tuple[dict[int, Flight], dict[int, ScanPass]] | None = None
+
+
+#: :class:`_Known` by plan identity. A frozen Plan of tuples of frozen passes, flights and waypoints cannot change,
+#: and exporting a plan of 4,000 flights asked for all of it for every file of every flight; an entry goes with
+#: its plan (weak reference).
+_KNOWN: dict[int, _Known] = {}
+
+
+def _known(plan: Plan) -> _Known | None:
+    """The plan's :class:`_Known`, created on first use; None for a plan holding lists (they can change)."""
+    if not (isinstance(plan.passes, tuple) and isinstance(plan.flights, tuple)):
+        return None
+    key = id(plan)
+    known = _KNOWN.get(key)
+    if known is None or known.ref() is not plan:
+        known = _KNOWN[key] = _Known(weakref.ref(plan, lambda _ref, k=key: _KNOWN.pop(k, None)))
+    return known
 
 
 def plan_index(plan: Plan) -> tuple[dict[int, Flight], dict[int, ScanPass]]:
     """The plan's flights and passes by their ``index`` (the first of each index), built once per plan.
 
     Exporting a plan of 4,000 flights and 34,000 passes looks a flight or a pass up by index for every file of
-    every flight; a scan of the plan for each lookup grew as flights x passes. Kept, like :func:`check_plan`'s
-    verdict, by identity for a plan of tuples, and dropped with the plan.
+    every flight; a scan of the plan for each lookup grew as flights x passes.
     """
-    key = id(plan)
-    got = _INDEXES.get(key)
-    if got is not None and got[0]() is plan:
-        return got[1], got[2]
+    known = _known(plan)
+    if known is not None and known.index is not None:
+        return known.index
     flights: dict[int, Flight] = {}
     for f in plan.flights:
         flights.setdefault(f.index, f)
     passes: dict[int, ScanPass] = {}
     for p in plan.passes:
         passes.setdefault(p.index, p)
-    if isinstance(plan.passes, tuple) and isinstance(plan.flights, tuple):
-        _INDEXES[key] = (weakref.ref(plan, lambda _ref, k=key: _INDEXES.pop(k, None)), flights, passes)
+    if known is not None:
+        known.index = (flights, passes)
     return flights, passes
-
-
-_INDEXES: dict[int, tuple[weakref.ref, dict[int, Flight], dict[int, ScanPass]]] = {}
 
 
 def mission_waypoints(plan: Plan, flight: int | None = None) -> tuple[Waypoint, ...]:
