@@ -291,11 +291,29 @@ def test_row_modes_is_the_most_frequent_value_least_among_equals():
         assert got[r] == (min(set(vals), key=lambda v: (-vals.count(v), v)) if vals else -1)
 
 
+def _segments_hit_box_numpy(p0, p1, lo, hi):
+    """The slab test in numpy (the planner's code before the compiled kernel)."""
+    d = p1 - p0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t1 = (lo - p0) * inv
+        t2 = (hi - p0) * inv
+    tmin = np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2))
+    tmax = np.where(np.isnan(t2), np.inf, np.maximum(t1, t2))
+    par = d == 0  # parallel components: inside the slab or not
+    inside_slab = (p0 >= lo) & (p0 <= hi)
+    tmin = np.where(par, np.where(inside_slab, -np.inf, np.inf), tmin)
+    tmax = np.where(par, np.where(inside_slab, np.inf, -np.inf), tmax)
+    enter = tmin.max(axis=1)
+    leave = tmax.min(axis=1)
+    return (enter <= leave) & (leave >= 0.0) & (enter <= 1.0)
+
+
 def test_segments_hit_box_is_the_numpy_slab_test_with_its_edge_cases():
     """The compiled slab test against the numpy one on random segments, segments parallel to a slab (inside and
     outside it), degenerate (zero-length) segments, segments starting or ending on a face, subnormal components
     and NaN coordinates; and against geometry: a segment through the box's centre hits, one beside it misses."""
-    from pihim.planning.sightlines import _segments_hit_box_numpy, segments_hit_box
+    from pihim.planning.sightlines import segments_hit_box
 
     rng = np.random.default_rng(5)
     lo, hi = np.array([-1.0, -2.0, 0.0]), np.array([1.0, 2.0, 3.0])

@@ -145,8 +145,8 @@ def segments_hit_box(p0: NDArray[np.float64], p1: NDArray[np.float64], lo: NDArr
                       hi: NDArray[np.float64]) -> NDArray[np.bool_]:
     """Segments p0->p1 (N, 3) crossing the axis-aligned box [lo, hi] (slab method).
 
-    One compiled pass (:func:`pihim.planning._kernels.segments_hit_box`); :func:`_segments_hit_box_numpy` is
-    the same test in numpy (the tests' oracle).
+    One compiled pass (:func:`pihim.planning._kernels.segments_hit_box`; tested against the same slab test
+    written with numpy).
     """
     from pihim.planning import _kernels
 
@@ -154,26 +154,6 @@ def segments_hit_box(p0: NDArray[np.float64], p1: NDArray[np.float64], lo: NDArr
     p1 = np.ascontiguousarray(np.asarray(p1, float).reshape(-1, 3))
     return _kernels.segments_hit_box(p0, p1, np.ascontiguousarray(lo, float).reshape(3),
                                      np.ascontiguousarray(hi, float).reshape(3))
-
-
-def _segments_hit_box_numpy(p0: NDArray[np.float64], p1: NDArray[np.float64], lo: NDArray[np.float64],
-                            hi: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """:func:`segments_hit_box` in numpy."""
-    d = p1 - p0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        t1 = (lo - p0) * inv
-        t2 = (hi - p0) * inv
-    tmin = np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2))
-    tmax = np.where(np.isnan(t2), np.inf, np.maximum(t1, t2))
-    # parallel components: inside the slab or not
-    par = d == 0
-    inside_slab = (p0 >= lo) & (p0 <= hi)
-    tmin = np.where(par, np.where(inside_slab, -np.inf, np.inf), tmin)
-    tmax = np.where(par, np.where(inside_slab, np.inf, -np.inf), tmax)
-    enter = tmin.max(axis=1)
-    leave = tmax.min(axis=1)
-    return (enter <= leave) & (leave >= 0.0) & (enter <= 1.0)
 
 
 class MirrorIndex:
