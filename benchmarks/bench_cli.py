@@ -26,8 +26,14 @@ Start-up
     write bandwidth, written as ``pihim polar`` writes (1 GiB with direct
     I/O), and each setting's output bytes and disk floor per frame.
 
+Beside each real run's import time, its floor: every module the run loaded
+except pihim's own, imported in the same order by a bare Python process
+right after it -- what the dependencies (numpy, typer, matplotlib, numba's
+registries, ...) cost whatever pihim does; the difference is pihim's share.
+
 Run ``python benchmarks/run.py --only bench_cli`` or this file directly
-(``--quick``: 20 frames, fewer start-up repetitions).
+(``--quick``: 20 frames, fewer start-up repetitions; ``--startup-only``: the
+start-up rows alone, written to ``results/cli_startup.json``).
 """
 
 from __future__ import annotations
@@ -84,6 +90,7 @@ _IMPORT_TIMER = r"""
 import builtins, importlib, sys, threading, time
 _depth = threading.local()
 _total = [0.0, 0.0]
+_loaded_before = set(sys.modules)
 def _timed(f):
     def call(*a, **k):
         if getattr(_depth, "n", 0):
@@ -105,7 +112,29 @@ try:
     rc = run()
 finally:
     sys.stderr.write(f"\nPIHIM_IMPORTS cpu={_total[0]:.6f} wall={_total[1]:.6f}\n")
+    sys.stderr.write("PIHIM_MODULES " + " ".join(m for m in list(sys.modules) if m not in _loaded_before
+                                                   and m != "__main__" and m.partition(".")[0] != "pihim") + "\n")
 sys.exit(rc)
+"""
+
+#: Imports, in a bare Python process, the modules named in the file ``sys.argv[1]`` in that order (every module but
+#: pihim's own that a timed run loaded, in the order it loaded them) and prints the CPU and wall time it took: the
+#: floor that pihim's dependencies and the standard library set for that run, whatever pihim does. The pihim script
+#: runs OpenBLAS single-threaded, so this process does too.
+_FLOOR_SCRIPT = r"""
+import importlib, os, sys, time
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+with open(sys.argv[1]) as f:
+    names = f.read().split()
+c, t, failed = time.process_time(), time.perf_counter(), 0
+for name in names:
+    if name not in sys.modules:
+        try:
+            importlib.import_module(name)
+        except Exception:  # a module that only its parent can create (none seen so far): counted, not fatal
+            failed += 1
+print(f"PIHIM_FLOOR cpu={time.process_time() - c:.6f} wall={time.perf_counter() - t:.6f} modules={len(names)} "
+      f"failed={failed}")
 """
 
 
@@ -120,23 +149,47 @@ def _env() -> dict[str, str]:
     return env
 
 
-def pihim(args: Sequence[str], *, importtime: bool = False) -> dict[str, Any]:
+def dependency_floor(modules: Sequence[str]) -> dict[str, Any]:
+    """CPU and wall time a bare Python process takes to import ``modules`` in order (:data:`_FLOOR_SCRIPT`).
+
+    Returns ``floor_cpu_s``, ``floor_wall_s``, ``floor_modules`` and ``floor_failed`` (modules that would not
+    import on their own).
+    """
+    with tempfile.NamedTemporaryFile("w", suffix=".txt", prefix="pihim-modules-") as f:
+        f.write("\n".join(modules))
+        f.flush()
+        res = harness.process_run([sys.executable, "-c", _FLOOR_SCRIPT, f.name], env=_env())
+    for line in res["stdout"].splitlines():
+        if line.startswith("PIHIM_FLOOR "):
+            fields = dict(x.split("=") for x in line.split()[1:])
+            return {"floor_cpu_s": float(fields["cpu"]), "floor_wall_s": float(fields["wall"]),
+                    "floor_modules": int(fields["modules"]), "floor_failed": int(fields["failed"])}
+    raise RuntimeError(f"the dependency floor did not run: {res['stderr'].strip()[-300:]}")
+
+
+def pihim(args: Sequence[str], *, importtime: bool = False, floor: bool = False) -> dict[str, Any]:
     """Run ``python -m pihim ARGS``.
 
     With ``importtime``: the command runs under :data:`_IMPORT_TIMER` and
     ``-X importtime``, and the result also holds ``import_s`` (sum of the
     top-level ``-X importtime`` entries, wall clock), ``import_cpu_s`` and
-    ``import_wall_s`` (the timer's).
+    ``import_wall_s`` (the timer's) and ``modules`` (every module but pihim's
+    own that the run loaded, in order). With ``floor`` as well: right after the
+    run, the :func:`dependency_floor` of those modules (``floor_cpu_s``, ...)
+    and ``own_cpu_s``, the import CPU beyond it.
     """
     cmd = [sys.executable, *(["-X", "importtime", "-c", _IMPORT_TIMER] if importtime else ["-m", "pihim"]), *args]
     res = harness.process_run(cmd, env=_env())
     if importtime:
         total, lines = 0, []
         res["import_cpu_s"] = res["import_wall_s"] = None
+        res["modules"] = []
         for line in res["stderr"].splitlines():
             if line.startswith("PIHIM_IMPORTS "):
                 fields = dict(f.split("=") for f in line.split()[1:])
                 res["import_cpu_s"], res["import_wall_s"] = float(fields["cpu"]), float(fields["wall"])
+            elif line.startswith("PIHIM_MODULES "):
+                res["modules"] = line.split()[1:]
             elif line.startswith("import time:"):
                 parts = line.split("|")
                 name = parts[2] if len(parts) > 2 else ""
@@ -146,13 +199,17 @@ def pihim(args: Sequence[str], *, importtime: bool = False) -> dict[str, Any]:
                 lines.append(line)
         res["import_s"] = total / 1e6
         res["stderr"] = "\n".join(lines)
+        if floor:
+            res.update(dependency_floor(res["modules"]))
+            res["own_cpu_s"] = None if res["import_cpu_s"] is None else res["import_cpu_s"] - res["floor_cpu_s"]
     return res
 
 
 def _median_run(args: Sequence[str], n: int, **kw: Any) -> dict[str, Any]:
     runs = [pihim(args, **kw) for _ in range(n)]
     keys = ("wall_s", "cpu_s", "load_before", "load_after", "other_cpu") + (
-        ("import_s", "import_cpu_s", "import_wall_s") if kw.get("importtime") else ())
+        ("import_s", "import_cpu_s", "import_wall_s") if kw.get("importtime") else ()) + (
+        ("floor_cpu_s", "floor_wall_s", "floor_modules", "floor_failed", "own_cpu_s") if kw.get("floor") else ())
     out = {k: statistics.median(r[k] for r in runs if r[k] is not None) if any(r[k] is not None for r in runs)
            else None for k in keys}
     out["runs"] = n
@@ -254,8 +311,8 @@ def polar_runs(n_frames: int) -> dict[str, Any]:
     return runs
 
 
-def run_benchmark(quick: bool = False) -> dict[str, Any]:
-    """All measurements; the JSON-ready report."""
+def run_benchmark(quick: bool = False, startup_only: bool = False) -> dict[str, Any]:
+    """All measurements (with ``startup_only``, the start-up ones alone); the JSON-ready report."""
     n_help = 3 if quick else 7
     report: dict[str, Any] = {"benchmark": "cli", "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
                               "machine": harness.machine_info()}
@@ -271,10 +328,8 @@ def run_benchmark(quick: bool = False) -> dict[str, Any]:
             argv = [str(frame) if a == "FRAME" else str(Path(tmp) / f"out-{len(real)}") if a == "OUT" else a
                     for a in args]
             pihim(argv)  # caches (numba) as after a first run
-            real[label] = _median_run(argv, 1 if quick else 3, importtime=True)
+            real[label] = _median_run(argv, 1 if quick else 3, importtime=True, floor=True)
         report["real_runs"] = real
-    report["polar"] = polar_runs(20 if quick else 100)
-    p = report["polar"]
     startup = [report["help_imports"]["import_cpu_s"],
                *(r["import_cpu_s"] for r in report["command_help"].values()),
                *(r["import_cpu_s"] for r in report["real_runs"].values())]
@@ -283,6 +338,12 @@ def run_benchmark(quick: bool = False) -> dict[str, Any]:
         harness.target("pihim --help, process CPU (median)", report["help"]["cpu_s"], TARGET_HELP_S, "s"),
         harness.target("largest import overhead (CPU) of any command, help or real run", max(startup),
                        TARGET_IMPORT_S, "s"),
+    ]
+    if startup_only:
+        return report
+    report["polar"] = polar_runs(20 if quick else 100)
+    p = report["polar"]
+    report["targets"] += [
         harness.target(f"polar super-pixel --json, {p['superpixel']['frames']} frames, per frame",
                        p["superpixel"]["ms_per_frame"], TARGETS_MS["superpixel"], "ms"),
         harness.target("polar full --json, per frame", p["full"]["ms_per_frame"], TARGETS_MS["full"], "ms"),
@@ -311,6 +372,18 @@ def markdown_report(r: dict[str, Any]) -> str:
         lines.append(f"| {label} | {x['runs']} | {_f(x['wall_s'])} | {_f(x['cpu_s'])} | {_f(x['import_cpu_s'])} | "
                      f"{_f(x['import_wall_s'])} | {_f(x['import_s'])} | {harness.other_pct(x['other_cpu'])} | "
                      f"{_f(x['load_before'], '.1f')} / {_f(x['load_after'], '.1f')} |")
+    lines += ["", "Import CPU of each real run beside its floor: every module the run loaded except pihim's own "
+              "(numpy, typer, matplotlib, numba's registries, the standard library, ...), imported in the same order "
+              "by a bare Python process right after the run (median of the runs).", "",
+              "| Real run | imports CPU s | dependencies alone, CPU s | pihim's own share, CPU s | modules |",
+              "|---|--:|--:|--:|--:|"]
+    for c, x in r["real_runs"].items():
+        if x.get("floor_cpu_s") is not None:
+            lines.append(f"| `pihim {c}` | {_f(x['import_cpu_s'])} | {_f(x['floor_cpu_s'])} | {_f(x['own_cpu_s'])} "
+                         f"| {x['floor_modules']:.0f} |")
+    if "polar" not in r:
+        lines += harness.target_table(r["targets"], spec=".2f", unit_spec={"ms": ".1f"}, column="Result", align="--:")
+        return "\n".join(lines)
     p = r["polar"]
     lines += ["", "| `pihim polar` as one process | frames | wall s | CPU s | ms per frame | CPU ms per frame "
               "| Other CPU % | Load before / after |", "|---|--:|--:|--:|--:|--:|--:|--:|"]
@@ -345,7 +418,7 @@ def main(argv: Sequence[str] | None = None, *, quick: bool = False, json_path: P
     Parameters
     ----------
     argv : sequence of str, optional
-        ``--quick``, ``--json PATH``.
+        ``--quick``, ``--json PATH``, ``--startup-only``.
     quick : bool
         20 frames instead of 100, fewer repetitions.
     json_path : pathlib.Path or None
@@ -357,10 +430,17 @@ def main(argv: Sequence[str] | None = None, *, quick: bool = False, json_path: P
         parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
         parser.add_argument("--quick", action="store_true", help="20 frames, fewer repetitions")
         parser.add_argument("--json", type=Path, default=json_path, metavar="PATH", help="JSON output path")
+        parser.add_argument("--startup-only", action="store_true",
+                            help="the start-up measurements alone (no `pihim polar` over many frames)")
         args = parser.parse_args(list(argv))
-        quick, json_path = quick or args.quick, args.json
-    report = run_benchmark(quick)
+        quick, json_path, startup_only = quick or args.quick, args.json, args.startup_only
+    else:
+        startup_only = False
+    if startup_only and json_path == RESULTS_PATH:
+        json_path = RESULTS_PATH.with_name("cli_startup.json")
+    report = run_benchmark(quick, startup_only)
     report["quick"] = quick
+    report["startup_only"] = startup_only
     if echo:
         print(markdown_report(report))
     harness.write_json(report, json_path, announce=echo)
