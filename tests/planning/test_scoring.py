@@ -34,7 +34,7 @@ from pihim.planning.scoring import (
     score_passes,
 )
 from pihim.planning.ufacet import first_mirror_hits
-from pihim.polarimetry.frames import normalize
+from pihim.polarimetry.frames import change_reference, normalize
 from pihim.polarimetry.stokes import aop_deg, dolp
 from pihim.scenarios import ground_vs_ground, mirror_reflection, sky_vs_sky
 from pihim.sky.model import with_horizontal_irradiance
@@ -212,6 +212,43 @@ def test_ground_table_close_to_direct_model(pose):
     assert np.max(np.abs(dolp(s_t[:, 0], s_t[:, 1], s_t[:, 2]) - d_ref)) < 0.02
     with pytest.raises(PihimInputError, match="another sun"):
         scene.ground.stokes(v, direction_from_angles(30.0, 200.0))
+
+
+def test_ground_table_evaluates_the_nodes_queries_need_with_the_values_of_a_full_table(pose):
+    scene = build_scene(pose, SUN)
+    ground = GroundTable(scene.model.ground, scene.sky, SUN, size=17, sky_table_size=33)
+    full = GroundTable(scene.model.ground, scene.sky, SUN, size=17, sky_table_size=33)
+    rng = np.random.default_rng(5)
+    v = normalize(rng.normal(size=(600, 3)) * [1.0, 1.0, 0.4] + [0.0, 0.0, 0.6])  # some below the horizon
+    # a few narrow cones of views, in any order, as a plan's images look
+    cones = [normalize(v[:40] * 0.05 + c) for c in ([0.3, -0.5, 0.8], [-0.6, 0.1, 0.5], [0.0, 0.0, 1.0])]
+    parts = [ground.stokes(c, SUN)[0] for c in cones]
+    assert 0 < ground.evaluated.sum() < 0.5 * ground.evaluated.size
+    # the whole hemisphere: every node evaluated, at once
+    x = np.linspace(-1.0, 1.0, 101)
+    xx, yy = np.meshgrid(x, x)
+    inside = xx**2 + yy**2 < 1.0
+    hemi = np.stack([xx[inside], yy[inside], np.sqrt(1.0 - xx[inside] ** 2 - yy[inside] ** 2)], axis=-1)
+    full.stokes(hemi, SUN)
+    assert full.evaluated.sum() > 0.75 * full.evaluated.size  # all but corners no view above the horizon needs
+    assert np.all(full.evaluated[ground.evaluated])
+    for c, part in zip(cones, parts, strict=True):  # the same values whatever was asked before
+        np.testing.assert_array_equal(part, full.stokes(c, SUN)[0])
+    np.testing.assert_array_equal(ground.stokes(v, SUN)[0], full.stokes(v, SUN)[0])
+    assert np.all(ground.stokes(v[v[:, 2] <= 0.0], SUN)[0] == 0.0)
+    # each evaluated node holds the model's value at its direction (Lambert azimuthal node, frame e_T)
+    x = np.linspace(-math.sqrt(2.0), math.sqrt(2.0), 17)
+    gx, gy = np.meshgrid(x, x, indexing="ij")
+    gx, gy = gx[full.evaluated], gy[full.evaluated]
+    r2 = np.minimum(gx**2 + gy**2, 2.0)
+    vz = np.maximum(1.0 - 0.5 * r2, 1e-3)
+    k = np.sqrt((1.0 - vz**2) / np.maximum(r2, 1e-300))
+    nodes = normalize(np.stack([gx * k, gy * k, vz], axis=-1))
+    s_model, e_model = scene.model.ground.stokes(nodes, SUN, scene.sky, sky_table_size=33)
+    f = nodes[:, 0] / (1.0 + nodes[:, 2])
+    e_t = np.column_stack([1.0 - f * nodes[:, 0], -f * nodes[:, 1], -f * nodes[:, 2] - f])
+    np.testing.assert_allclose(full.table[full.evaluated], change_reference(s_model, nodes, e_model, e_t),
+                               rtol=1e-9, atol=1e-12 * np.max(s_model[:, 0]))
 
 
 def test_table_predictions_close_to_direct(field, pose, direct):

@@ -385,6 +385,25 @@ def test_numba_kernel_equals_numpy_integrand_on_the_same_table():
     np.testing.assert_allclose(out, ref, rtol=1e-9, atol=1e-9 * np.max(ref[:, 0]))
 
 
+def test_a_sky_table_built_once_gives_the_values_of_a_table_per_call():
+    m = GroundModel(sigma_deg=12.0)
+    sky = RayleighSky()
+    v = hemisphere_grid(15.0).directions.reshape(-1, 3)
+    table = m.sky_table(sky, SUN, 65)
+    a, ea = m.stokes(v, SUN, sky, sky_table_size=65)
+    b, eb = m.stokes(v, SUN, sky, sky_table=table)
+    c, _ = m.stokes(v[::-3], SUN, sky, sky_table=table)  # the same table for another call, other views
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(ea, eb)
+    np.testing.assert_array_equal(c, a[::-3])
+    with pytest.raises(PihimInputError, match="another sun"):
+        m.stokes(v, direction(30.0, 200.0), sky, sky_table=table)
+    with pytest.raises(PihimInputError, match="SkyTable"):
+        m.stokes(v, SUN, sky, sky_table=np.zeros((65, 65, 4)))
+    with pytest.raises(PihimInputError, match="needs a sky"):
+        m.sky_table(None, SUN)
+
+
 @pytest.mark.parametrize("method", ["table", "direct"])
 def test_sky_reported_in_any_frame_gives_the_same_ground(method):
     m = GroundModel(sigma_deg=10.0)

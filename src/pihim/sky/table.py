@@ -47,6 +47,7 @@ class SkyTable:
     """
 
     def __init__(self, sky: object, sun_dir: NDArray[np.float64], size: int) -> None:
+        self.sun_dir = np.array(sun_dir, dtype=float)  # the sun it was built for (a copy)
         self.radius = math.sqrt(2.0)
         self.size = size
         self.step = 2.0 * self.radius / (size - 1)

@@ -749,6 +749,17 @@ class GroundModel:
         return out
 
     # -- deterministic evaluation -------------------------------------------
+    def sky_table(self, sky: SkyRadiance, sun_dir: ArrayLike, size: int = 257) -> _SkyTable:
+        """The sky tabulated for :meth:`stokes` (``sky_method="table"``): pass it as ``sky_table=`` to reuse it
+        across calls with the same sky and sun (the values are those :meth:`stokes` computes with
+        ``sky_table_size=size``)."""
+        _check_sky(sky)
+        if sky is None:
+            raise PihimInputError("sky_table needs a sky")
+        if not (isinstance(size, int) and size >= 3):
+            raise PihimInputError(f"sky_table_size must be an integer >= 3, got {size!r}")
+        return _SkyTable(sky, _sun_vector(sun_dir), size)
+
     def stokes(
         self,
         view_dirs: ArrayLike,
@@ -759,6 +770,7 @@ class GroundModel:
         sky_method: SkyMethod = "table",
         quadrature: tuple[int, int] = (16, 32),
         sky_table_size: int = 257,
+        sky_table: _SkyTable | None = None,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Stokes radiance leaving the ground toward ``view_dirs`` (deterministic).
 
@@ -785,6 +797,11 @@ class GroundModel:
             ``(n_alpha, n_phi)`` of :meth:`quadrature_nodes` for the sky term.
         sky_table_size : int
             Table nodes per axis for ``sky_method="table"`` (>= 3).
+        sky_table : pihim.sky.table.SkyTable, optional
+            With ``sky_method="table"``: the table of ``sky`` for this sun,
+            built once by the caller and reused across calls (it costs
+            ~10-25 ms per call otherwise); ``sky_table_size`` is then unused.
+            A table of another sun is refused.
 
         Returns
         -------
@@ -814,13 +831,14 @@ class GroundModel:
                 raise PihimInputError("e must be perpendicular to view_dirs")
         out = self._sun_term(v, ee, sun)
         if sky is not None:
-            out += self._sky_term(v, ee, sun, sky, sky_method, quadrature, sky_table_size)
+            out += self._sky_term(v, ee, sun, sky, sky_method, quadrature, sky_table_size, sky_table)
         diffuse = self.diffuse_radiance(sun, sky)
         if diffuse:
             out[:, 0] += np.where(v[:, 2] > 0.0, diffuse, 0.0)
         return out.reshape(shape + (4,)), ee.reshape(shape + (3,))
 
-    def _sky_term(self, v, ee, sun, sky, sky_method, quadrature, sky_table_size) -> NDArray[np.float64]:
+    def _sky_term(self, v, ee, sun, sky, sky_method, quadrature, sky_table_size, sky_table=None
+                  ) -> NDArray[np.float64]:
         nodes, weights = self.quadrature_nodes(*quadrature)
         if sky_method == "direct":
             return _sky_integral_numpy(
@@ -828,9 +846,16 @@ class GroundModel:
             )
         if sky_method != "table":
             raise PihimInputError(f"sky_method must be 'table' or 'direct', got {sky_method!r}")
-        if not (isinstance(sky_table_size, int) and sky_table_size >= 3):
+        if sky_table is not None:
+            if not isinstance(sky_table, _SkyTable):
+                raise PihimInputError(f"sky_table must be a pihim.sky.table.SkyTable, got {type(sky_table).__name__}")
+            if float(np.max(np.abs(sky_table.sun_dir - sun))) > 1e-12:
+                raise PihimInputError("sky_table was built for another sun direction")
+            table = sky_table
+        elif not (isinstance(sky_table_size, int) and sky_table_size >= 3):
             raise PihimInputError(f"sky_table_size must be an integer >= 3, got {sky_table_size!r}")
-        table = _SkyTable(sky, sun, sky_table_size)
+        else:
+            table = _SkyTable(sky, sun, sky_table_size)
         out = np.zeros((v.shape[0], 4))
         _sky_kernel(
             np.ascontiguousarray(v),
