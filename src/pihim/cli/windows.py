@@ -58,6 +58,7 @@ def windows(
     json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
 ) -> int:
     """Favourable times of day for polarimetric inspection (paper sec. 4.1 windows)."""
+    from pihim._malloc import keep_freed_memory
     from pihim.planning.scoring import ShiftSearch
     from pihim.planning.windows import (
         is_nsttf,
@@ -81,6 +82,7 @@ def windows(
         raise PihimInputError("--aim: coordinates must be finite")
     check_out_dir(out)
     fld = load_field_option(field, facets, nsttf_tower=is_nsttf(site_obj))
+    keep_freed_memory()  # the sweep's temporaries: freed blocks reused, not faulted in again (pihim._malloc)
     with _progress_bar(f"planning and scoring {day.isoformat()}") as tick:
         sweep = sweep_day(day, site=site_obj, field=fld, aim_point=aim_point, step_min=step_min,
                           min_elevation_deg=min_elevation, max_altitude_m=max_altitude,
