@@ -140,6 +140,55 @@ def test_first_hits_among_agrees_with_plain_loops():
     np.testing.assert_array_equal(got, want)
 
 
+def _first_hits_oracle(p0, p1, exclude, centres, normals, x, y, hw, hh, eps):
+    """Every segment against every mirror, plain loops."""
+    out = np.full(len(p0), -1)
+    for i in range(len(p0)):
+        best = math.inf
+        d = p1[i] - p0[i]
+        for j in range(len(centres)):
+            den = d @ normals[j]
+            if j in exclude[i] or den == 0:
+                continue
+            t = (centres[j] - p0[i]) @ normals[j] / den
+            q = p0[i] + t * d - centres[j]
+            if np.isfinite(t) and eps < t < 1 - eps and t < best and abs(q @ x[j]) <= hw and abs(q @ y[j]) <= hh:
+                best, out[i] = t, j
+    return out
+
+
+def _grid(centres, cell):
+    """The grid of pihim.planning.sightlines.MirrorIndex, written out for a test."""
+    lo = centres[:, :2].min(axis=0)
+    n_x, n_y = (int(v) + 1 for v in np.floor((centres[:, :2].max(axis=0) - lo) / cell))
+    key = (np.floor((centres[:, 0] - lo[0]) / cell) * n_y + np.floor((centres[:, 1] - lo[1]) / cell)).astype(np.int64)
+    order = np.argsort(key, kind="stable")
+    return order, np.searchsorted(key[order], np.arange(n_x * n_y + 1)).astype(np.int64), lo[0], lo[1], cell, n_x, n_y
+
+
+@pytest.mark.parametrize("cell", [0.7, 3.0, 50.0])  # smaller than, about, and larger than a mirror
+def test_grid_first_hits_agrees_with_every_segment_against_every_mirror(cell):
+    rng = np.random.default_rng(7)
+    n_m, n_r, hw, hh = 60, 400, 1.5, 1.0
+    centres = np.column_stack([rng.uniform(-20, 20, (n_m, 2)), rng.uniform(1, 4, n_m)])
+    rot = np.linalg.qr(rng.normal(size=(n_m, 3, 3)))[0]
+    x, y, normals = (np.ascontiguousarray(rot[:, :, k]) for k in range(3))
+    p0 = np.column_stack([rng.uniform(-30, 30, (n_r, 2)), rng.uniform(0, 25, n_r)])
+    aim = centres[rng.integers(0, n_m, n_r)] + rng.normal(size=(n_r, 3))  # most segments pass near a mirror
+    p1 = p0 + (aim - p0) * rng.uniform(0.5, 3.0, (n_r, 1))  # some stop short of it
+    p1[:10] = p0[:10] + [0.0, 0.0, 1e-3]  # short segments
+    p0[10:14, 0] = [np.nan, np.inf, -np.inf, 1e12]  # not finite: meet nothing; far: every cell scanned
+    p0[14:20] += [500.0, 0.0, 0.0]  # starting far outside the grid
+    exclude = np.where(rng.random((n_r, 2)) < 0.2, rng.integers(0, n_m, (n_r, 2)), -1)
+    args = (centres, normals, x, y, hw, hh, math.hypot(hw, hh), 1e-6)
+    got = _kernels.grid_first_hits(p0, p1, exclude, *_grid(centres, cell), *args)
+    with np.errstate(all="ignore"):
+        want = _first_hits_oracle(p0, p1, exclude, centres, normals, x, y, hw, hh, 1e-6)
+    assert (want >= 0).sum() > 50 and (want < 0).sum() > 50
+    assert np.all(got[10:13] == -1)
+    np.testing.assert_array_equal(got, want)
+
+
 def _path_clear(p, r, keep):
     return not _kernels.crosses(p[0], p[1], r[0], r[1], keep)
 

@@ -140,39 +140,59 @@ def view_tests(pair: NDArray, ch_all: NDArray, nh_all: NDArray, w_all: NDArray, 
 
 
 @njit(cache=True)
-def first_hits(p0: NDArray, p1: NDArray, ray: NDArray, rect: NDArray, exclude: NDArray, centres: NDArray,
-               normals: NDArray, x: NDArray, y: NDArray, hw: float, hh: float,
-               eps: float) -> NDArray:  # pragma: no cover - compiled
-    """For candidate (segment ``ray``, mirror ``rect``) pairs, the first mirror each segment p0 -> p1 crosses
-    strictly inside (``eps < t < 1 - eps``) within its half-width ``hw`` and half-height ``hh`` (-1 for
-    none), skipping the mirrors in ``exclude[ray]``; equal ``t`` keeps the earlier pair."""
+def grid_first_hits(p0: NDArray, p1: NDArray, exclude: NDArray, order: NDArray, cell_start: NDArray, x0: float,
+                    y0: float, cell: float, n_x: int, n_y: int, centres: NDArray, normals: NDArray, x: NDArray,
+                    y: NDArray, hw: float, hh: float, reach: float, eps: float) -> NDArray:  # pragma: no cover
+    """The first mirror each segment p0 -> p1 crosses strictly inside (``eps < t < 1 - eps``) within its
+    half-width ``hw`` and half-height ``hh`` (-1 for none), skipping the mirrors in ``exclude[i]``.
+
+    Candidates come from a uniform grid over the mirror centres' x, y (``n_x`` x ``n_y`` cells of ``cell``
+    metres from ``(x0, y0)``; cell ``cx * n_y + cy`` holds ``order[cell_start[c]:cell_start[c + 1]]``): the
+    cells meeting the segment's x, y bounding box grown by ``reach``, the mirrors' half-diagonal. A mirror the
+    segment crosses has its centre within ``reach`` of the crossing point, so no hit is missed. Equal ``t``
+    keeps the lower mirror index. A segment with a coordinate that is not finite meets nothing."""
     n = p0.shape[0]
     out = np.full(n, -1, np.int64)
-    best = np.full(n, np.inf)
-    for m in range(ray.shape[0]):
-        i, j = ray[m], rect[m]
-        skip = False
-        for e in range(exclude.shape[1]):
-            if exclude[i, e] == j:
-                skip = True
-        if skip:
+    for i in range(n):
+        ax, ay, az = p0[i, 0], p0[i, 1], p0[i, 2]
+        dx, dy, dz = p1[i, 0] - ax, p1[i, 1] - ay, p1[i, 2] - az
+        if not (np.isfinite(ax) and np.isfinite(ay) and np.isfinite(az) and np.isfinite(dx) and np.isfinite(dy)
+                and np.isfinite(dz)):
             continue
-        dx, dy, dz = p1[i, 0] - p0[i, 0], p1[i, 1] - p0[i, 1], p1[i, 2] - p0[i, 2]
-        denom = dx * normals[j, 0] + dy * normals[j, 1] + dz * normals[j, 2]
-        num = (centres[j, 0] - p0[i, 0]) * normals[j, 0] + (centres[j, 1] - p0[i, 1]) * normals[j, 1] \
-            + (centres[j, 2] - p0[i, 2]) * normals[j, 2]
-        if denom == 0.0:
+        lo_x = (min(ax, ax + dx) - reach - x0) / cell
+        hi_x = (max(ax, ax + dx) + reach - x0) / cell
+        lo_y = (min(ay, ay + dy) - reach - y0) / cell
+        hi_y = (max(ay, ay + dy) + reach - y0) / cell
+        if hi_x < 0.0 or hi_y < 0.0 or lo_x >= n_x or lo_y >= n_y:
             continue
-        t = num / denom
-        if not (np.isfinite(t) and t > eps and t < 1.0 - eps) or not t < best[i]:
-            continue
-        qx = p0[i, 0] + t * dx - centres[j, 0]
-        qy = p0[i, 1] + t * dy - centres[j, 1]
-        qz = p0[i, 2] + t * dz - centres[j, 2]
-        if abs(qx * x[j, 0] + qy * x[j, 1] + qz * x[j, 2]) <= hw and abs(qx * y[j, 0] + qy * y[j, 1]
-                                                                         + qz * y[j, 2]) <= hh:
-            best[i] = t
-            out[i] = j
+        cx0, cx1 = int(max(lo_x, 0.0)), int(min(hi_x, n_x - 1.0))  # clamped before the conversion: no overflow
+        cy0, cy1 = int(max(lo_y, 0.0)), int(min(hi_y, n_y - 1.0))
+        best, bj = np.inf, -1
+        for cx in range(cx0, cx1 + 1):
+            for cy in range(cy0, cy1 + 1):
+                c = cx * n_y + cy
+                for k in range(cell_start[c], cell_start[c + 1]):
+                    j = order[k]
+                    skip = False
+                    for e in range(exclude.shape[1]):
+                        if exclude[i, e] == j:
+                            skip = True
+                    if skip:
+                        continue
+                    denom = dx * normals[j, 0] + dy * normals[j, 1] + dz * normals[j, 2]
+                    if denom == 0.0:
+                        continue
+                    t = ((centres[j, 0] - ax) * normals[j, 0] + (centres[j, 1] - ay) * normals[j, 1]
+                         + (centres[j, 2] - az) * normals[j, 2]) / denom
+                    if not (np.isfinite(t) and t > eps and t < 1.0 - eps) or t > best or (t == best and j > bj):
+                        continue
+                    qx = ax + t * dx - centres[j, 0]
+                    qy = ay + t * dy - centres[j, 1]
+                    qz = az + t * dz - centres[j, 2]
+                    if abs(qx * x[j, 0] + qy * x[j, 1] + qz * x[j, 2]) <= hw and abs(qx * y[j, 0] + qy * y[j, 1]
+                                                                                     + qz * y[j, 2]) <= hh:
+                        best, bj = t, j
+        out[i] = bj
     return out
 
 

@@ -2,8 +2,8 @@
 
 Geometry shared by the UFACET planner (:mod:`pihim.planning.ufacet`,
 :mod:`pihim.planning.lines`) and the contrast scoring: every test is
-vectorised over many rays, with a k-d tree over the mirror centres so that a
-ray is tested only against mirrors near it. Mirrors are the flat tracked
+vectorised over many rays, with a grid over the mirror centres so that a ray
+is tested only against mirrors near it. Mirrors are the flat tracked
 outlines (``mirror_half_width_m`` x ``mirror_half_height_m`` around each
 mirror centre, in the mirror plane); the tower is its axis-aligned box.
 Headings are degrees clockwise from North, pitch negative below the horizon
@@ -12,14 +12,12 @@ Headings are degrees clockwise from North, pitch negative below the horizon
 
 from __future__ import annotations
 
-import itertools
 import math
 import weakref
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import cKDTree
 
 from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
@@ -157,7 +155,14 @@ def segments_hit_box(p0: NDArray[np.float64], p1: NDArray[np.float64], lo: NDArr
 
 
 class MirrorIndex:
-    """Tracked mirror rectangles of a field with a spatial index for batched ray tests."""
+    """Tracked mirror rectangles of a field with a spatial index for batched ray tests.
+
+    The index is a uniform grid over the mirror centres' x, y (cells about the
+    size of a mirror's diagonal, fewer than ``4 N + 10,000`` of them): a
+    segment is tested against the mirrors of the cells its x, y bounding box,
+    grown by the half-diagonal, meets (:func:`pihim.planning._kernels.grid_first_hits`,
+    one compiled pass, no candidate lists).
+    """
 
     def __init__(self, pose: FieldPose) -> None:
         spec = pose.field.spec  # type: ignore[attr-defined]
@@ -168,38 +173,40 @@ class MirrorIndex:
         self.hw = float(spec.mirror_half_width_m)
         self.hh = float(spec.mirror_half_height_m)
         self.radius = math.hypot(self.hw, self.hh)
-        self.tree = cKDTree(self.centres)
+        xy = self.centres[:, :2]
+        finite = np.isfinite(xy).all(axis=1)
+        lo = xy[finite].min(axis=0) if finite.any() else np.zeros(2)
+        span = np.maximum(xy[finite].max(axis=0) - lo, 0.0) if finite.any() else np.zeros(2)
+        n = len(xy)
+        self.cell = max(2.0 * self.radius, math.sqrt(float(span[0]) * float(span[1]) / (4 * n + 10_000)), 1e-3)
+        self.n_x, self.n_y = (int(v) + 1 for v in np.floor(span / self.cell))
+        self.x0, self.y0 = float(lo[0]), float(lo[1])
+        cx = np.clip(np.floor((xy[:, 0] - self.x0) / self.cell), 0, self.n_x - 1)
+        cy = np.clip(np.floor((xy[:, 1] - self.y0) / self.cell), 0, self.n_y - 1)
+        key = np.where(finite, np.nan_to_num(cx) * self.n_y + np.nan_to_num(cy), self.n_x * self.n_y).astype(np.int64)
+        self.order = np.argsort(key, kind="stable")  # a mirror whose centre is not finite is in no cell
+        self.cell_start = np.searchsorted(key[self.order], np.arange(self.n_x * self.n_y + 1)).astype(np.int64)
 
     def first_hits(self, p0: NDArray[np.float64], p1: NDArray[np.float64], exclude: NDArray[np.int64],
                    chunk: int = 50_000) -> NDArray[np.int64]:
-        """Index of the first mirror each segment p0->p1 crosses (-1 for none), skipping ``exclude`` (N, E)."""
-        n = len(p0)
-        out = np.full(n, -1, dtype=np.int64)
-        for a in range(0, n, chunk):
-            b = min(n, a + chunk)
-            out[a:b] = self._first_hits(p0[a:b], p1[a:b], exclude[a:b])
-        return out
+        """Index of the first mirror each segment p0->p1 crosses (-1 for none), skipping ``exclude`` (N, E).
 
-    def _first_hits(self, p0: NDArray[np.float64], p1: NDArray[np.float64],
-                    exclude: NDArray[np.int64]) -> NDArray[np.int64]:
+        A crossing counts strictly inside the segment; of two mirrors crossed
+        at the same point the lower index is reported."""
         n = len(p0)
         out = np.full(n, -1, dtype=np.int64)
         if n == 0:
             return out
-        mid = 0.5 * (p0 + p1)
-        r = 0.5 * np.linalg.norm(p1 - p0, axis=1) + self.radius
-        lists = self.tree.query_ball_point(mid, r, return_sorted=False)
-        lens = np.fromiter(map(len, lists), dtype=np.int64, count=n)
-        if lens.sum() == 0:
-            return out
         from pihim.planning import _kernels
 
-        ray = np.repeat(np.arange(n), lens)
-        rect = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lens.sum()))
-        # the candidates' plane crossings and rectangle tests, one compiled pass
-        return _kernels.first_hits(np.ascontiguousarray(p0, float), np.ascontiguousarray(p1, float), ray, rect,
-                                   np.ascontiguousarray(exclude, np.int64).reshape(n, -1), self.centres, self.n,
-                                   self.x, self.y, self.hw, self.hh, _EPS_T)
+        ex = np.ascontiguousarray(exclude, np.int64).reshape(n, -1)
+        for a in range(0, n, chunk):
+            b = min(n, a + chunk)
+            out[a:b] = _kernels.grid_first_hits(
+                np.ascontiguousarray(p0[a:b], float), np.ascontiguousarray(p1[a:b], float), ex[a:b], self.order,
+                self.cell_start, self.x0, self.y0, self.cell, self.n_x, self.n_y, self.centres, self.n, self.x,
+                self.y, self.hw, self.hh, self.radius, _EPS_T)
+        return out
 
 
 def first_mirror_hits(pose: FieldPose, p0: ArrayLike, p1: ArrayLike, *,
@@ -239,7 +246,7 @@ _INDEXES: weakref.WeakKeyDictionary[Any, MirrorIndex] = weakref.WeakKeyDictionar
 def mirror_index(pose: FieldPose) -> MirrorIndex:
     """The :class:`MirrorIndex` of a pose, built once per pose and kept while the pose lives.
 
-    (Scoring tests sight lines pass by pass; building the k-d tree over the
+    (Scoring tests sight lines pass by pass; building the index over the
     whole field each time made it quadratic in the field size.)
     """
     try:
