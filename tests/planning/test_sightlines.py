@@ -42,3 +42,59 @@ def test_in_fov_agrees_with_opencv_projection() -> None:
     # broadcasting: one camera against a (K, 3) set, as the mission-timing check calls it
     one = in_fov(pts[0], cams[0], np.float64(heading[0]), np.float64(pitch[0]), camera)
     np.testing.assert_array_equal(one, got[0])
+
+
+def _every_mirror(index, p0, p1, exclude):
+    """The first mirror each segment crosses, against every mirror of the field (plain loops)."""
+    out = np.full(len(p0), -1)
+    for i in range(len(p0)):
+        best, d = np.inf, p1[i] - p0[i]
+        for j in range(len(index.centres)):
+            den = d @ index.n[j]
+            if j in exclude[i] or den == 0:
+                continue
+            t = (index.centres[j] - p0[i]) @ index.n[j] / den
+            q = p0[i] + t * d - index.centres[j]
+            if 1e-6 < t < 1 - 1e-6 and t < best and abs(q @ index.x[j]) <= index.hw and abs(q @ index.y[j]) <= index.hh:
+                best, out[i] = t, j
+    return out
+
+
+def test_mirror_index_finds_the_first_mirror_of_every_sight_line_of_a_tracked_field() -> None:
+    """Sight lines from cameras above the NSTTF-like field to random mirror points, and reflected rays, against
+    every mirror: the grid's candidates miss no crossing."""
+    from pihim.field.kinematics import track_field
+    from pihim.field.layout import nsttf_like_field
+    from pihim.planning.sightlines import MirrorIndex
+    from pihim.sky.sun import direction_from_angles
+
+    pose = track_field(nsttf_like_field(), direction_from_angles(35.0, 120.0), np.array([0.0, 0.0, 60.0]))
+    index = MirrorIndex(pose)
+    rng = np.random.default_rng(8)
+    n = 1500
+    target = rng.integers(0, len(index.centres), n)
+    on_mirror = index.centres[target] + (rng.uniform(-1, 1, (n, 1)) * index.hw * index.x[target]
+                                         + rng.uniform(-1, 1, (n, 1)) * index.hh * index.y[target])
+    cams = rng.uniform([-120, -20, 8], [120, 200, 30], (n, 3))
+    p0, p1 = cams, on_mirror + 60.0 * (on_mirror - cams) / np.linalg.norm(on_mirror - cams, axis=1)[:, None]
+    exclude = np.where(rng.random((n, 1)) < 0.5, target[:, None], -1)
+    got = index.first_hits(p0, p1, exclude, chunk=400)
+    want = _every_mirror(index, p0, p1, exclude)
+    assert (want >= 0).sum() > 500 and (want < 0).sum() > 50
+    np.testing.assert_array_equal(got, want)
+
+
+def test_mirror_index_grid_stays_small_for_a_far_flung_field() -> None:
+    """Two mirrors ten thousand kilometres apart: a handful of cells, not billions."""
+    from types import SimpleNamespace
+
+    from pihim.planning.sightlines import MirrorIndex
+
+    spec = SimpleNamespace(mirror_half_width_m=3.0, mirror_half_height_m=3.0)
+    pose = SimpleNamespace(field=SimpleNamespace(spec=spec), mirror_centres=np.array([[0.0, 0.0, 3.0], [1e7, 1e7, 3.0]]),
+                           rotations=np.tile(np.eye(3), (2, 1, 1)), normals=np.tile([0.0, 0.0, 1.0], (2, 1)))
+    index = MirrorIndex(pose)
+    assert index.n_x * index.n_y <= 3 * (4 * 2 + 10_000)
+    down = index.first_hits(np.array([[1e7, 1e7, 10.0], [0.0, 0.0, 10.0]]), np.array([[1e7, 1e7, 0.0], [0.0, 0.0, 0.0]]),
+                            np.full((2, 1), -1))
+    np.testing.assert_array_equal(down, [1, 0])

@@ -158,7 +158,8 @@ class MirrorIndex:
     """Tracked mirror rectangles of a field with a spatial index for batched ray tests.
 
     The index is a uniform grid over the mirror centres' x, y (cells about the
-    size of a mirror's diagonal, fewer than ``4 N + 10,000`` of them): a
+    size of a mirror's diagonal; larger in a sparse or far-flung field, so that
+    there are at most about ``3 (4 N + 10,000)`` of them): a
     segment is tested against the mirrors of the cells its x, y bounding box,
     grown by the half-diagonal, meets (:func:`pihim.planning._kernels.grid_first_hits`,
     one compiled pass, no candidate lists).
@@ -177,8 +178,9 @@ class MirrorIndex:
         finite = np.isfinite(xy).all(axis=1)
         lo = xy[finite].min(axis=0) if finite.any() else np.zeros(2)
         span = np.maximum(xy[finite].max(axis=0) - lo, 0.0) if finite.any() else np.zeros(2)
-        n = len(xy)
-        self.cell = max(2.0 * self.radius, math.sqrt(float(span[0]) * float(span[1]) / (4 * n + 10_000)), 1e-3)
+        budget = 4 * len(xy) + 10_000  # cells: about (span_x / cell + 1) (span_y / cell + 1), kept below ~3 budget
+        self.cell = max(2.0 * self.radius, math.sqrt(float(span[0]) * float(span[1]) / budget),
+                        float(span[0] + span[1]) / budget, 1e-3)
         self.n_x, self.n_y = (int(v) + 1 for v in np.floor(span / self.cell))
         self.x0, self.y0 = float(lo[0]), float(lo[1])
         cx = np.clip(np.floor((xy[:, 0] - self.x0) / self.cell), 0, self.n_x - 1)
