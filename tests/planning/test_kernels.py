@@ -157,17 +157,24 @@ def _first_hits_oracle(p0, p1, exclude, centres, normals, x, y, hw, hh, eps):
     return out
 
 
-def _grid(centres, cell):
-    """The grid of pihim.planning.sightlines.MirrorIndex, written out for a test."""
-    lo = centres[:, :2].min(axis=0)
-    n_x, n_y = (int(v) + 1 for v in np.floor((centres[:, :2].max(axis=0) - lo) / cell))
-    key = (np.floor((centres[:, 0] - lo[0]) / cell) * n_y + np.floor((centres[:, 1] - lo[1]) / cell)).astype(np.int64)
+def _grid(centres, cell, lo=None, hi=None):
+    """A grid as pihim.planning.sightlines.MirrorIndex lays it out, written out for a test: over ``lo``-``hi``
+    (default all the centres), a centre beyond it in the nearest edge cell."""
+    lo = centres[:, :2].min(axis=0) if lo is None else np.asarray(lo, float)
+    hi = centres[:, :2].max(axis=0) if hi is None else np.asarray(hi, float)
+    n_x, n_y = (int(v) + 1 for v in np.floor((hi - lo) / cell))
+    cx = np.clip(np.floor((centres[:, 0] - lo[0]) / cell), 0, n_x - 1)
+    cy = np.clip(np.floor((centres[:, 1] - lo[1]) / cell), 0, n_y - 1)
+    key = (cx * n_y + cy).astype(np.int64)
     order = np.argsort(key, kind="stable")
     return order, np.searchsorted(key[order], np.arange(n_x * n_y + 1)).astype(np.int64), lo[0], lo[1], cell, n_x, n_y
 
 
-@pytest.mark.parametrize("cell", [0.7, 3.0, 50.0])  # smaller than, about, and larger than a mirror
-def test_grid_first_hits_agrees_with_every_segment_against_every_mirror(cell):
+@pytest.mark.parametrize("cell, bounds", [
+    (0.7, None), (3.0, None), (50.0, None),  # cells smaller than, about, and larger than a mirror
+    (3.0, ((-5.0, -8.0), (6.0, 4.0))),  # a grid over part of the field: most centres in its edge cells
+])
+def test_grid_first_hits_agrees_with_every_segment_against_every_mirror(cell, bounds):
     rng = np.random.default_rng(7)
     n_m, n_r, hw, hh = 60, 400, 1.5, 1.0
     centres = np.column_stack([rng.uniform(-20, 20, (n_m, 2)), rng.uniform(1, 4, n_m)])
@@ -181,7 +188,7 @@ def test_grid_first_hits_agrees_with_every_segment_against_every_mirror(cell):
     p0[14:20] += [500.0, 0.0, 0.0]  # starting far outside the grid
     exclude = np.where(rng.random((n_r, 2)) < 0.2, rng.integers(0, n_m, (n_r, 2)), -1)
     args = (centres, normals, x, y, hw, hh, math.hypot(hw, hh), 1e-6)
-    got = _kernels.grid_first_hits(p0, p1, exclude, *_grid(centres, cell), *args)
+    got = _kernels.grid_first_hits(p0, p1, exclude, *_grid(centres, cell, *(bounds or ())), *args)
     with np.errstate(all="ignore"):
         want = _first_hits_oracle(p0, p1, exclude, centres, normals, x, y, hw, hh, 1e-6)
     assert (want >= 0).sum() > 50 and (want < 0).sum() > 50

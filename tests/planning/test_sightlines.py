@@ -84,17 +84,21 @@ def test_mirror_index_finds_the_first_mirror_of_every_sight_line_of_a_tracked_fi
     np.testing.assert_array_equal(got, want)
 
 
-def test_mirror_index_grid_stays_small_for_a_far_flung_field() -> None:
-    """Two mirrors ten thousand kilometres apart: a handful of cells, not billions."""
+def test_a_stray_heliostat_far_away_neither_inflates_the_grid_nor_is_lost() -> None:
+    """400 mirrors on a 10 m lattice and one mistyped 1,000 km away (then one at 1e308 m): the cells stay the
+    size of a mirror, and a ray straight down onto any mirror, the stray one included, finds it."""
     from types import SimpleNamespace
 
     from pihim.planning.sightlines import MirrorIndex
 
     spec = SimpleNamespace(mirror_half_width_m=3.0, mirror_half_height_m=3.0)
-    pose = SimpleNamespace(field=SimpleNamespace(spec=spec), mirror_centres=np.array([[0.0, 0.0, 3.0], [1e7, 1e7, 3.0]]),
-                           rotations=np.tile(np.eye(3), (2, 1, 1)), normals=np.tile([0.0, 0.0, 1.0], (2, 1)))
-    index = MirrorIndex(pose)
-    assert index.n_x * index.n_y <= 3 * (4 * 2 + 10_000)
-    down = index.first_hits(np.array([[1e7, 1e7, 10.0], [0.0, 0.0, 10.0]]), np.array([[1e7, 1e7, 0.0], [0.0, 0.0, 0.0]]),
-                            np.full((2, 1), -1))
-    np.testing.assert_array_equal(down, [1, 0])
+    gx, gy = np.meshgrid(np.arange(20) * 10.0, np.arange(20) * 10.0)
+    for far in (1e6, 1e308):
+        centres = np.column_stack([np.r_[gx.ravel(), far], np.r_[gy.ravel(), 50.0], np.full(401, 3.0)])
+        pose = SimpleNamespace(field=SimpleNamespace(spec=spec), mirror_centres=centres,
+                               rotations=np.tile(np.eye(3), (401, 1, 1)), normals=np.tile([0.0, 0.0, 1.0], (401, 1)))
+        index = MirrorIndex(pose)
+        if far == 1e6:
+            assert index.cell < 20.0 and np.diff(index.cell_start).max() <= 4
+        got = index.first_hits(centres + [0.5, 0.5, 10.0], centres + [0.5, 0.5, -10.0], np.full((401, 1), -1))
+        np.testing.assert_array_equal(got, np.arange(401))

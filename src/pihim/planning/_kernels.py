@@ -147,10 +147,12 @@ def grid_first_hits(p0: NDArray, p1: NDArray, exclude: NDArray, order: NDArray, 
     half-width ``hw`` and half-height ``hh`` (-1 for none), skipping the mirrors in ``exclude[i]``.
 
     Candidates come from a uniform grid over the mirror centres' x, y (``n_x`` x ``n_y`` cells of ``cell``
-    metres from ``(x0, y0)``; cell ``cx * n_y + cy`` holds ``order[cell_start[c]:cell_start[c + 1]]``): the
-    cells meeting the segment's x, y bounding box grown by ``reach``, the mirrors' half-diagonal. A mirror the
-    segment crosses has its centre within ``reach`` of the crossing point, so no hit is missed. Equal ``t``
-    keeps the lower mirror index. A segment with a coordinate that is not finite meets nothing."""
+    metres from ``(x0, y0)``; cell ``cx * n_y + cy`` holds ``order[cell_start[c]:cell_start[c + 1]]``, a centre
+    beyond the grid in the edge cell nearest it): the cells meeting the segment's x, y bounding box grown by
+    ``reach``, the mirrors' half-diagonal, with the box's cell range clamped into the grid. A mirror the segment
+    crosses has its centre within ``reach`` of the crossing point, and clamping keeps a centre's cell inside a
+    box's range, so no hit is missed. Equal ``t`` keeps the lower mirror index. A segment with a coordinate that
+    is not finite meets nothing."""
     n = p0.shape[0]
     out = np.full(n, -1, np.int64)
     for i in range(n):
@@ -163,10 +165,10 @@ def grid_first_hits(p0: NDArray, p1: NDArray, exclude: NDArray, order: NDArray, 
         hi_x = (max(ax, ax + dx) + reach - x0) / cell
         lo_y = (min(ay, ay + dy) - reach - y0) / cell
         hi_y = (max(ay, ay + dy) + reach - y0) / cell
-        if hi_x < 0.0 or hi_y < 0.0 or lo_x >= n_x or lo_y >= n_y:
-            continue
-        cx0, cx1 = int(max(lo_x, 0.0)), int(min(hi_x, n_x - 1.0))  # clamped before the conversion: no overflow
-        cy0, cy1 = int(max(lo_y, 0.0)), int(min(hi_y, n_y - 1.0))
+        # clamped into the grid (before the conversion: no overflow): a box beyond an edge scans the edge cells,
+        # which hold the centres beyond the grid
+        cx0, cx1 = int(min(max(lo_x, 0.0), n_x - 1.0)), int(min(max(hi_x, 0.0), n_x - 1.0))
+        cy0, cy1 = int(min(max(lo_y, 0.0), n_y - 1.0)), int(min(max(hi_y, 0.0), n_y - 1.0))
         best, bj = np.inf, -1
         for cx in range(cx0, cx1 + 1):
             for cy in range(cy0, cy1 + 1):

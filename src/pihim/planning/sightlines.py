@@ -157,12 +157,15 @@ def segments_hit_box(p0: NDArray[np.float64], p1: NDArray[np.float64], lo: NDArr
 class MirrorIndex:
     """Tracked mirror rectangles of a field with a spatial index for batched ray tests.
 
-    The index is a uniform grid over the mirror centres' x, y (cells about the
-    size of a mirror's diagonal; larger in a sparse or far-flung field, so that
-    there are at most about ``3 (4 N + 10,000)`` of them): a
-    segment is tested against the mirrors of the cells its x, y bounding box,
-    grown by the half-diagonal, meets (:func:`pihim.planning._kernels.grid_first_hits`,
-    one compiled pass, no candidate lists).
+    The index is a uniform grid over the mirror centres' x, y: it spans the
+    bulk of the field (0.5th to 99.5th percentile of each coordinate; a centre
+    beyond it goes to the nearest edge cell, so that one mistyped heliostat far
+    away neither inflates the cells nor is lost), with cells about the size of
+    a mirror's diagonal, larger in a sparse field so that there are at most
+    about ``3 (4 N + 10,000)`` of them. A segment is tested against the mirrors
+    of the cells its x, y bounding box, grown by the half-diagonal, meets
+    (:func:`pihim.planning._kernels.grid_first_hits`, one compiled pass, no
+    candidate lists).
     """
 
     def __init__(self, pose: FieldPose) -> None:
@@ -176,15 +179,19 @@ class MirrorIndex:
         self.radius = math.hypot(self.hw, self.hh)
         xy = self.centres[:, :2]
         finite = np.isfinite(xy).all(axis=1)
-        lo = xy[finite].min(axis=0) if finite.any() else np.zeros(2)
-        span = np.maximum(xy[finite].max(axis=0) - lo, 0.0) if finite.any() else np.zeros(2)
+        lo, hi = np.percentile(xy[finite], [0.5, 99.5], axis=0) if finite.any() else np.zeros((2, 2))
+        span = hi - lo
         budget = 4 * len(xy) + 10_000  # cells: about (span_x / cell + 1) (span_y / cell + 1), kept below ~3 budget
-        self.cell = max(2.0 * self.radius, math.sqrt(float(span[0]) * float(span[1]) / budget),
-                        float(span[0] + span[1]) / budget, 1e-3)
+        cell = max(2.0 * self.radius, math.sqrt(float(span[0]) * float(span[1]) / budget),
+                   float(span[0] + span[1]) / budget, 1e-3)
+        if not (math.isfinite(cell) and np.isfinite(lo).all()):  # coordinates near the float limits: one cell
+            lo, span, cell = np.zeros(2), np.zeros(2), 1.0
+        self.cell = cell
         self.n_x, self.n_y = (int(v) + 1 for v in np.floor(span / self.cell))
         self.x0, self.y0 = float(lo[0]), float(lo[1])
-        cx = np.clip(np.floor((xy[:, 0] - self.x0) / self.cell), 0, self.n_x - 1)
-        cy = np.clip(np.floor((xy[:, 1] - self.y0) / self.cell), 0, self.n_y - 1)
+        with np.errstate(invalid="ignore", over="ignore"):
+            cx = np.clip(np.floor((xy[:, 0] - self.x0) / self.cell), 0, self.n_x - 1)
+            cy = np.clip(np.floor((xy[:, 1] - self.y0) / self.cell), 0, self.n_y - 1)
         key = np.where(finite, np.nan_to_num(cx) * self.n_y + np.nan_to_num(cy), self.n_x * self.n_y).astype(np.int64)
         self.order = np.argsort(key, kind="stable")  # a mirror whose centre is not finite is in no cell
         self.cell_start = np.searchsorted(key[self.order], np.arange(self.n_x * self.n_y + 1)).astype(np.int64)
