@@ -47,7 +47,7 @@ GLIBC = _glibc()
 
 
 def _run(mode: str, **env: str) -> dict:
-    environ = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    environ = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "GLIBC_TUNABLES"}
     environ.update(env, PYTHONPATH=os.pathsep.join(sys.path))
     done = subprocess.run([sys.executable, "-c", _FAULTS, mode], capture_output=True, text=True, env=environ,
                           timeout=60)
@@ -65,9 +65,18 @@ def test_freed_memory_is_reused_without_page_faults():
 
 
 @pytest.mark.skipif(not GLIBC, reason="glibc's mallopt")
-def test_the_users_malloc_settings_win():
-    got = _run("keep", MALLOC_TRIM_THRESHOLD_="131072")
+@pytest.mark.parametrize("env", [{"MALLOC_TRIM_THRESHOLD_": "131072"},
+                                 {"GLIBC_TUNABLES": "glibc.malloc.trim_threshold=131072"}])
+def test_the_users_malloc_settings_win(env):
+    got = _run("keep", **env)
     assert got["kept"] is False
+    assert got["faults"] > 5000  # glibc's behaviour, as the user set it
+
+
+@pytest.mark.parametrize("value", [-1, 2**31, 2**32 + 5])
+def test_a_threshold_a_c_int_cannot_hold_is_refused(value):
+    with pytest.raises(ValueError, match="2\\*\\*31"):
+        keep_freed_memory(mmap_threshold=value)
 
 
 def test_nothing_changes_off_linux(monkeypatch):

@@ -12,11 +12,14 @@ size (202 MB against 207 MB). The whole ``pihim windows`` process, three runs
 each alternated with the code before: system time 0.6-0.8 -> 0.2 s, CPU time
 10.7-11.0 -> 10.3-10.7 s, peak resident size 224-238 -> 239 MB.
 
-Only the command line calls this, for commands measured to gain; a library
-user's process is left as its owner set it. Nothing is changed where the
-user set ``MALLOC_MMAP_THRESHOLD_`` or ``MALLOC_TRIM_THRESHOLD_`` (glibc's own
-environment variables for the same settings) or where ``mallopt`` is not
-glibc's (other C libraries, other systems).
+Only the command-line functions call this, for commands measured to gain:
+the library's functions leave a process's allocator as its owner set it (a
+process that runs such a command in-process, a test's ``CliRunner`` say, gets
+the setting for the rest of its life). Nothing is changed where the user set
+the thresholds (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``, or
+``glibc.malloc.mmap_threshold`` / ``glibc.malloc.trim_threshold`` in
+``GLIBC_TUNABLES``) or where ``mallopt`` is not glibc's (other C libraries,
+other systems).
 
 References
 ----------
@@ -39,10 +42,17 @@ MMAP_THRESHOLD_BYTES = 32 * 1024 * 1024
 TRIM_THRESHOLD_BYTES = 256 * 1024 * 1024
 
 _USER_SETTINGS = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
+_USER_TUNABLES = ("glibc.malloc.mmap_threshold", "glibc.malloc.trim_threshold")
+
+
+def _user_set() -> bool:
+    """Whether the user set either threshold in the environment."""
+    tunables = os.environ.get("GLIBC_TUNABLES", "")
+    return any(os.environ.get(k) for k in _USER_SETTINGS) or any(t in tunables for t in _USER_TUNABLES)
 
 
 def keep_freed_memory(mmap_threshold: int = MMAP_THRESHOLD_BYTES, trim_threshold: int = TRIM_THRESHOLD_BYTES) -> bool:
-    """Set glibc's mmap and trim thresholds for this process; True if they were set.
+    """Set glibc's mmap and trim thresholds for this process; True if both were set.
 
     Parameters
     ----------
@@ -56,11 +66,19 @@ def keep_freed_memory(mmap_threshold: int = MMAP_THRESHOLD_BYTES, trim_threshold
     Returns
     -------
     bool
-        False when nothing was changed: not Linux, the user set either
-        threshold in the environment, or the C library has no ``mallopt``
-        that accepted them.
+        False when not both were set: not Linux, the user set either
+        threshold in the environment (then nothing is changed), or the C
+        library has no ``mallopt`` that accepted them.
+
+    Raises
+    ------
+    ValueError
+        A threshold outside ``[0, 2**31)`` (``mallopt`` takes a C ``int``).
     """
-    if not sys.platform.startswith("linux") or any(os.environ.get(k) for k in _USER_SETTINGS):
+    for name, value in (("mmap_threshold", mmap_threshold), ("trim_threshold", trim_threshold)):
+        if not 0 <= int(value) < 2**31:
+            raise ValueError(f"{name} must be in [0, 2**31), got {value!r}")
+    if not sys.platform.startswith("linux") or _user_set():
         return False
     import ctypes
 

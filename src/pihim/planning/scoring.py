@@ -343,7 +343,9 @@ class GroundTable:
     results do not depend on the order or grouping of the queries. The
     model's sky table is built once, at the first evaluation. Queries from
     several threads are safe: a node is written before it is marked
-    evaluated, with the same value whichever query evaluates it.
+    evaluated, with the same value whichever query evaluates it (threads
+    querying at once may evaluate the same nodes, and build the sky table,
+    more than once).
 
     Parameters
     ----------

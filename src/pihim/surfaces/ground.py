@@ -798,10 +798,12 @@ class GroundModel:
         sky_table_size : int
             Table nodes per axis for ``sky_method="table"`` (>= 3).
         sky_table : pihim.sky.table.SkyTable, optional
-            With ``sky_method="table"``: the table of ``sky`` for this sun,
-            built once by the caller and reused across calls (it costs
-            ~10-25 ms per call otherwise); ``sky_table_size`` is then unused.
-            A table of another sun is refused.
+            With ``sky_method="table"``: the table of ``sky`` for this sun
+            (:meth:`sky_table`), built once by the caller and reused across
+            calls (it costs ~10-25 ms per call otherwise); ``sky_table_size``
+            is then unused. A table of another sun is refused; that it is
+            ``sky``'s is the caller's to keep. Unused without a sky or with
+            ``sky_method="direct"``.
 
         Returns
         -------
