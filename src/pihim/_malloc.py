@@ -60,8 +60,8 @@ def keep_freed_memory(mmap_threshold: int = MMAP_THRESHOLD_BYTES, trim_threshold
         Bytes from which an allocation gets its own mapping (glibc's default
         starts at 128 kB and follows the largest block freed, up to 32 MB).
     trim_threshold : int
-        Free bytes at the top of the heap kept before trimming (default
-        twice the mmap threshold).
+        Free bytes at the top of the heap kept before trimming (glibc's
+        default follows the mmap threshold: twice it).
 
     Returns
     -------
