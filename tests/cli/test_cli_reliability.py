@@ -305,7 +305,7 @@ def test_demo_too_large_for_the_memory_is_refused_with_the_figure(tmp_path, caps
     monkeypatch.setattr(resources, "available_memory", lambda: 100_000_000)
     assert main(["demo", "--size", "2448x2048", "--out", str(tmp_path / "o")]) == 2
     line = _one_error_line(capsys.readouterr().err)
-    assert "--size 2448x2048 needs about 1.7 GB of memory; 100 MB is available" in line  # 300 B/px + 200 MB
+    assert "--size 2448x2048 needs about 1.78 GB of memory; 100 MB is available" in line  # 300 B/px + 280 MB
     assert not (tmp_path / "o").exists()
 
 
