@@ -37,6 +37,7 @@ def test_aop_follows_displayed_field_direction(alpha):
     out = polar_image(m)
     assert np.allclose(out.dolp, 0.8, atol=1e-4)
     assert np.max(aop_difference_deg(out.aop_deg, alpha)) < 1e-3
+    assert np.allclose(out.aop_deg, alpha, atol=1e-3)  # folded into [0, 180), not only equal as axes
 
 
 @pytest.mark.parametrize("t", [5.0, 20.0, 40.0])

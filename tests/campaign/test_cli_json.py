@@ -35,6 +35,7 @@ def test_simulate_run_report_export_json(plan_json, tmp_path, capsys) -> None:
     run = json.loads(capsys.readouterr().out)
     jsonschema.validate(run, _schema("campaign-run"))
     assert run["campaign"] == "may" and run["flights"][0]["log"] == "ulog"
+    assert run["parameters"]["criteria"]["min_reflection_dolp"] == 0.2  # the paper's criterion without --min-dolp
 
     assert main(["campaign", "report", str(store), "--out", str(tmp_path / "r"), "--json"]) == 0
     rep = json.loads(capsys.readouterr().out)

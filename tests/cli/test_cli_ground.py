@@ -66,3 +66,25 @@ def test_success_says_what_was_written(tmp_path, capsys):
     assert lines[0].startswith("pihim ground: sun zenith 30.0 deg, azimuth 235.0 deg; the mirror shows ground in")
     assert "ground-vs-ground usable in" in lines[0]
     assert lines[1].startswith(f"wrote 5 files to {out}: ground-dolp.png") and lines[1].endswith("ground-maps.npz")
+
+
+def test_defaults_are_the_conventions(tmp_path, capsys):
+    """Pinned conventions: without options, the ground has n = 1.45 (paper), the mirror is second-surface silvered
+    glass and the Monte Carlo uses the paper's 100,000 microfacets; the maps equal those asked for explicitly."""
+    sun = ["--sun-zenith", "30", "--sun-azimuth", "235", "--resolution", "10"]
+
+    def run(name, *extra):
+        assert main(["ground", *sun, *extra, "--out", str(tmp_path / name), "--json"]) == 0
+        return json.loads(capsys.readouterr().out), np.load(tmp_path / name / "ground-maps.npz")
+
+    rec, default = run("default", "--monte-carlo")
+    assert rec["ground"]["refractive_index"] == 1.45
+    assert rec["mirror"]["model"] == "second-surface"
+    assert rec["monte_carlo"]["facets"] == 100_000
+    _, explicit = run("explicit", "--refractive-index", "1.45", "--mirror", "second-surface")
+    _, fresnel = run("fresnel", "--mirror", "fresnel")
+    _, glass = run("glass", "--refractive-index", "1.54")
+    for key in ("ground_dolp", "ground_aop_deg", "mirror_dolp", "mirror_aop_deg"):
+        assert np.array_equal(default[key], explicit[key], equal_nan=True), key
+    assert not np.allclose(default["mirror_dolp"], fresnel["mirror_dolp"], equal_nan=True)
+    assert not np.allclose(default["ground_dolp"], glass["ground_dolp"], equal_nan=True)

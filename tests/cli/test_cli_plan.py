@@ -109,3 +109,19 @@ def test_out_that_cannot_be_created_is_one_line(capsys):
     assert main(["plan", "--time", TIME, "--heliostats", "8E3", "--out", "/proc/x"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("pihim: error: --out /proc/x: cannot create")
+
+
+def test_plan_scores_with_the_second_surface_mirror_by_default(tmp_path, capsys):
+    """Pinned convention: without --mirror, the predicted reflections are those of second-surface silvered glass."""
+
+    def predictions(name, *extra):
+        out = tmp_path / name
+        assert main(["plan", "--time", "2021-05-13T13:00-06:00", "--heliostats", "8E3", "--out", str(out), *extra]) == 0
+        capsys.readouterr()
+        doc = json.loads((out / "plan.json").read_text())
+        return [q for p in doc["passes"] for q in p["predictions"]]
+
+    default = predictions("default")
+    assert default and default == predictions("explicit", "--mirror", "second-surface")
+    fresnel = predictions("fresnel", "--mirror", "fresnel")
+    assert [q["reflection_dolp"] for q in fresnel] != [q["reflection_dolp"] for q in default]

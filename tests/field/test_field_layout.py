@@ -281,6 +281,8 @@ def test_nsttf_like_field_alone() -> None:
     assert np.sum(f.sides == "E") == np.sum(f.sides == "W") == 109
     x = f.pivots[:, 0]
     assert np.allclose(np.sort(x[f.rows == 5]), -np.sort(x[f.rows == 5])[::-1])  # symmetric columns
+    assert (x[f.sides == "E"] > 0).all() and (x[f.sides == "W"] < 0).all()  # 8E3: East of the centre line, +x
+    assert f.spec.pivot_offset_m == pytest.approx(7 * 0.0254)  # 7 in from the pivot to the mirror, in front of it
     assert f.tower is NSTTF_TOWER
 
 

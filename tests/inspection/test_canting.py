@@ -44,3 +44,14 @@ def test_canting_recovered_to_a_fraction_of_the_paper_grid_step(ufacet):
     assert all(f.reason for f in res.facets if not f.used)
     assert not res.facets[12].used and "alike" in res.facets[12].reason
     assert res.to_dict()["facets"][0]["id"] == 1
+
+
+def test_facets_polarized_at_most_02_are_skipped_by_default(ufacet):
+    """Pinned convention (paper sec. 4.1): only reflections with DoLP > 0.2 are processed, unless told otherwise."""
+    field, pose, h, az, el, cam, cp, fr = ufacet
+    z = np.zeros_like(fr.s0)
+    ep = edge_points(fr.s0, z, z)
+    res = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, dolp=np.full(fr.s0.shape, 0.19))
+    in_view = [f for f in res.facets if f.reason != "facet not in view (or too small)"]
+    assert len(in_view) >= 4
+    assert all(not f.used and f.reason == "DoLP <= 0.2 on the reflection (paper sec. 4.1)" for f in in_view)

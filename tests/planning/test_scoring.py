@@ -516,3 +516,12 @@ def test_beam_index_keeps_every_clearance_that_matters():
     assert close.sum() >= 50 and (~close).sum() > 100
     assert np.allclose(fast[close], exact[close])
     assert np.array_equal(np.minimum(fast, clearance), np.minimum(exact, clearance))
+
+
+def test_scoring_defaults_to_the_second_surface_mirror():
+    """Pinned convention: plans are scored with second-surface silvered glass unless told otherwise."""
+    from pihim.surfaces.mirror import SecondSurfaceMirror
+
+    mirror = ScoringModel().mirror
+    assert isinstance(mirror, SecondSurfaceMirror)
+    assert float(mirror.mueller(1.0)[0, 0]) == pytest.approx(0.9680, abs=5e-4)  # glass + silver at 550 nm

@@ -299,3 +299,10 @@ def test_rising_rays_see_the_sky_over_a_rising_ground():
     down = render_frame(scene, cam, CameraPose.from_attitude([0.0, 0.0, 2.0], 90.0, -30.0), env,
                         RenderSettings(supersample=1))
     assert np.all(down.labels[..., 0] == 2)
+
+
+def test_clear_sky_defaults_to_the_second_surface_mirror():
+    """Pinned convention: rendered heliostats are second-surface silvered glass unless told otherwise."""
+    mirror = Environment.clear_sky(SUN).mirror
+    assert isinstance(mirror, SecondSurfaceMirror)
+    assert float(mirror.mueller(1.0)[0, 0]) == pytest.approx(0.9680, abs=5e-4)  # glass + silver at 550 nm

@@ -298,3 +298,14 @@ def test_cos_i_out_of_range_is_refused(model):
     with pytest.raises(PihimInputError):
         model.mueller(np.array([0.5, 1.2]))
     assert np.isfinite(model.mueller(1.0 + 1e-12)).all()  # round-off above 1 is clipped
+
+
+def test_default_mirror_is_second_surface_silvered_glass():
+    """Pinned convention: the heliostat mirror defaults to second-surface silvered glass (R = 0.968 at normal
+    incidence, 550 nm), not the paper's plain Fresnel reflection (bare silver) nor an ideal mirror."""
+    default = mirror_model()
+    assert isinstance(default, SecondSurfaceMirror)
+    r0 = float(default.mueller(1.0)[0, 0])
+    assert r0 == pytest.approx(0.9680, abs=5e-4)  # the closed form of test_second_surface_reflectance_at_normal_incidence
+    assert abs(float(FresnelMirror().mueller(1.0)[0, 0]) - r0) > 5e-3
+    assert abs(float(IdealMirror().mueller(1.0)[0, 0]) - r0) > 5e-3
