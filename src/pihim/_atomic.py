@@ -18,7 +18,7 @@ import re
 import socket
 import tempfile
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -241,6 +241,23 @@ def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> Path:
 
 
 # -- output folders --------------------------------------------------------------------------------
+
+
+def check_not_an_input(out: str | os.PathLike, inputs: Iterable[str | os.PathLike], *, option: str = "--out") -> None:
+    """Refuse an output file that is one of the inputs: writing it would replace that input.
+
+    Compared as files (:func:`os.path.samefile`), so another spelling of the path or a link is caught too.
+    """
+    p = Path(out)
+    if not p.exists():
+        return
+    for q in inputs:
+        try:
+            same = os.path.samefile(p, q)
+        except OSError:  # an input that cannot be looked at is reported when it is read
+            continue
+        if same:
+            raise PihimInputError(f"{option} {out}: is the input {os.fspath(q)}; writing it would replace that input")
 
 
 def check_out_dir(out: str | os.PathLike, *, option: str = "--out") -> None:

@@ -28,6 +28,27 @@ def test_unexpected_failures_are_one_line(tmp_path, capsys, monkeypatch, exc, st
     assert len(err) == 1 and err[0].startswith("pihim: error:") and needle in err[0]
 
 
+@pytest.mark.parametrize("stop, status, line", [(KeyboardInterrupt(), 130, "pihim: aborted"),
+                                                 ("terminated", 143, "pihim: terminated")])
+def test_an_interrupt_wrapped_by_compiled_code_is_an_interrupt(tmp_path, capsys, monkeypatch, stop, status, line):
+    """Ctrl-C (or SIGTERM) while a numba function calls back into Python arrives as a SystemError caused by it."""
+    from pihim.cli import Terminated
+
+    interrupt = Terminated(15) if stop == "terminated" else stop
+
+    def fail(*args, **kwargs):
+        try:
+            raise interrupt
+        except BaseException as exc:
+            raise SystemError("CPUDispatcher(<function solve>) returned a result with an exception set") from exc
+
+    monkeypatch.setattr(sky_cli, "sky_map", fail)
+    monkeypatch.delenv("PIHIM_TRACEBACK", raising=False)
+    assert main([*ARGS, "--out", str(tmp_path / "s")]) == status
+    assert capsys.readouterr().err.strip().splitlines() == [line]
+    assert not (tmp_path / "s").exists() or not any((tmp_path / "s").iterdir())
+
+
 def test_traceback_on_request(tmp_path, monkeypatch):
     def fail(*args, **kwargs):
         raise RuntimeError("boom")

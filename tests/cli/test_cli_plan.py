@@ -125,3 +125,14 @@ def test_plan_scores_with_the_second_surface_mirror_by_default(tmp_path, capsys)
     assert default and default == predictions("explicit", "--mirror", "second-surface")
     fresnel = predictions("fresnel", "--mirror", "fresnel")
     assert [q["reflection_dolp"] for q in fresnel] != [q["reflection_dolp"] for q in default]
+
+
+def test_no_mission_file_when_no_pass_is_within_a_battery(tmp_path, capsys):
+    """Every pass beyond a battery's reach: the plan is written, no mission file (there is nothing to fly)."""
+    out = tmp_path / "o"
+    assert main(["plan", "--time", "2021-05-13T10:00-06:00", "--heliostats", "8E3,9E3", "--battery-min", "0.001",
+                 "--out", str(out), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["flights"] == 0 and summary["unreachable_passes"]
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["plan.json", "plan.kml", "plan.png"]

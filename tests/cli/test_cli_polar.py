@@ -89,7 +89,7 @@ def test_batch_continues_after_bad_items(frame, tmp_path, capsys):
         (["--bit-depth", "0"], "bit-depth"),
         (["--bit-depth", "12", "--saturation-level", "5000"], "full scale"),
         (["--pixel-format", "Mono13"], "pixel format"),
-        (["--dark-level", "-10"], "--dark-level must be a finite number of raw units >= 0, got -10"),
+        (["--dark-level", "-10"], "--dark-level must be a raw level in [0, 65535], got -10"),
     ],
 )
 def test_bad_options_one_line_exit_2(frame, tmp_path, capsys, extra, needle):

@@ -123,6 +123,8 @@ BAD_ROWS = [
     ("8E3,24.39,94.5,4.75,25,5,5,4.02,0.1778,1.2192,1.2192,7", "expected 11 columns, got 12"),
     ("8E3,24.39,north,4.75,25,5,5,4.02,0.1778,1.2192,1.2192", "'Y' must be a finite number"),
     ("8E3,24.39,94.5,nan,25,5,5,4.02,0.1778,1.2192,1.2192", "'Z' must be a finite number"),
+    # a mistyped exponent overflowed the geometry (numpy warnings, then a misleading error or none)
+    ("8E3,1e308,94.5,4.75,25,5,5,4.02,0.1778,1.2192,1.2192", "'X' must be within +-100000 m, got '1e308'"),
     ("8X3,24.39,94.5,4.75,25,5,5,4.02,0.1778,1.2192,1.2192", "is not <row><E|W><column>"),
     ("E3,24.39,94.5,4.75,25,5,5,4.02,0.1778,1.2192,1.2192", "is not <row><E|W><column>"),
     ("8E2,14.63,94.49,4.53,25,5,5,4.02,0.1778,1.2192,1.2192", "duplicate heliostat name '8E2' (first on line 2)"),

@@ -94,6 +94,9 @@ BytesLike: TypeAlias = "bytes | bytearray | memoryview | NDArray[np.uint8]"
 TIFF_SUFFIXES: tuple[str, ...] = (".tif", ".tiff")
 PNG_SUFFIXES: tuple[str, ...] = (".png",)
 RAW_SUFFIXES: tuple[str, ...] = (".raw", ".bin")
+#: Largest raw value a frame can hold: frames are ``uint8`` or ``uint16`` (a dark or saturation level above it is
+#: refused by the commands that read frames).
+MAX_RAW_VALUE = 65535
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 #: Largest decoded TIFF accepted, in bytes; guards against corrupt headers

@@ -280,8 +280,11 @@ def polar_image(
         if depth.shift:
             raw = raw >> depth.shift
         sat = float(depth.full_scale if saturation_level is None else saturation_level)
-    if not math.isfinite(dark_level) or dark_level < 0:
+    f32_max = float(np.finfo(np.float32).max)  # the kernels work in float32
+    if not math.isfinite(dark_level) or not 0 <= dark_level <= f32_max:
         raise PihimInputError(f"dark level must be a finite number of raw units >= 0, got {dark_level:g}")
+    if sat != np.inf and not (math.isfinite(sat) and abs(sat) <= f32_max):
+        raise PihimInputError(f"saturation level must be a finite number of raw units, got {sat:g}")
     w_pos = _position_ordered_pinv(analyser or AnalyserMatrix.ideal(), layout)
     h, w = raw.shape
     shape = (h // 2, w // 2) if demosaic == "superpixel" else (h, w)

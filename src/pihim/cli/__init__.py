@@ -192,6 +192,22 @@ def _sigterm_raises() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+def _wrapped_interrupt(exc: BaseException) -> BaseException | None:
+    """The Ctrl-C or SIGTERM behind ``exc``, if any.
+
+    An interrupt that arrives while compiled (numba) code calls back into Python reaches the caller as a
+    ``SystemError`` whose cause or context is the interrupt.
+    """
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, (KeyboardInterrupt, Terminated)):
+            return cur
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
+    return None
+
+
 def _one_line(exc: BaseException) -> str:
     """An exception as one line of text."""
     text = " ".join(str(exc).split())
@@ -244,6 +260,12 @@ def _run(argv: list[str] | None) -> int:
         print(f"pihim: error: {where}{describe_os_error(exc)}", file=sys.stderr)
         return 1
     except Exception as exc:  # noqa: BLE001 - the promise is one line, never a traceback
+        stop = _wrapped_interrupt(exc)
+        if isinstance(stop, Terminated):
+            raise stop from None  # main says "pihim: terminated", exit status 143
+        if stop is not None:
+            print("pihim: aborted", file=sys.stderr)
+            return 130
         if os.environ.get("PIHIM_TRACEBACK"):
             raise
         print(f"pihim: error: internal error ({_one_line(exc)}); set PIHIM_TRACEBACK=1 for details",

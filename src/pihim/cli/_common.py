@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from pihim._atomic import check_out_dir, make_out_dir  # noqa: F401 - the commands import them from here
+from pihim._atomic import check_not_an_input, check_out_dir, make_out_dir  # noqa: F401 - the commands import them from here
 from pihim.camera.layout import MosaicLayout
 from pihim.errors import PihimInputError
 
@@ -91,11 +91,19 @@ def load_field_option(spec: str, facets: "Path | None", *, nsttf_tower: bool = T
     return load_field(path, facets, tower=NSTTF_TOWER if nsttf_tower else None)
 
 
+#: Largest field-frame coordinate a point option accepts, metres: 100 km from the field's origin, far beyond any
+#: heliostat field, so that a mistyped exponent is refused instead of overflowing the geometry.
+MAX_POINT_COORDINATE_M = 1e5
+
+
 def parse_point(text: str | None, *, name: str) -> "list[float] | None":
-    """``X,Y,Z`` in metres (finite) or None."""
+    """``X,Y,Z`` in metres (finite, within :data:`MAX_POINT_COORDINATE_M` of the origin) or None."""
     if text is None:
         return None
     vals = parse_floats(text, name=name, count=3)
     if not all(math.isfinite(v) for v in vals):
         raise PihimInputError(f"{name}: coordinates must be finite")
+    if max(abs(v) for v in vals) > MAX_POINT_COORDINATE_M:
+        raise PihimInputError(f"{name}: coordinates must be within {MAX_POINT_COORDINATE_M:g} m of the field origin, "
+                              f"got {text}")
     return vals

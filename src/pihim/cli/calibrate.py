@@ -22,15 +22,17 @@ from rich.table import Table
 
 from pihim._atomic import clean_stale_temporaries, describe_os_error, write_json_atomic
 from pihim.camera import calibration
-from pihim.camera.frames import read_frame
+from pihim.camera.frames import MAX_RAW_VALUE, read_frame
 from pihim.camera.layout import MosaicLayout
-from pihim.cli._common import check_out_dir
+from pihim.cli._common import check_not_an_input, check_out_dir
 from pihim.errors import PihimInputError
 from pihim.polarimetry.analyser import NOMINAL_ANGLES_DEG
 
 
 #: Most angles ``--angles START:STOP:STEP`` may expand to (one frame per angle).
 MAX_ANGLES = 10_000
+#: Largest polarizer angle magnitude accepted, deg (ten turns of a rotation stage).
+MAX_ANGLE_DEG = 3600.0
 
 
 def parse_angles(text: str, *, max_count: int = MAX_ANGLES) -> list[float]:
@@ -69,6 +71,8 @@ def parse_angles(text: str, *, max_count: int = MAX_ANGLES) -> list[float]:
         raise PihimInputError(f"--angles {text!r} gives {count:.3g} angles; at most {max_count} (one per frame)")
     if not vals or not all(math.isfinite(v) for v in vals):
         raise PihimInputError(f"--angles: no finite angles in {text!r}")
+    if max(abs(v) for v in vals) > MAX_ANGLE_DEG:
+        raise PihimInputError(f"--angles: polarizer angles must be within +-{MAX_ANGLE_DEG:g} deg, got {text!r}")
     return vals
 
 
@@ -169,13 +173,14 @@ def calibrate_polarizer(
     roi_box = None if roi is None else parse_roi(roi)
     if bit_depth is not None and not 1 <= bit_depth <= 16:
         raise PihimInputError(f"--bit-depth must be in 1..16, got {bit_depth}")
-    if not (math.isfinite(dark_level) and dark_level >= 0):
-        raise PihimInputError(f"--dark-level must be a finite number >= 0, got {dark_level:g}")
+    if not (math.isfinite(dark_level) and 0 <= dark_level <= MAX_RAW_VALUE):
+        raise PihimInputError(f"--dark-level must be a raw level in [0, {MAX_RAW_VALUE}], got {dark_level:g}")
     if not (math.isfinite(polarizer_dolp) and 0 < polarizer_dolp <= 1):
         raise PihimInputError(f"--polarizer-dolp must be in (0, 1], got {polarizer_dolp:g}")
     if out.is_dir():
         raise PihimInputError(f"--out {out}: cannot write the calibration: is a directory; give a JSON file name")
     check_out_dir(out.parent, option="--out")
+    check_not_an_input(out, frames)
     raws = [read_frame(p, width=width, height=height, pixel_format=pixel_format) for p in frames]
     cal = calibration.calibrate_polarizer(
         raws,

@@ -26,7 +26,7 @@ from pihim._atomic import clean_stale_temporaries, describe_os_error, write_json
 from pihim.camera.frames import read_frame
 from pihim.camera.layout import MosaicLayout
 from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
-from pihim.cli._common import check_out_dir
+from pihim.cli._common import check_not_an_input, check_out_dir
 from pihim.errors import PihimInputError
 
 if TYPE_CHECKING:  # the calibration module imports the renderer (scipy): loaded when the command runs
@@ -50,6 +50,8 @@ def parse_board(text: str) -> tuple[int, int]:
         raise PihimInputError(f"--board: expected inner corners as COLSxROWS like 9x6, got {text!r}") from None
     if cols < 3 or rows < 3:
         raise PihimInputError(f"--board: need at least 3x3 inner corners, got {text!r}")
+    if cols > 1000 or rows > 1000:
+        raise PihimInputError(f"--board: at most 1000x1000 inner corners, got {text!r}")
     return cols, rows
 
 
@@ -179,8 +181,8 @@ def calibrate_camera(
 ) -> None:
     """Calibrate the camera (fx, fy, cx, cy, k1 k2 p1 p2 k3) from chessboard images with OpenCV."""
     cols, rows = parse_board(board)
-    if not (math.isfinite(square) and square > 0):
-        raise PihimInputError(f"--square must be a positive number of millimetres, got {square:g}")
+    if not (math.isfinite(square) and 0 < square <= 1e6):
+        raise PihimInputError(f"--square must be a positive number of millimetres up to 1e6 (1 km), got {square:g}")
     if not (math.isfinite(pixel_size_um) and pixel_size_um > 0):
         raise PihimInputError(f"--pixel-size-um must be positive, got {pixel_size_um:g}")
     if demosaic not in DEMOSAIC_METHODS:
@@ -194,6 +196,7 @@ def calibrate_camera(
     if out.is_dir():
         raise PihimInputError(f"--out {out}: is a directory; give the JSON file to write")
     check_out_dir(out.parent, option="--out")
+    check_not_an_input(out, images)
     mosaic_layout = None if grey else MosaicLayout.parse(layout)
 
     arrays: list[NDArray] = []

@@ -20,7 +20,7 @@ import numpy as np
 import typer
 
 from pihim._atomic import describe_os_error, write_group
-from pihim.camera.frames import RAW_SUFFIXES, read_frame
+from pihim.camera.frames import MAX_RAW_VALUE, RAW_SUFFIXES, read_frame
 from pihim.camera.layout import IMX250MZR, MosaicLayout
 from pihim.camera.model import CameraModel
 from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
@@ -78,8 +78,9 @@ def sensor_settings(log: Mapping[str, Any], meta: Path) -> dict[str, Any]:
         raise PihimInputError(f"{meta}: {exc}") from None
     dark = model.get("dark_level_dn", 0.0)
     bits = model.get("bit_depth")
-    if isinstance(dark, bool) or not isinstance(dark, (int, float)) or not math.isfinite(dark):
-        raise PihimInputError(f"{meta}: sensor dark_level_dn must be a finite number, got {dark!r}")
+    if isinstance(dark, bool) or not isinstance(dark, (int, float)) \
+            or not (math.isfinite(dark) and 0 <= dark <= MAX_RAW_VALUE):
+        raise PihimInputError(f"{meta}: sensor dark_level_dn must be a raw level in [0, {MAX_RAW_VALUE}], got {dark!r}")
     if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int)):
         raise PihimInputError(f"{meta}: sensor bit_depth must be an integer, got {bits!r}")
     return {"layout": layout, "analyser": analyser, "dark_level": float(dark), "bit_depth": bits,

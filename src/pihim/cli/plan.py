@@ -28,7 +28,7 @@ def plan(
     facets: Annotated[Path | None, typer.Option(help="OpenCSP facet-centroid CSV (with --field CSV).")] = None,
     site: Annotated[str, typer.Option(help="nsttf (default) or LAT,LON,H (deg, deg, ellipsoidal m).")] = "nsttf",
     aim: Annotated[str | None, typer.Option(help="Aim point X,Y,Z (m, ENU); default the field's tower target.")] = None,
-    max_altitude: Annotated[float, typer.Option("--max-altitude", help="Highest flight altitude, m above the field origin.")] = 25.0,
+    max_altitude: Annotated[float, typer.Option("--max-altitude", help="Highest flight altitude, m above the field origin (at most 1000).")] = 25.0,
     heliostats: Annotated[str | None, typer.Option(help="Comma-separated HUAs to plan for (default: all).")] = None,
     sky_model: Annotated[str, typer.Option(help="Sky polarization model: rayleigh or berry.")] = "rayleigh",
     dmax: Annotated[float, typer.Option(help="Maximum sky DoLP, [0, 1].")] = 0.8,

@@ -51,7 +51,7 @@ import typer
 
 from pihim._atomic import atomic_group, write_json_atomic
 from pihim._resources import format_bytes, memory_error_message, require_memory
-from pihim.camera.frames import normalize_pixel_format, read_frame
+from pihim.camera.frames import MAX_RAW_VALUE, normalize_pixel_format, read_frame
 from pihim.camera.layout import MosaicLayout
 from pihim.camera.pipeline import DEMOSAIC_METHODS, PolarImage, polar_image
 from pihim.cli._common import emit_json, make_out_dir, parse_layout, progress, report_error, stderr_console
@@ -480,15 +480,15 @@ def check_options(
         raise PihimInputError(f"unknown demosaic method {demosaic!r}; choose one of {', '.join(DEMOSAIC_METHODS)}")
     lay = parse_layout(layout)
     analyser = AnalyserMatrix.load(calibration) if calibration is not None else None
-    if not (math.isfinite(dark_level) and dark_level >= 0):
-        raise PihimInputError(f"--dark-level must be a finite number of raw units >= 0, got {dark_level:g}")
+    if not (math.isfinite(dark_level) and 0 <= dark_level <= MAX_RAW_VALUE):
+        raise PihimInputError(f"--dark-level must be a raw level in [0, {MAX_RAW_VALUE}], got {dark_level:g}")
     if bit_depth is not None and not 1 <= bit_depth <= 16:
         raise PihimInputError(f"--bit-depth must be in 1..16, got {bit_depth}")
     if saturation_level is not None:
-        if not (math.isfinite(saturation_level) and saturation_level > dark_level):
+        if not (math.isfinite(saturation_level) and dark_level < saturation_level <= MAX_RAW_VALUE):
             raise PihimInputError(
-                f"--saturation-level must be a finite raw level above --dark-level ({dark_level:g}), "
-                f"got {saturation_level:g}"
+                f"--saturation-level must be a raw level above --dark-level ({dark_level:g}) and at most "
+                f"{MAX_RAW_VALUE}, got {saturation_level:g}"
             )
         if bit_depth is not None and saturation_level > 2**bit_depth - 1:
             raise PihimInputError(

@@ -36,7 +36,7 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from pihim.cli._common import check_out_dir, emit_json, load_field_option, make_out_dir, parse_floats, stderr_console
+from pihim.cli._common import check_out_dir, emit_json, load_field_option, make_out_dir, parse_point, stderr_console
 from pihim.errors import PihimInputError
 
 SCHEMA_ID = "pihim.windows/1"
@@ -51,7 +51,7 @@ def windows(
     step_min: Annotated[float, typer.Option("--step-min", help="Sampling step, minutes.")] = 10.0,
     min_elevation: Annotated[float, typer.Option(help="Only times with the sun above this, deg.")] = 10.0,
     aim: Annotated[str | None, typer.Option(help="Aim point X,Y,Z (m, ENU); default the tower target.")] = None,
-    max_altitude: Annotated[float, typer.Option("--max-altitude", help="Highest flight altitude, m above the field origin.")] = 25.0,
+    max_altitude: Annotated[float, typer.Option("--max-altitude", help="Highest flight altitude, m above the field origin (at most 1000).")] = 25.0,
     threshold: Annotated[float, typer.Option(help="Favourable when this fraction of heliostats is usable, [0, 1].")] = 0.5,
     relative: Annotated[bool, typer.Option("--relative", help="--threshold is a fraction of the day's best instead.")] = False,
     no_shift: Annotated[bool, typer.Option("--no-shift", help="Score the plans without contrast-raising shifts.")] = False,
@@ -75,11 +75,11 @@ def windows(
                              ("--threshold", threshold, 0.0, 1.0)):
         if not (math.isfinite(v) and lo <= v <= hi):
             raise PihimInputError(f"{label} must be in [{lo:g}, {hi:g}], got {v:g}")
-    if not (math.isfinite(max_altitude) and max_altitude > 0):
-        raise PihimInputError(f"--max-altitude must be a positive number of metres, got {max_altitude:g}")
-    aim_point = None if aim is None else np.array(parse_floats(aim, name="--aim", count=3))
-    if aim_point is not None and not np.all(np.isfinite(aim_point)):
-        raise PihimInputError("--aim: coordinates must be finite")
+    from pihim.planning.ufacet import MAX_ALTITUDE_LIMIT_M
+
+    if not (math.isfinite(max_altitude) and 0 < max_altitude <= MAX_ALTITUDE_LIMIT_M):
+        raise PihimInputError(f"--max-altitude must be in (0, {MAX_ALTITUDE_LIMIT_M:g}] m, got {max_altitude:g}")
+    aim_point = None if aim is None else np.array(parse_point(aim, name="--aim"))
     check_out_dir(out)
     fld = load_field_option(field, facets, nsttf_tower=is_nsttf(site_obj))
     keep_freed_memory()  # the sweep's temporaries: freed blocks reused, not faulted in again (pihim._malloc)

@@ -631,13 +631,22 @@ def _check_header(path: Path, lineno: int, cells: list[str], expected: Sequence[
         )
 
 
+#: Largest magnitude of a length in a field CSV, metres (100 km): far beyond any heliostat field, so that a
+#: mistyped exponent is refused on its line instead of overflowing the geometry later.
+_MAX_CSV_LENGTH_M = 1e5
+
+
 def _number(path: Path, lineno: int, column: str, text: str) -> float:
+    """A length column's value, metres: finite and within +-100 km."""
     try:
         v = float(text)
     except ValueError:
         v = math.nan
     if not math.isfinite(v):
         raise PihimInputError(f"{path}:{lineno}: column {column!r} must be a finite number, got {text!r}")
+    if abs(v) > _MAX_CSV_LENGTH_M:
+        raise PihimInputError(f"{path}:{lineno}: column {column!r} must be within +-{_MAX_CSV_LENGTH_M:g} m, "
+                              f"got {text!r}")
     return v
 
 

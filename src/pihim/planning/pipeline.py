@@ -32,7 +32,7 @@ from pihim.planning.model import Plan
 from pihim.planning.facet_captures import FacetCaptureSettings, plan_facet_captures
 from pihim.planning.route import RouteSettings, plan_flights, turns
 from pihim.planning.scoring import ScoringModel, ShiftSearch, build_scene, coverage, score_passes
-from pihim.planning.ufacet import home_waypoint, plan_ufacet, track_at
+from pihim.planning.ufacet import MAX_ALTITUDE_LIMIT_M, home_waypoint, plan_ufacet, track_at
 from pihim.sky.sun import Site
 
 
@@ -128,8 +128,8 @@ def build_plan(
         With ``summary`` holding counts, coverage, throughput, the fleet estimate and timings.
     """
     t0 = _time.perf_counter()
-    if not (math.isfinite(max_altitude_m) and max_altitude_m > 0):
-        raise PihimInputError(f"maximum altitude must be a positive number of metres, got {max_altitude_m:g}")
+    if not (math.isfinite(max_altitude_m) and 0 < max_altitude_m <= MAX_ALTITUDE_LIMIT_M):
+        raise PihimInputError(f"maximum altitude must be in (0, {MAX_ALTITUDE_LIMIT_M:g}] m, got {max_altitude_m:g}")
     aim = np.asarray(field.default_aim_point if aim_point is None else aim_point, dtype=float)
     if aim.shape != (3,) or not np.all(np.isfinite(aim)):
         raise PihimInputError("the aim point must be three finite coordinates X,Y,Z in metres")

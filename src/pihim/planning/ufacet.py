@@ -148,6 +148,7 @@ from pihim.planning.sightlines import (
 
 __all__ = [
     "DEFAULT_CAMERA",
+    "MAX_ALTITUDE_LIMIT_M",
     "OPENCSP_LEAD_IN_M",
     "OPENCSP_RUN_PAST_M",
     "OPENCSP_SPEED_M_S",
@@ -176,6 +177,10 @@ OPENCSP_SPEED_M_S = 5.0
 PAPER_MIN_CLEARANCE_M = 5.0
 #: The paper's camera: Lucid Triton TRI050S-PC with a 35 mm lens (13.8 x 11.5 deg).
 DEFAULT_CAMERA = CameraModel()
+#: Largest maximum altitude accepted, metres above the field origin: far above what drone rules allow
+#: (120 m in the US and the EU) and where the 35 mm camera's pixel covers 10 cm; the altitude grid between
+#: the minimum safe altitude and the maximum would otherwise grow without bound.
+MAX_ALTITUDE_LIMIT_M = 1000.0
 
 
 
@@ -897,6 +902,8 @@ def plan_ufacet(
         if isinstance(val, bool) or not (isinstance(val, (int, float)) and math.isfinite(val)) \
                 or (val <= 0 if strict else val < 0):
             raise PihimInputError(f"{label} must be a finite number {'>' if strict else '>='} 0, got {val!r}")
+    if max_altitude_m > MAX_ALTITUDE_LIMIT_M:
+        raise PihimInputError(f"max_altitude_m must be at most {MAX_ALTITUDE_LIMIT_M:g} m, got {max_altitude_m:g}")
     if not isinstance(camera, CameraModel):
         raise PihimInputError(f"camera must be a CameraModel, got {type(camera).__name__}")
     sun = sun_from_pose(pose, aim)

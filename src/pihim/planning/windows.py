@@ -543,8 +543,11 @@ def sweep_day(
         raise PihimInputError(f"step must be between 0.5 and 240 minutes, got {step_min!r}")
     if not (isinstance(min_elevation_deg, (int, float)) and 0.0 <= min_elevation_deg < 89.0):
         raise PihimInputError(f"minimum sun elevation must be in [0, 89) deg, got {min_elevation_deg!r}")
-    if not (isinstance(max_altitude_m, (int, float)) and math.isfinite(max_altitude_m) and max_altitude_m > 0):
-        raise PihimInputError(f"maximum altitude must be a positive number of metres, got {max_altitude_m!r}")
+    from pihim.planning.ufacet import MAX_ALTITUDE_LIMIT_M
+
+    if not (isinstance(max_altitude_m, (int, float)) and math.isfinite(max_altitude_m)
+            and 0 < max_altitude_m <= MAX_ALTITUDE_LIMIT_M):
+        raise PihimInputError(f"maximum altitude must be in (0, {MAX_ALTITUDE_LIMIT_M:g}] m, got {max_altitude_m!r}")
     from pihim.field import nsttf_like_field, track_field
 
     fld = nsttf_like_field() if field is None else field

@@ -198,7 +198,8 @@ class SimulatedFrame:
 # --------------------------------------------------------------------------- validation
 
 
-def _sigma(name: str, value: Any) -> float:
+def _sigma(name: str, value: Any, maximum: float = math.inf) -> float:
+    """``value`` as a float in [0, maximum] (a maximum keeps a mistyped exponent from overflowing the geometry)."""
     if isinstance(value, bool):
         raise PihimInputError(f"{name} must be a number, got {value!r}")
     try:
@@ -207,6 +208,8 @@ def _sigma(name: str, value: Any) -> float:
         raise PihimInputError(f"{name} must be a number, got {value!r}") from None
     if not math.isfinite(v) or v < 0:
         raise PihimInputError(f"{name} must be a finite number >= 0, got {value!r}")
+    if v > maximum:
+        raise PihimInputError(f"{name} must be at most {maximum:g}, got {value!r}")
     return v
 
 
@@ -474,14 +477,14 @@ def simulate_frame(
         Where the camera is and where it looks (the true pose).
     canting_sigma_mrad : float
         Standard deviation of every facet's canting deviation, azimuth and
-        elevation, mrad (>= 0).
+        elevation, mrad, in [0, 1000].
     tracking_sigma_mrad : float
         Standard deviation of every heliostat's drive-angle error, azimuth
-        and elevation, mrad (>= 0).
+        and elevation, mrad, in [0, 1000].
     gps_sigma_m : float
-        Standard deviation of the logged position on x, y and z, metres (>= 0).
+        Standard deviation of the logged position on x, y and z, metres, in [0, 1000].
     attitude_sigma_deg : float
-        Standard deviation of the logged heading, pitch and roll, deg (>= 0).
+        Standard deviation of the logged heading, pitch and roll, deg, in [0, 180].
     seed : int
         >= 0; the same seed gives identical raw bytes and identical JSON.
     sensor : SensorModel
@@ -493,7 +496,7 @@ def simulate_frame(
         that do not reflect the sun (the brightest mirror region just
         unclipped; the sunlit ground then clips).
     blur_sigma_px : float
-        Gaussian lens blur, pixels (>= 0).
+        Gaussian lens blur, pixels, in [0, 100].
     settings : RenderSettings
     progress : callable, optional
         ``progress(done_rays, total_rays)`` during the render.
@@ -523,11 +526,11 @@ def simulate_frame(
 
     t0 = _time.perf_counter()
     # --- validate everything before any expensive step
-    canting_sigma = _sigma("canting sigma (mrad)", canting_sigma_mrad)
-    tracking_sigma = _sigma("tracking sigma (mrad)", tracking_sigma_mrad)
-    gps_sigma = _sigma("GPS sigma (m)", gps_sigma_m)
-    att_sigma = _sigma("attitude sigma (deg)", attitude_sigma_deg)
-    blur = _sigma("blur sigma (px)", blur_sigma_px)
+    canting_sigma = _sigma("canting sigma (mrad)", canting_sigma_mrad, 1000.0)  # 1 rad: beyond any canting error
+    tracking_sigma = _sigma("tracking sigma (mrad)", tracking_sigma_mrad, 1000.0)
+    gps_sigma = _sigma("GPS sigma (m)", gps_sigma_m, 1000.0)
+    att_sigma = _sigma("attitude sigma (deg)", attitude_sigma_deg, 180.0)
+    blur = _sigma("blur sigma (px)", blur_sigma_px, 100.0)
     seed_i = _seed(seed)
     if not isinstance(camera, CameraModel):
         raise PihimInputError(f"camera must be a CameraModel, got {type(camera).__name__}")

@@ -19,7 +19,9 @@ ArduPilot boards store), and the flight as Litchi missions of at most 99
 waypoints (``flight_NN_litchi.csv``, or ``flight_NN_litchi_1.csv``, ``_2`` ...
 when the flight needs several). The whole-field ``mission.plan``,
 ``mission.waypoints`` and ``litchi.csv`` are written only when one flight
-covers the plan (and ``litchi.csv`` only within Litchi's 99 waypoints). Every
+covers the plan, or for a plan never split into flights (and ``litchi.csv``
+only within Litchi's 99 waypoints); a plan split into no flight (every pass
+beyond a battery's reach) gets no mission file. Every
 writer validates the plan first (a plan without passes or a waypoint with a
 non-finite number raises :class:`~pihim.errors.PihimInputError` with a
 one-line message) and writes atomically (temporary sibling, then rename), so
@@ -241,7 +243,10 @@ def export_all(
     per_flight = [_mission_files(plan, k, flight_file_stem(k), max_items=limit,
                                  geofence_margin_m=geofence_margin_m, litchi_hover_ms=litchi_hover_ms, opts=opts)
                   for k in flights]
-    if not plan.flights:
+    # A plan never split into flights is one mission; a plan split into none (every pass beyond a battery's
+    # reach from home) has nothing flyable, so no mission files.
+    unsplit = not plan.flights and "flights" not in plan.summary
+    if unsplit:
         per_flight.append(_mission_files(plan, None, "mission", max_items=limit, geofence_margin_m=geofence_margin_m,
                                          litchi_hover_ms=litchi_hover_ms, opts=opts))
     for files in per_flight:
@@ -253,7 +258,7 @@ def export_all(
         contents["wpl"] = ("mission.waypoints", only[f"{stem}_waypoints"][1])
         if f"{stem}_litchi" in only:
             contents["litchi"] = ("litchi.csv", only[f"{stem}_litchi"][1])
-    if not plan.flights:  # the plan-wide files keep their usual names
+    if unsplit:  # the plan-wide files keep their usual names
         for key, name in (("qgc_plan", "mission_plan"), ("wpl", "mission_waypoints"), ("litchi", "mission_litchi")):
             if name in contents:
                 contents[key] = (OUTPUT_NAMES[key], contents.pop(name)[1])

@@ -1,0 +1,99 @@
+"""Huge finite values and outputs that are inputs: one line and exit status 2, no numpy warning, nothing written.
+
+Found by a fuzzing audit: ``1e308`` in a length or a noise sigma overflowed the geometry (numpy's overflow warnings
+on stderr, meaningless files with exit status 0, or an "internal error"), and a calibration's ``--out`` naming one
+of its input images replaced that image.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from pihim.cli import main
+
+TIME = "2021-05-13T13:00-06:00"
+
+
+def _refused(capsys, argv, needle):
+    rc = main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2, err
+    assert len(err) == 1 and err[0].startswith("pihim: error: ") and needle in err[0], err
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["plan", "--time", TIME, "--heliostats", "8E3", "--max-altitude", "1e308"], "maximum altitude must be in (0, 1000]"),
+    (["windows", "--date", "2021-05-13", "--max-altitude", "1e308"], "--max-altitude must be in (0, 1000]"),
+    (["plan", "--time", TIME, "--heliostats", "8E3", "--aim", "1e308,0,30"], "--aim: coordinates must be within"),
+    (["windows", "--date", "2021-05-13", "--aim", "1e308,0,30"], "--aim: coordinates must be within"),
+    (["ground", "--sun-zenith", "30", "--sun-azimuth", "0", "--mirror-normal-azimuth", "inf"],
+     "--mirror-normal-azimuth must be a finite number"),
+])
+def test_planning_and_physics_options(tmp_path, capsys, argv, needle):
+    out = tmp_path / "o"
+    _refused(capsys, [*argv, "--out", str(out)], needle)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("option, needle", [
+    (["--gps-sigma-m", "1e308"], "GPS sigma (m) must be at most 1000"),
+    (["--attitude-sigma-deg", "1e308"], "attitude sigma (deg) must be at most 180"),
+    (["--canting-sigma-mrad", "1e308"], "canting sigma (mrad) must be at most 1000"),
+    (["--tracking-sigma-mrad", "1e308"], "tracking sigma (mrad) must be at most 1000"),
+    (["--blur-sigma-px", "1e308"], "blur sigma (px) must be at most 100"),
+    (["--camera", "1e308,0,30", "--look-at", "0,60,0"], "--camera: coordinates must be within"),
+])
+def test_simulate_noise_and_camera(tmp_path, capsys, option, needle):
+    pose = [] if "--camera" in option else ["--hua", "8E3", "--target", "7E3"]
+    out = tmp_path / "o" / "f.tiff"
+    _refused(capsys, ["simulate", "--time", TIME, *pose, *option, "--size", "64x48", "--out", str(out)], needle)
+    assert not out.exists()
+
+
+@pytest.fixture
+def frame(tmp_path):
+    import numpy as np
+    import tifffile
+
+    path = tmp_path / "frame.tiff"
+    tifffile.imwrite(path, np.full((16, 16), 500, np.uint16))
+    return path
+
+
+@pytest.mark.parametrize("option, needle", [
+    (["--dark-level", "1e308"], "--dark-level must be a raw level in [0, 65535]"),
+    (["--saturation-level", "1e308"], "--saturation-level must be a raw level above --dark-level (0) and at most 65535"),
+])
+def test_polar_levels(tmp_path, capsys, frame, option, needle):
+    out = tmp_path / "o"
+    _refused(capsys, ["polar", str(frame), *option, "--out", str(out)], needle)
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_calibrate_polarizer_bounds(tmp_path, capsys):
+    frames = [str(tmp_path / f"p{k}.tiff") for k in range(4)]  # refused before any frame is read
+    base = ["calibrate-polarizer", *frames, "--out", str(tmp_path / "c.json")]
+    _refused(capsys, [*base, "--angles", "0,45,1e308,135"], "--angles: polarizer angles must be within +-3600 deg")
+    _refused(capsys, [*base, "--angles", "0:180:45", "--dark-level", "1e308"],
+             "--dark-level must be a raw level in [0, 65535]")
+    assert not (tmp_path / "c.json").exists()
+
+
+def test_calibrate_camera_bounds(tmp_path, capsys):
+    images = [str(tmp_path / f"v{k}.png") for k in range(3)]  # refused before any image is read
+    base = ["calibrate-camera", *images, "--grey", "--out", str(tmp_path / "c.json")]
+    _refused(capsys, [*base, "--board", "99999999999999999999x6", "--square", "25"], "--board: at most 1000x1000")
+    _refused(capsys, [*base, "--board", "9x6", "--square", "1e308"], "--square must be a positive number")
+    assert not (tmp_path / "c.json").exists()
+
+
+@pytest.mark.parametrize("command", ["calibrate-polarizer", "calibrate-camera"])
+def test_a_calibration_never_replaces_its_input(tmp_path, capsys, command):
+    inputs = [tmp_path / f"in{k}.tiff" for k in range(4)]
+    for k, p in enumerate(inputs):
+        p.write_bytes(b"an input image %d" % k)
+    victim = tmp_path / "sub" / ".." / "in2.tiff"  # another spelling of an input
+    (tmp_path / "sub").mkdir()
+    opts = ["--angles", "0:180:45"] if command == "calibrate-polarizer" else ["--grey", "--board", "9x6", "--square", "25"]
+    _refused(capsys, [command, *map(str, inputs), *opts, "--out", str(victim)], "writing it would replace that input")
+    assert [p.read_bytes() for p in inputs] == [b"an input image %d" % k for k in range(4)]
