@@ -161,3 +161,47 @@ def test_combine_results_weights_and_rereferences():
     assert c.facets[0].points == 200
     with pytest.raises(Exception, match="different HUAs"):
         combine_results([a, CantingResult("9E3", "7E3", a.facets, 0.0, 0.0)])
+
+
+def _meta_with(frame, tmp_path, **changes):
+    """A ``--meta`` file: the frame's log with ``changes`` applied (no truth)."""
+    doc = json.loads(frame.with_suffix(".json").read_text())
+    log = {**doc["log"], **changes}
+    meta = tmp_path / "edited.json"
+    meta.write_text(json.dumps({"log": log}))
+    return log, meta
+
+
+def test_heliostat_listed_twice_in_the_log(frame, tmp_path, capsys):
+    """Two sets of drive angles for 8E3 (az 3 deg apart): which it had is unknown, so the log is refused."""
+    helio = json.loads(frame.with_suffix(".json").read_text())["log"]["heliostats"]
+    first = next((h for h in helio if h["name"] == "8E3"), {"name": "8E3", "az_deg": 180.0, "el_deg": 45.0})
+    twice = [*helio, first, {**first, "az_deg": first["az_deg"] + 3.0}]
+    _, meta = _meta_with(frame, tmp_path, heliostats=twice)
+    err = _bad(tmp_path, capsys, ["canting", str(frame), "--meta", str(meta)])
+    assert "'heliostats'" in err and "8E3 is listed twice" in err
+    # another spelling of the same heliostat is the same heliostat
+    _, meta = _meta_with(frame, tmp_path, heliostats=[first, {**first, "name": "8e03"}])
+    assert "8E3 is listed twice (as '8e03')" in _bad(tmp_path, capsys, ["canting", str(frame), "--meta", str(meta)])
+
+
+@pytest.mark.parametrize("z", [-5.0, 0.0])
+def test_aim_point_not_above_ground(frame, tmp_path, capsys, z):
+    _, meta = _meta_with(frame, tmp_path, aim_point_m=[60.0, 8.8, z])
+    err = _bad(tmp_path, capsys, ["canting", str(frame), "--meta", str(meta)])
+    assert f"'aim_point_m' must be above the ground (z > 0), got z = {z:g} m" in err
+
+
+def test_empty_heliostats_list_means_every_heliostat_tracks(frame, tmp_path):
+    """``heliostats: []`` is a log without drive angles off tracking (docs/campaign.md: "usually []"), not an error."""
+    from pihim.field import track_field
+    from pihim.inspection.pipeline import field_pose_from_log
+    from pihim.sky.sun import Site, sun_position
+
+    field = nsttf_like_field()
+    log, _ = _meta_with(frame, tmp_path, heliostats=[])
+    got = field_pose_from_log(field, log)
+    sun = sun_position(Site(name="log", **{k: log["site"][k] for k in ("latitude_deg", "longitude_deg", "height_m")}),
+                       log["time"]).vector
+    want = track_field(field, sun, np.asarray(log["aim_point_m"], float))
+    np.testing.assert_allclose(got.normals, want.normals, atol=1e-12)

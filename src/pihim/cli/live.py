@@ -20,6 +20,12 @@ from pihim.errors import PihimInputError
 
 SESSION_SCHEMA_ID = "pihim.live-session/1"
 
+#: Longest exposure accepted by ``--exposure-us`` and ``--max-exposure-us``, microseconds (10 s: beyond the
+#: range of the machine-vision cameras pihim drives, and far beyond any use over moving heliostat mirrors).
+MAX_EXPOSURE_US = 10_000_000.0
+#: Highest gain accepted by ``--max-gain-db``, dB (machine-vision sensors offer a few tens of dB).
+MAX_GAIN_DB = 100.0
+
 
 def _parse_size(text: str | None) -> tuple[int, int] | None:
     """``WxH`` to (rows, columns)."""
@@ -102,9 +108,21 @@ def live(
     for name, value in (("--exposure-us", exposure_us), ("--max-exposure-us", max_exposure_us),
                         ("--range", range_m), ("--max-blur-px", max_blur_px)):
         _positive(name, value)
+    for name, value in (("--exposure-us", exposure_us), ("--max-exposure-us", max_exposure_us)):
+        if value > MAX_EXPOSURE_US:
+            raise PihimInputError(f"{name} must be at most {MAX_EXPOSURE_US:.0f} us (10 s), got {value:g}")
+    if auto_exposure and exposure_us > max_exposure_us:
+        raise PihimInputError(f"--exposure-us {exposure_us:g} is above --max-exposure-us {max_exposure_us:g}: "
+                              f"the first exposure must be one the controller may set")
     _positive("--max-gain-db", max_gain_db, allow_zero=True)
+    if max_gain_db > MAX_GAIN_DB:
+        raise PihimInputError(f"--max-gain-db must be at most {MAX_GAIN_DB:g} dB, got {max_gain_db:g}")
     _positive("--speed", speed, allow_zero=True)
     _positive("--dark-level", dark_level, allow_zero=True)
+    if bit_depth is not None and not 1 <= bit_depth <= 16:
+        raise PihimInputError(f"--bit-depth must be in 1..16, got {bit_depth}")
+    if bit_depth is not None and dark_level >= 2**bit_depth - 1:
+        raise PihimInputError(f"--dark-level {dark_level:g} is at or above the {bit_depth}-bit full scale")
     _positive("--duration", duration)
     if not 1 <= latency_frames <= 10:
         raise PihimInputError(f"--latency-frames must be in 1..10, got {latency_frames}")
@@ -133,8 +151,10 @@ def live(
 
     field_obj = None
     overlay = None
-    if plan is not None or not (source.lower() == "synthetic" or source.lower().startswith("genicam")):
-        field_obj = load_field_option(field, None)
+    field_used = plan is not None or not (source.lower() == "synthetic" or source.lower().startswith("genicam"))
+    if field_used or field.strip().lower() not in ("nsttf-like", "nsttf"):  # a CSV is checked even if unused
+        loaded = load_field_option(field, None)
+        field_obj = loaded if field_used else None
     if plan is not None:
         from pihim.live.overlay import overlay_from_plan
 
@@ -213,4 +233,6 @@ def live(
             "stopped_by": {None: "duration", signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}.get(received, "signal"),
         })
     if received is not None:
+        # the server caught the signal (to close the connections first): say so as every command does
+        print("pihim: terminated" if received == signal.SIGTERM else "pihim: aborted", file=sys.stderr, flush=True)
         raise typer.Exit(128 + int(received))

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from pihim.camera.frames import MAX_RAW_VALUE
 from pihim.camera.layout import IMX250MZR, MosaicLayout
 from pihim.camera.model import CameraModel
 from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
@@ -114,6 +115,8 @@ def field_pose_from_log(field: Any, log: Mapping[str, Any]) -> FieldPose:
         aim = np.zeros(0)
     if aim.shape != (3,) or not np.all(np.isfinite(aim)):
         raise PihimInputError(f"log 'aim_point_m' must be 3 finite numbers, got {log['aim_point_m']!r}")
+    if aim[2] <= 0:  # as pihim plan and pihim windows: a field aims above the ground (the tower's target)
+        raise PihimInputError(f"log 'aim_point_m' must be above the ground (z > 0), got z = {aim[2]:g} m")
     pose = track_field(field, sun.vector, aim)
     da = drive_angles(pose.normals)
     az = np.array(da.azimuth_deg, float)
@@ -121,6 +124,8 @@ def field_pose_from_log(field: Any, log: Mapping[str, Any]) -> FieldPose:
     helio = _need(log, "heliostats")
     if not isinstance(helio, Sequence) or isinstance(helio, str):
         raise PihimInputError("log 'heliostats' must be a list of {name, az_deg, el_deg}")
+    # an empty list is fine: no heliostat off its tracking, every one tracks the aim point (docs/campaign.md)
+    seen: dict[int, str] = {}
     for entry in helio:
         try:
             i = field.index(str(entry["name"]))
@@ -129,6 +134,10 @@ def field_pose_from_log(field: Any, log: Mapping[str, Any]) -> FieldPose:
             raise PihimInputError(f"log 'heliostats': bad entry {entry!r} (need name, az_deg, el_deg)") from None
         if not (math.isfinite(a) and math.isfinite(e)):
             raise PihimInputError(f"log 'heliostats': non-finite drive angles for {entry['name']}")
+        if i in seen:  # two sets of drive angles for one heliostat: which one it had is unknown
+            again = "" if seen[i] == str(entry["name"]) else f" (as {entry['name']!r})"
+            raise PihimInputError(f"log 'heliostats': {seen[i]} is listed twice{again}; give each heliostat once")
+        seen[i] = str(entry["name"])
         az[i], el[i] = a, e
     return pose.with_drive(az, el)
 
@@ -151,8 +160,9 @@ def sensor_settings(log: Mapping[str, Any]) -> dict[str, Any]:
     analyser = AnalyserMatrix.from_dict(dict(model["analyser"])) if "analyser" in model else None
     dark = model.get("dark_level_dn", 0.0)
     bits = model.get("bit_depth")
-    if isinstance(dark, bool) or not isinstance(dark, (int, float)) or not math.isfinite(dark):
-        raise PihimInputError(f"log sensor dark_level_dn must be a finite number, got {dark!r}")
+    if isinstance(dark, bool) or not isinstance(dark, (int, float)) \
+            or not (math.isfinite(dark) and 0 <= dark <= MAX_RAW_VALUE):
+        raise PihimInputError(f"log sensor dark_level_dn must be a raw level in [0, {MAX_RAW_VALUE}], got {dark!r}")
     if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int)):
         raise PihimInputError(f"log sensor bit_depth must be an integer, got {bits!r}")
     return {"layout": layout, "analyser": analyser, "dark_level": float(dark), "bit_depth": bits}

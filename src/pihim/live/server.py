@@ -91,6 +91,11 @@ def check_bind(host: str, token: str | None) -> None:
                               f"python -c 'import secrets; print(secrets.token_urlsafe())')")
     if token is not None and not token.isprintable():
         raise PihimInputError("--token must be printable text")
+    if not is_loopback(host):
+        try:  # an unresolvable --host is the error to report, not the missing token
+            socket.getaddrinfo(host.strip("[]"), None, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+        except (socket.gaierror, UnicodeError) as exc:
+            raise PihimInputError(f"--host {host}: cannot resolve the address ({exc})") from None
     if not is_loopback(host) and token is None:
         raise PihimInputError(f"--host {host} makes the live view reachable from other machines: give a "
                               f"--token (or --token auto), or keep the default --host 127.0.0.1")
