@@ -240,7 +240,7 @@ def _edge_success(sim: Any, maps: Any, hua: str, k_px: float) -> dict[str, Any]:
     for name in ("S0", "DoLP", "AoP"):
         s = edge_success(maps[name].edges, outlines, k_px=k_px, labels=sim.rendered.labels)
         out[name] = {"success": bool(s.success), "edges_judged": int(s.n_judged),
-                     "edges_failed": len(s.failed), "min_edge_coverage": float(s.min_edge_coverage)}
+                     "edges_failed": len(s.failed), "min_edge_coverage": s.to_dict()["min_coverage_found"]}  # None: no edge judged
     return out
 
 

@@ -26,6 +26,7 @@ def _refused(capsys, argv, needle):
     (["windows", "--date", "2021-05-13", "--max-altitude", "1e308"], "--max-altitude must be in (0, 1000]"),
     (["plan", "--time", TIME, "--heliostats", "8E3", "--aim", "1e308,0,30"], "--aim: coordinates must be within"),
     (["windows", "--date", "2021-05-13", "--aim", "1e308,0,30"], "--aim: coordinates must be within"),
+    (["windows", "--date", "2021-05-13", "--min-elevation", "89"], "--min-elevation must be in [0, 89) deg"),
     (["ground", "--sun-zenith", "30", "--sun-azimuth", "0", "--mirror-normal-azimuth", "inf"],
      "--mirror-normal-azimuth must be a finite number"),
 ])

@@ -195,3 +195,11 @@ def test_out_of_range_years_refused_in_one_line():
             parse_time(text)
         assert "\n" not in str(err.value)
     assert parse_time("2261-06-01T12:00Z").year == 2261
+
+
+@pytest.mark.parametrize("azimuth, folded", [(-1e-20, 0.0), (-90.0, 270.0), (360.0, 0.0), (725.0, 5.0)])
+def test_from_angles_folds_azimuth_into_0_360(azimuth, folded):
+    """[0, 360) as documented: np.mod rounds a tiny negative azimuth up to 360.0 itself."""
+    pos = SunPosition.from_angles(30.0, azimuth)
+    assert 0.0 <= float(pos.azimuth_deg) < 360.0
+    assert float(pos.azimuth_deg) == pytest.approx(folded, abs=1e-12)

@@ -203,4 +203,4 @@ def calibrate_polarizer(
     for w in cal.warnings:
         print(f"pihim: warning: {w}", file=sys.stderr)
     if json_output:
-        sys.stdout.write(json.dumps(record) + "\n")
+        sys.stdout.write(json.dumps(record, allow_nan=False) + "\n")

@@ -71,10 +71,11 @@ def windows(
 
     day = parse_date(date)
     site_obj = parse_site(site)
-    for label, v, lo, hi in (("--step-min", step_min, 0.5, 240.0), ("--min-elevation", min_elevation, 0.0, 89.0),
-                             ("--threshold", threshold, 0.0, 1.0)):
+    for label, v, lo, hi in (("--step-min", step_min, 0.5, 240.0), ("--threshold", threshold, 0.0, 1.0)):
         if not (math.isfinite(v) and lo <= v <= hi):
             raise PihimInputError(f"{label} must be in [{lo:g}, {hi:g}], got {v:g}")
+    if not (math.isfinite(min_elevation) and 0.0 <= min_elevation < 89.0):
+        raise PihimInputError(f"--min-elevation must be in [0, 89) deg, got {min_elevation:g}")
     from pihim.planning.ufacet import MAX_ALTITUDE_LIMIT_M
 
     if not (math.isfinite(max_altitude) and 0 < max_altitude <= MAX_ALTITUDE_LIMIT_M):

@@ -304,6 +304,7 @@ class SunPosition:
         """A position from zenith and azimuth (deg); azimuth is folded into [0, 360)."""
         zen = np.asarray(zenith_deg, dtype=float)
         az = np.mod(np.asarray(azimuth_deg, dtype=float), 360.0)
+        az = np.where(az >= 360.0, 0.0, az)  # a tiny negative azimuth rounds to 360.0 in np.mod
         if not (np.all(np.isfinite(zen)) and np.all(np.isfinite(az))):
             raise PihimInputError("sun zenith and azimuth must be finite numbers")
         if np.any((zen < 0.0) | (zen > 180.0)):
