@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -53,3 +54,39 @@ def test_bad_flight_requests(plan_json, tmp_path) -> None:
         simulate_flight(plan_json, tmp_path / "x", fps=-1.0, size=(64, 54))
     with pytest.raises(PihimInputError, match="no flight.json"):
         load_flight(tmp_path)
+
+
+def _plan_with(plan_json, tmp_path, edit) -> str:
+    doc = json.loads(plan_json.read_text())
+    edit(doc)
+    path = tmp_path / "plan.json"
+    path.write_text(json.dumps(doc))  # json writes NaN as NaN, which Python's reader accepts
+    return str(path)
+
+
+def _nan_capture_x(doc) -> None:
+    wps = doc["flights"][0]["waypoints"]
+    wps[next(k for k, w in enumerate(wps) if w.get("capture"))]["x_m"] = float("nan")
+
+
+@pytest.mark.parametrize("edit,msg", [
+    (_nan_capture_x, r"flights\[0\]\.waypoints\[\d+\]\.x_m must be finite, got nan"),
+    (lambda d: d["passes"][0]["waypoints"][1].update(z_m=float("inf")),
+     r"passes\[0\]\.waypoints\[1\]\.z_m must be finite"),
+    (lambda d: d.pop("passes"), "the plan has no 'passes' list"),
+    (lambda d: d["flights"][0]["waypoints"][0].pop("heading_deg"),
+     r"flights\[0\]\.waypoints\[0\] has no 'heading_deg'"),
+])
+def test_malformed_plan_one_line_exit_2_nothing_written(plan_json, tmp_path, capsys, edit, msg) -> None:
+    """A capture waypoint at x = NaN used to be dropped silently, a plan without passes was a KeyError."""
+    from pihim.cli import main
+
+    plan = _plan_with(plan_json, tmp_path, edit)
+    out = tmp_path / "flight"
+    assert main(["simulate-flight", plan, "--out", str(out), "--max-frames", "1", "--size", "64x54"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pihim: error: ") and re.search(msg, err[0]), err
+    assert not out.exists()
+    with pytest.raises(PihimInputError, match=msg):
+        simulate_flight(plan, out, max_frames=1, size=(64, 54))
+    assert not out.exists()

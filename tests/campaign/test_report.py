@@ -87,3 +87,42 @@ def test_report_cli_json(store_two_campaigns, tmp_path, capsys) -> None:
     doc = json.loads(capsys.readouterr().out)
     assert doc["schema"] == "pihim.campaign-report/1" and doc["worst"][0]["name"] == "5E3"
     assert main(["campaign", "report", str(tmp_path / "missing.sqlite"), "--out", str(tmp_path / "x")]) == 2
+
+
+def _not_a_store(tmp_path, kind):
+    path = tmp_path / f"{kind}.sqlite"
+    if kind == "empty":
+        path.write_bytes(b"")
+    else:
+        import sqlite3
+
+        db = sqlite3.connect(path)
+        db.execute("CREATE TABLE t (a)")
+        db.commit()
+        db.close()
+    return path
+
+
+@pytest.mark.parametrize("command", ["report", "export"])
+@pytest.mark.parametrize("kind,msg", [("empty", "an empty file, not a campaign store"),
+                                      ("foreign", "not a pihim campaign store")])
+def test_report_and_export_refuse_a_non_store_and_leave_it_unchanged(tmp_path, capsys, command, kind, msg) -> None:
+    """A 0-byte file used to become a 77 KB store (and export wrote header-only CSVs from it)."""
+    path = _not_a_store(tmp_path, kind)
+    before = path.read_bytes()
+    assert main(["campaign", command, str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pihim: error: ") and msg in err[0]
+    assert path.read_bytes() == before
+    assert not (tmp_path / "out").exists()
+
+
+def test_report_and_export_leave_the_store_byte_for_byte(store_two_campaigns, tmp_path) -> None:
+    import hashlib
+
+    path, _ = store_two_campaigns
+    before = hashlib.sha256(path.read_bytes()).hexdigest()
+    assert main(["campaign", "report", str(path), "--out", str(tmp_path / "r")]) == 0
+    assert main(["campaign", "export", str(path), "--out", str(tmp_path / "e")]) == 0
+    assert (tmp_path / "r" / "index.html").is_file() and (tmp_path / "e" / "facets.csv").is_file()
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == before

@@ -22,6 +22,7 @@ pytest.importorskip("distributed")
 from pihim.campaign.logs import FrameRecord, format_utc, read_frames_csv, write_frames_csv  # noqa: E402
 from pihim.campaign.run import RunParameters, run_campaign  # noqa: E402
 from pihim.cli import main  # noqa: E402
+from pihim.errors import PihimInputError  # noqa: E402
 
 SRC = str(Path(__file__).resolve().parents[2] / "src")
 
@@ -317,3 +318,122 @@ def test_canting_rms_needs_two_facets() -> None:
          {"used": False, "az_mrad": None, "el_mrad": None}]
     assert canting_rms_mrad(f) == pytest.approx(math.sqrt(0.5))  # sqrt(mean(az^2 + el^2) / 2)
     assert canting_rms_mrad(f[:1]) is None  # one facet is its own reference
+
+
+@pytest.mark.parametrize("option,value,msg", [
+    ("--workers", "99999999999999999999", "--workers 99999999999999999999: at most"),
+    ("--workers", "0", "--workers must be an integer >= 1"),
+    ("--frames-per-pair", "99999999999999999999", "--frames-per-pair must be in [1, 1000000]"),
+    ("--frames-per-pair", "0", "--frames-per-pair must be in [1, 1000000]"),
+    ("--min-dolp", "1.5", "--min-dolp must be in [0, 1)"),
+    ("--min-dolp", "1", "--min-dolp must be in [0, 1)"),
+    ("--min-dolp", "nan", "--min-dolp must be in [0, 1)"),
+    ("--min-dolp", "-0.1", "--min-dolp must be in [0, 1)"),
+    ("--scheduler", "foo", "not a dask scheduler address tcp://HOST:PORT"),
+    ("--scheduler", "tcp://127.0.0.1:99999", "not a dask scheduler address"),
+])
+def test_out_of_range_run_options_exit_2_before_the_store(flight_copy, tmp_path, capsys, option, value, msg) -> None:
+    """Checked up front: no cluster of 10^20 workers, no OverflowError from SQLite, no store file made."""
+    store = tmp_path / "c.sqlite"
+    assert main(["campaign", "run", str(flight_copy), "--store", str(store), option, value]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pihim: error: ") and msg in err[0], err
+    assert not store.exists()
+
+
+def test_workers_bounded_by_four_per_cpu(flight_copy, tmp_path, capsys, monkeypatch) -> None:
+    from pihim.campaign.run import RunParameters, connect, max_local_workers
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 3)
+    assert max_local_workers() == 12
+    assert main(["campaign", "run", str(flight_copy), "--store", str(tmp_path / "c.sqlite"), "--workers", "13"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "at most 12 local workers (4 x the 3 CPUs" in err[0]
+    with pytest.raises(PihimInputError, match="at most 12"):
+        connect(None, 13, processes=False)
+    with pytest.raises(PihimInputError, match=r"\[1, 1000000\]"):
+        RunParameters(frames_per_pair=1_000_001)
+
+
+def test_scheduler_address_checked_before_connecting() -> None:
+    from pihim.campaign.run import check_scheduler_address
+
+    assert check_scheduler_address("tcp://10.0.0.2:8786") == "tcp://10.0.0.2:8786"
+    assert check_scheduler_address("10.0.0.2:8786") == "tcp://10.0.0.2:8786"
+    assert check_scheduler_address("tls://[::1]:8786") == "tls://[::1]:8786"
+    for bad in ("foo", "tcp://host", "tcp://host:0", "tcp://host:65536", "udp://host:8786", "tcp://:8786",
+                "tcp://host:8786/x", "tcp://::1:8786"):
+        with pytest.raises(PihimInputError, match="not a dask scheduler address"):
+            check_scheduler_address(bad)
+
+
+def test_malformed_scheduler_is_one_line_and_quick(flight_copy, tmp_path) -> None:
+    """``--scheduler foo`` used to print a Client.__del__ traceback after its line, 10 s later."""
+    t0 = time.monotonic()
+    proc = _cli("campaign", "run", str(flight_copy), "--store", str(tmp_path / "c.sqlite"), "--scheduler", "foo")
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    lines = err.decode().strip().splitlines()
+    assert len(lines) == 1 and "--scheduler 'foo': not a dask scheduler address" in lines[0], lines
+    assert time.monotonic() - t0 < 9  # the old failure waited 10 s for the half-made client
+    assert not (tmp_path / "c.sqlite").exists()
+
+
+def test_unreadable_frame_exit_2_others_kept_and_retried(flight_copy, tmp_path, capsys) -> None:
+    """A truncated frame is recorded as skipped, the other frame's results are kept, the run says so and exits 2;
+    the next run reads the frame again (here repaired) and exits 0."""
+    frames = read_frames_csv(flight_copy / "frames.csv")
+    bad = flight_copy / frames[1].file
+    whole = bad.read_bytes()
+    bad.write_bytes(whole[: len(whole) // 2])
+    store = tmp_path / "c.sqlite"
+    argv = ["campaign", "run", str(flight_copy), "--store", str(store), "--stages", "select", "--workers", "1",
+            "--json"]
+    assert main(argv) == 2
+    out, err = capsys.readouterr()
+    summary = json.loads(out)  # the summary is still printed
+    assert summary["counts"]["frames"] == {"pending": 0, "selected": 1, "done": 0, "skipped": 1}
+    err = err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pihim: error: 1 of 2 frames could not be read") \
+        and f"f1/{frames[1].frame_id}" in err[0] and str(store) in err[0], err
+    db = sqlite3.connect(store)
+    rows = dict(db.execute("SELECT frame_key, stage || ': ' || coalesce(reason, '') FROM frame").fetchall())
+    assert rows[frames[0].frame_id].startswith("selected")
+    assert rows[frames[1].frame_id].startswith("skipped: unreadable")
+    assert db.execute("SELECT count(*) FROM candidate WHERE selected = 1").fetchone()[0] == 1  # the good frame's pair
+    db.close()
+
+    bad.write_bytes(whole)  # repaired: the rerun reads it and finishes the campaign
+    assert main(argv) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert again["processed_this_run"]["frames_selected"] == 1
+    assert again["counts"]["frames"] == {"pending": 0, "selected": 2, "done": 0, "skipped": 0}
+
+
+def test_ctrl_c_stops_the_run_quietly_exit_130(flight_copy, tmp_path) -> None:
+    """SIGINT to the whole process group, as a terminal's Ctrl-C: the workers ignore it, the client stops the run
+    and closes the cluster; no worker or dask shutdown traceback (there used to be 60-120 lines)."""
+    _many_frames(flight_copy, 160)
+    store = tmp_path / "c.sqlite"
+    proc = _cli("campaign", "run", str(flight_copy), "--store", str(store), "--stages", "select", "--workers", "2")
+    deadline = time.monotonic() + 120
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                with sqlite3.connect(store, timeout=1) as db:
+                    if db.execute("SELECT count(*) FROM frame WHERE stage != 'pending'").fetchone()[0] >= 5:
+                        break
+            except sqlite3.OperationalError:
+                pass
+            time.sleep(0.05)
+        assert proc.poll() is None, "the run finished before it could be interrupted"
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        if _group_alive(proc.pid):
+            os.killpg(proc.pid, signal.SIGKILL)
+    text = err.decode()
+    assert proc.returncode == 130, text
+    assert "Traceback" not in text and len(text.strip().splitlines()) <= 1, text

@@ -162,3 +162,58 @@ def test_export_csv_and_parquet(tmp_path) -> None:
         assert t.num_rows == 1 and t.column("heliostat").to_pylist() == ["5E2"]
         with pytest.raises(PihimInputError, match="csv or parquet"):
             s.export(tmp_path / "x", fmt="xlsx")
+
+
+def test_read_only_open_refuses_what_is_not_a_store_and_changes_nothing(tmp_path) -> None:
+    empty = tmp_path / "empty.sqlite"
+    empty.write_bytes(b"")
+    bare = tmp_path / "bare.sqlite"
+    db = sqlite3.connect(bare)
+    db.execute("PRAGMA user_version = 0")
+    db.execute("VACUUM")  # a valid SQLite file without a table
+    db.close()
+    other = tmp_path / "other.sqlite"
+    db = sqlite3.connect(other)
+    db.execute("CREATE TABLE t (a)")
+    db.commit()
+    db.close()
+    for path, msg in ((empty, "an empty file, not a campaign store"),
+                      (bare, "an empty SQLite database, not a campaign store"),
+                      (other, "not a pihim campaign store"),
+                      (tmp_path / "missing.sqlite", "no such campaign store")):
+        before = path.read_bytes() if path.exists() else None
+        with pytest.raises(PihimInputError, match=msg):
+            open_store(path, readonly=True)
+        assert (path.read_bytes() if path.exists() else None) == before  # not turned into a store
+    assert not (tmp_path / "missing.sqlite").exists()
+
+
+def test_read_only_store_reads_and_never_writes(tmp_path) -> None:
+    path = tmp_path / "c.sqlite"
+    with open_store(path) as s:
+        _fill(s)
+    before = hashlib.sha256(path.read_bytes()).hexdigest()
+    with open_store(path, readonly=True) as s:
+        assert [r["name"] for r in s.campaigns()] == ["may"]
+        assert len(s.table_rows("frames")[1]) == 4
+        with pytest.raises(sqlite3.OperationalError, match="readonly"):
+            s.ensure_campaign("june", field_source="test", field_key="k1", heliostats=HELIOSTATS)
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == before
+
+
+def test_read_only_version_1_store_is_migrated_in_memory_only(tmp_path) -> None:
+    path = tmp_path / "old.sqlite"
+    db = sqlite3.connect(path)
+    db.executescript(MIGRATIONS[0])
+    db.execute(f"PRAGMA application_id = {APPLICATION_ID}")
+    db.execute("PRAGMA user_version = 1")
+    db.execute("INSERT INTO campaign (name, field_source, field_key, created_utc) VALUES ('old', 's', 'k', 'now')")
+    db.commit()
+    db.close()
+    before = hashlib.sha256(path.read_bytes()).hexdigest()
+    with open_store(path, readonly=True) as s:
+        assert s.schema_version == 2 and [r["name"] for r in s.campaigns()] == ["old"]
+        assert s.table_rows("runs")[1] == []  # the schema 2 table, in the copy
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == before
+    with sqlite3.connect(path) as db:
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 1

@@ -59,7 +59,8 @@ from pihim.campaign.logs import (
 )
 from pihim.errors import PihimInputError
 
-__all__ = ["FLIGHT_SCHEMA_ID", "Flight", "check_frame_files", "frame_log", "load_flight", "simulate_flight"]
+__all__ = ["FLIGHT_SCHEMA_ID", "Flight", "check_frame_files", "frame_log", "load_flight", "load_plan",
+           "simulate_flight"]
 
 FLIGHT_SCHEMA_ID = "pihim.flight/1"
 
@@ -202,6 +203,79 @@ def _flight_waypoints(doc: Mapping[str, Any], flight_index: int) -> tuple[list[d
     return wps, caps
 
 
+def _check_waypoints(wps: Any, where: str, keys: Sequence[str]) -> None:
+    """Refuse ``where`` unless it is a list of waypoint objects whose ``keys`` are finite numbers."""
+    from pihim._inputs import finite_number
+
+    if not isinstance(wps, list):
+        raise PihimInputError(f"{where} must be a list of waypoints")
+    for i, w in enumerate(wps):
+        if not isinstance(w, Mapping):
+            raise PihimInputError(f"{where}[{i}] must be a waypoint object")
+        for k in keys:
+            if k not in w:
+                raise PihimInputError(f"{where}[{i}] has no {k!r}")
+            finite_number(w[k], f"{where}[{i}].{k}")
+        if w.get("speed_m_s") is not None:
+            finite_number(w["speed_m_s"], f"{where}[{i}].speed_m_s")
+
+
+def load_plan(plan_path: str | os.PathLike[str], flight: int = 1) -> dict[str, Any]:
+    """Read a ``pihim plan`` ``plan.json`` and check what :func:`simulate_flight` uses of it.
+
+    Parameters
+    ----------
+    plan_path : path-like
+    flight : int
+        1-based flight of the plan that will be flown.
+
+    Returns
+    -------
+    dict
+        The plan document.
+
+    Raises
+    ------
+    PihimInputError
+        Not a ``pihim.plan/1`` document, no ``passes`` or ``flights`` list,
+        no such flight, a waypoint of the flight or of a pass whose
+        coordinates (or the flight's headings, gimbal pitches, speeds) are
+        missing or not finite (named, e.g. ``passes[3].waypoints[2].x_m``),
+        a missing time or aim point.
+    """
+    from pihim._inputs import finite_number, load_json_file
+
+    plan = Path(plan_path)
+    doc = load_json_file(plan, "plan file")
+    if not isinstance(doc, dict) or doc.get("schema") != "pihim.plan/1" or "flights" not in doc:
+        raise PihimInputError(f"{plan}: not a pihim plan.json (schema pihim.plan/1 with flights)")
+    for key in ("passes", "flights"):
+        if not isinstance(doc.get(key), list):
+            raise PihimInputError(f"{plan}: the plan has no {key!r} list")
+    if not isinstance(doc.get("time_iso"), str):
+        raise PihimInputError(f"{plan}: the plan has no 'time_iso'")
+    aim = doc.get("aim_point")
+    if not isinstance(aim, list) or len(aim) != 3:
+        raise PihimInputError(f"{plan}: 'aim_point' must be a list of 3 numbers (ENU m)")
+    for i, v in enumerate(aim):
+        finite_number(v, f"{plan}: aim_point[{i}]")
+    flights = doc["flights"]
+    if not 1 <= flight <= len(flights):
+        raise PihimInputError(f"the plan has {len(flights)} flights; --flight {flight} is not one of them")
+    for k, q in enumerate(doc["passes"]):
+        if not isinstance(q, Mapping):
+            raise PihimInputError(f"{plan}: passes[{k}] must be an object")
+        _check_waypoints(q.get("waypoints"), f"{plan}: passes[{k}].waypoints", ("x_m", "y_m", "z_m"))
+    fl = flights[flight - 1]
+    if not isinstance(fl, Mapping):
+        raise PihimInputError(f"{plan}: flights[{flight - 1}] must be an object")
+    _check_waypoints(fl.get("waypoints"), f"{plan}: flights[{flight - 1}].waypoints",
+                     ("x_m", "y_m", "z_m", "heading_deg", "gimbal_pitch_deg"))
+    if len(fl["waypoints"]) < 2:
+        raise PihimInputError(f"{plan}: flights[{flight - 1}] has fewer than 2 waypoints")
+    return doc
+
+
 def _timeline(wps: Sequence[Mapping[str, Any]]) -> np.ndarray:
     """Arrival time at each waypoint, s from the flight's start (straight legs at the waypoint's speed)."""
     t = [0.0]
@@ -261,12 +335,17 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     -------
     dict
         Summary (``pihim.simulate-flight/1``): files, frames, time span, log kind.
+
+    Raises
+    ------
+    PihimInputError
+        A plan :func:`load_plan` refuses (before anything is written), a
+        flight that records no frame, bad options.
     """
     import pandas as pd
     import tifffile
 
     from pihim._atomic import write_atomic, write_json_atomic
-    from pihim._inputs import load_json_file
     from pihim.camera.pose import CameraPose
     from pihim.campaign.logs import write_dataflash, write_frames_csv, write_ulog
     from pihim.camera.model import camera_for_size
@@ -281,9 +360,7 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     if max_frames is not None and max_frames < 1:
         raise PihimInputError(f"max_frames must be >= 1, got {max_frames!r}")
     plan = Path(plan_path)
-    doc = load_json_file(plan, "plan file")
-    if not isinstance(doc, dict) or doc.get("schema") != "pihim.plan/1" or "flights" not in doc:
-        raise PihimInputError(f"{plan}: not a pihim plan.json (schema pihim.plan/1 with flights)")
+    doc = load_plan(plan, flight)
     field = field or nsttf_like_field()
     site = _site(doc, plan)
     start = parse_time(doc["time_iso"])

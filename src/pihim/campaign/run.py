@@ -9,9 +9,11 @@ the field, and a store (:mod:`pihim.campaign.store`), and
    size; the scheduler answers;
 2. **registers** the campaign, its heliostats, flights and frames (existing
    rows are kept: a rerun registers nothing twice);
-3. **selection** (stage ``select``): every frame still ``pending`` is read on a
-   worker, polar image and pair selection (:func:`pihim.campaign.selection.select_pairs`),
-   and its candidates are written in one transaction;
+3. **selection** (stage ``select``): every frame still ``pending`` (or
+   skipped as unreadable by an earlier run) is read on a worker, polar image
+   and pair selection (:func:`pihim.campaign.selection.select_pairs`), and
+   its candidates are written in one transaction; a frame that cannot be read
+   is recorded as skipped (``unreadable: reason``) and the others go on;
 4. **choice**: the best ``frames_per_pair`` frames of each selected pair
    (highest reflection DoLP);
 5. **canting** (stage ``canting``): each frame with chosen pairs that have no
@@ -50,11 +52,16 @@ import numpy as np
 from pihim.campaign.selection import SelectionCriteria
 from pihim.errors import PihimInputError
 
-__all__ = ["RUN_SCHEMA_ID", "STAGES", "RunParameters", "connect", "run_campaign"]
+__all__ = ["MAX_FRAMES_PER_PAIR", "RUN_SCHEMA_ID", "STAGES", "WORKERS_PER_CPU", "RunParameters",
+           "check_scheduler_address", "check_workers", "connect", "max_local_workers", "run_campaign"]
 
 RUN_SCHEMA_ID = "pihim.campaign-run/1"
 #: ``select``: selection only; ``all``: selection, canting and combination.
 STAGES = ("select", "all")
+#: Largest ``frames_per_pair``: more than the frames of any campaign (a 20-minute flight at 15 fps has 18,000).
+MAX_FRAMES_PER_PAIR = 1_000_000
+#: A LocalCluster has at most this many worker processes per CPU (see :func:`max_local_workers`).
+WORKERS_PER_CPU = 4
 
 Progress = Callable[[str, int, int], Any]
 
@@ -77,8 +84,9 @@ class RunParameters:
 
     def __post_init__(self) -> None:
         if isinstance(self.frames_per_pair, bool) or not isinstance(self.frames_per_pair, int) \
-                or self.frames_per_pair < 1:
-            raise PihimInputError(f"frames per pair must be an integer >= 1, got {self.frames_per_pair!r}")
+                or not 1 <= self.frames_per_pair <= MAX_FRAMES_PER_PAIR:
+            raise PihimInputError(f"frames per pair must be an integer in [1, {MAX_FRAMES_PER_PAIR}], "
+                                  f"got {self.frames_per_pair!r}")
         if self.stages not in STAGES:
             raise PihimInputError(f"stages must be one of {', '.join(STAGES)}, got {self.stages!r}")
 
@@ -166,13 +174,19 @@ def _default_inspector(raw: np.ndarray, log: Mapping[str, Any], field: Any, hua:
 
 def inspect_task(path: str, log: Mapping[str, Any], field_spec: tuple[str, str | None],
                  pairs: Sequence[tuple[str, str]], inspector: Callable[..., Any] | None = None) -> list[dict[str, Any]]:
-    """Worker task: read one frame once and estimate the canting of each of its chosen pairs."""
+    """Worker task: read one frame once and estimate the canting of each of its chosen pairs.
+
+    A frame that cannot be read fails every pair with the reason and
+    ``"unreadable": True``; a pair whose inspection fails is failed with its reason.
+    """
     fn = inspector or _default_inspector
     out: list[dict[str, Any]] = []
     try:
         raw = _read_raw(path)
-    except PihimInputError as exc:
-        return [{"hua": h, "target": t, "status": "failed", "reason": " ".join(str(exc).split()), "seconds": 0.0}
+    except Exception as exc:  # noqa: BLE001 - an unreadable frame is recorded and counted, the campaign goes on
+        why = " ".join(str(exc).split())
+        why = why if isinstance(exc, PihimInputError) else f"internal error: {type(exc).__name__}: {why}"
+        return [{"hua": h, "target": t, "status": "failed", "reason": why, "seconds": 0.0, "unreadable": True}
                 for h, t in pairs]
     fld = _field(field_spec)
     for hua, target in pairs:
@@ -194,13 +208,129 @@ def inspect_task(path: str, log: Mapping[str, Any], field_spec: tuple[str, str |
 # --------------------------------------------------------------------------- client side
 
 
+def _silence_dask_logs() -> None:
+    """Set the ``distributed`` and ``tornado`` loggers (and their children already made) to CRITICAL."""
+    import logging
+
+    names = [n for n in logging.root.manager.loggerDict if n.startswith(("distributed.", "tornado."))]
+    for name in ("distributed", "tornado", *names):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+
+
+def _quiet_interrupt() -> Callable[[], None]:
+    """Make Ctrl-C stop the run with KeyboardInterrupt, without dask's shutdown tracebacks; returns the undo.
+
+    An interrupt cancels the client's pending calls, and distributed and
+    tornado log the cancellations (tracebacks, at ERROR) while the cluster
+    closes. While the run is on, SIGINT raises their loggers to CRITICAL
+    (left so: the process is stopping) before raising KeyboardInterrupt, so
+    the command's own line (exit 130) is all that is said. Only in the main
+    thread, and only over Python's default handler; the returned function
+    puts that handler back.
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread() \
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        return lambda: None
+
+    def interrupt(signum: int, frame: Any) -> None:
+        _silence_dask_logs()
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, interrupt)
+    return lambda: signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def dask_setup(worker: Any) -> None:
+    """Worker preload of the local cluster (``preload=["pihim.campaign.run"]``): ignore SIGINT, log nothing.
+
+    Ctrl-C at a terminal reaches every process of the foreground group, the
+    worker processes too; the client alone handles it (it stops the run and
+    closes the cluster, exit 130), so a worker must not die of it on its own
+    with a traceback. Nor may a worker print the lost heartbeat of a
+    scheduler closing before it: the worker's dask logging is at CRITICAL
+    (a frame's failure is recorded by the client; a dead worker fails the
+    run there). Called by dask in the worker's main thread.
+    """
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _silence_dask_logs()
+
+
+def max_local_workers() -> int:
+    """The most worker processes a LocalCluster may have: :data:`WORKERS_PER_CPU` x the CPU count.
+
+    Each worker is a process with one thread (about 150 MB before it reads a
+    frame); beyond the cores more workers only share them, and an absurd
+    count would exhaust the memory before a frame is read.
+    """
+    return WORKERS_PER_CPU * (os.cpu_count() or 1)
+
+
+def check_workers(workers: int | None) -> None:
+    """Refuse a LocalCluster size outside ``[1, max_local_workers()]`` (None: the CPU count) in one line.
+
+    Raises
+    ------
+    PihimInputError
+        Not an integer, < 1, or more than :func:`max_local_workers`.
+    """
+    if workers is None:
+        return
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise PihimInputError(f"--workers must be an integer >= 1, got {workers!r}")
+    top = max_local_workers()
+    if workers > top:
+        raise PihimInputError(f"--workers {workers}: at most {top} local workers ({WORKERS_PER_CPU} x the "
+                              f"{os.cpu_count() or 1} CPUs of this machine); use --scheduler for a larger cluster")
+
+
+def check_scheduler_address(address: str) -> str:
+    """``address`` as ``tcp://HOST:PORT`` (a bare ``HOST:PORT`` is TCP), or a one-line :class:`PihimInputError`.
+
+    Checked before any connection is tried, so a malformed address costs no
+    time and leaves no half-made client behind.
+
+    Parameters
+    ----------
+    address : str
+        ``tcp://HOST:PORT``, ``tls://HOST:PORT`` or ``HOST:PORT``; an IPv6
+        host in brackets (``tcp://[::1]:8786``); ``inproc://...`` of a
+        scheduler in this process.
+
+    Returns
+    -------
+    str
+        The address with its scheme.
+    """
+    text = address.strip()
+    scheme, sep, loc = text.rpartition("://")
+    scheme = scheme.lower() if sep else "tcp"
+    if scheme == "inproc" and loc and not any(c.isspace() for c in loc):
+        return text  # a scheduler in this process (LocalCluster(processes=False)), from Python only
+    host, colon, port = loc.rpartition(":")
+    bracketed = host.startswith("[") and host.endswith("]")
+    bare = host[1:-1] if bracketed else host
+    ok = (scheme in ("tcp", "tls") and bool(colon) and port.isascii() and port.isdigit()
+          and 1 <= int(port) <= 65535 and bool(bare) and not any(c.isspace() or c in "/?#@[]" for c in bare)
+          and (bracketed or ":" not in bare))  # an IPv6 host needs its brackets
+    if not ok:
+        raise PihimInputError(f"--scheduler {address!r}: not a dask scheduler address tcp://HOST:PORT "
+                              "(port 1-65535)")
+    return f"{scheme}://{loc}"
+
+
 def connect(scheduler: str | None, workers: int | None, *, processes: bool = True,
             timeout_s: float = 5.0) -> tuple[Any, Any]:
     """A dask.distributed client: to ``scheduler`` (``tcp://HOST:PORT``) or to a new LocalCluster.
 
     Returns ``(client, cluster)``; ``cluster`` is None for an existing
-    scheduler. An address that does not answer within ``timeout_s`` is a
-    one-line :class:`PihimInputError`.
+    scheduler. A malformed address (:func:`check_scheduler_address`), one
+    that does not answer within ``timeout_s``, or more local ``workers`` than
+    :func:`max_local_workers` is a one-line :class:`PihimInputError`.
     """
     try:
         from distributed import Client, LocalCluster
@@ -213,20 +343,20 @@ def connect(scheduler: str | None, workers: int | None, *, processes: bool = Tru
     if scheduler is not None:
         if workers is not None:
             raise PihimInputError("--workers applies to the local cluster; an existing cluster has its own workers")
+        address = check_scheduler_address(scheduler)
         try:
-            client = Client(scheduler, timeout=f"{timeout_s}s", set_as_default=False)
+            client = Client(address, timeout=f"{timeout_s}s", set_as_default=False)
         except (OSError, TimeoutError, ValueError) as exc:
             raise PihimInputError(f"--scheduler {scheduler}: no dask scheduler answers "
                                   f"({' '.join(str(exc).split())[:160]})") from None
         return client, None
+    check_workers(workers)
     n = workers if workers is not None else (os.cpu_count() or 1)
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise PihimInputError(f"--workers must be an integer >= 1, got {workers!r}")
     # the scheduler's HTTP server on a free port (":0": 8787 may be taken); one thread per worker: parallelism
     # comes from the workers; numba's and OpenCV's own thread pools would
     # oversubscribe the cores (set before the worker processes import them)
     env = {k: "1" for k in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
-    kwargs: dict[str, Any] = {"env": env} if processes else {}
+    kwargs: dict[str, Any] = {"env": env, "preload": ["pihim.campaign.run"]} if processes else {}
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, dashboard_address=":0",
                            silence_logs=logging.ERROR, **kwargs)
     return Client(cluster, set_as_default=False), cluster
@@ -315,7 +445,8 @@ def run_campaign(flight_dirs: Sequence[str | os.PathLike[str]], store_path: str 
                  scheduler: str | None = None, workers: int | None = None,
                  parameters: RunParameters = RunParameters(), skip_uncovered: bool = False,
                  processes: bool = True, inspector: Callable[..., Any] | None = None,
-                 progress: Progress | None = None) -> dict[str, Any]:
+                 progress: Progress | None = None,
+                 on_unreadable: Callable[[str, str], Any] | None = None) -> dict[str, Any]:
     """Run (or resume) a campaign; see the module notes.
 
     Parameters
@@ -341,6 +472,13 @@ def run_campaign(flight_dirs: Sequence[str | os.PathLike[str]], store_path: str 
         default :func:`pihim.inspection.pipeline.inspect_frame`.
     progress : callable, optional
         ``progress(stage, done, total)``.
+    on_unreadable : callable, optional
+        ``on_unreadable(frame, reason)`` for each frame of this run that could
+        not be read (or whose selection failed), ``frame`` as
+        ``FLIGHT/FRAME_ID``; the reason is one line, ``internal error: ...``
+        for a failure that is not the frame's fault. Such a frame is recorded
+        as skipped (``unreadable: reason``) and the run goes on; the next run
+        tries it again.
 
     Returns
     -------
@@ -373,6 +511,7 @@ def run_campaign(flight_dirs: Sequence[str | os.PathLike[str]], store_path: str 
         check_frame_files(fl)
         flights.append(fl)
     client = cluster = store = None
+    restore_sigint = _quiet_interrupt()
     try:
         client, cluster = connect(scheduler, workers, processes=processes)  # before the store is touched
         store = open_store(store_path)
@@ -402,11 +541,13 @@ def run_campaign(flight_dirs: Sequence[str | os.PathLike[str]], store_path: str 
         # 3. selection
         pending = store.pending_frames(cid)
         jobs = []
+        frame_names: dict[int, str] = {}
         for row in pending:
             fl = by_flight.get(row["flight_name"])
             if fl is None:
                 continue  # a flight of an earlier run not given this time: left pending
             m = matches[(fl.name, row["frame_key"])]
+            frame_names[row["id"]] = f"{fl.name}/{row['frame_key']}"
             jobs.append((row["id"], (str(fl.frame_path(m.frame)), frame_log(fl, m), field_spec,
                                      asdict(parameters.criteria))))
         done_sel = 0
@@ -415,6 +556,8 @@ def run_campaign(flight_dirs: Sequence[str | os.PathLike[str]], store_path: str 
             nonlocal done_sel, processed
             store.record_selection(frame_id, res["candidates"], run_id=run_id, seconds=res["seconds_total"],
                                    skip_reason=None if res["error"] is None else f"unreadable: {res['error']}")
+            if res["error"] is not None and on_unreadable is not None:
+                on_unreadable(frame_names[frame_id], res["error"])
             done_sel += 1
             processed += 1
             if progress:
@@ -436,6 +579,7 @@ def run_campaign(flight_dirs: Sequence[str | os.PathLike[str]], store_path: str 
                 if fl is None:
                     continue
                 m = matches[(fl.name, row["frame_key"])]
+                frame_names[row["id"]] = f"{fl.name}/{row['frame_key']}"
                 jobs.append((row["id"], (str(fl.frame_path(m.frame)), frame_log(fl, m), field_spec, pairs,
                                          inspector)))
             done_insp = 0
@@ -443,6 +587,8 @@ def run_campaign(flight_dirs: Sequence[str | os.PathLike[str]], store_path: str 
             def on_inspected(frame_id: int, obs: list[dict[str, Any]]) -> None:
                 nonlocal done_insp, observed, processed
                 store.record_observations(frame_id, obs, run_id=run_id, parameters=params)
+                if obs and obs[0].get("unreadable") and on_unreadable is not None:
+                    on_unreadable(frame_names[frame_id], obs[0]["reason"])
                 done_insp += 1
                 observed += len(obs)
                 processed += 1
@@ -457,12 +603,15 @@ def run_campaign(flight_dirs: Sequence[str | os.PathLike[str]], store_path: str 
         store.finish_run(run_id, processed)
         counts = store.counts(cid)
     finally:
-        if client is not None:
-            client.close()
-        if cluster is not None:
-            cluster.close()
-        if store is not None:
-            store.close()
+        try:
+            if client is not None:
+                client.close()
+            if cluster is not None:
+                cluster.close()
+            if store is not None:
+                store.close()
+        finally:
+            restore_sigint()
     return {
         "schema": RUN_SCHEMA_ID,
         "store": str(store_path),

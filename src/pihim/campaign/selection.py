@@ -82,6 +82,12 @@ class SelectionCriteria:
         for k, v in asdict(self).items():
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise PihimInputError(f"selection criterion {k} must be a finite number >= 0, got {v!r}")
+        for k in ("min_in_view", "max_saturated"):
+            if getattr(self, k) > 1:
+                raise PihimInputError(f"selection criterion {k} is a share, in [0, 1], got {getattr(self, k)!r}")
+        if self.min_reflection_dolp >= 1:
+            raise PihimInputError("selection criterion min_reflection_dolp must be in [0, 1) (a DoLP is at most 1), "
+                                  f"got {self.min_reflection_dolp!r}")
 
 
 def _project(camera: Any, pose: Any, pts: NDArray) -> tuple[NDArray, NDArray]:

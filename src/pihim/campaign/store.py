@@ -184,10 +184,23 @@ class CampaignStore:
     """An open campaign store (use :func:`open_store`, or as a context manager).
 
     All writes go through methods that each commit one transaction.
+
+    Parameters
+    ----------
+    path : path-like
+    create : bool
+        Create the store if the file is missing (else a one-line error).
+    readonly : bool
+        Open the file read-only (SQLite ``mode=ro``): nothing is ever written
+        to it, a missing, empty (0-byte) or empty-SQLite file is refused
+        instead of becoming a store, and an older schema is migrated in a
+        copy in memory, never in the file. Writing methods then fail.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, create: bool = True) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, create: bool = True, readonly: bool = False) -> None:
         self.path = Path(path)
+        self.readonly = readonly
+        create = create and not readonly
         if self.path.is_dir():
             raise PihimInputError(f"{self.path}: is a directory, not a campaign store")
         if not self.path.exists():
@@ -199,11 +212,19 @@ class CampaignStore:
             with open(self.path, "rb") as fh:
                 if fh.read(16) != b"SQLite format 3\x00":
                     raise PihimInputError(f"{self.path}: not a campaign store (not an SQLite database)")
+        elif readonly:
+            raise PihimInputError(f"{self.path}: an empty file, not a campaign store (pihim campaign run makes one)")
         try:
-            self.db = sqlite3.connect(str(self.path), timeout=30.0, isolation_level=None)
+            if readonly:
+                self.db = sqlite3.connect(self.path.resolve().as_uri() + "?mode=ro", uri=True, timeout=30.0,
+                                          isolation_level=None)
+            else:
+                self.db = sqlite3.connect(str(self.path), timeout=30.0, isolation_level=None)
             self.db.row_factory = sqlite3.Row
             self.db.execute("PRAGMA foreign_keys = ON")
             self._check_and_migrate()
+            if readonly:
+                return
             if self.path.stat().st_size and self.db.execute("PRAGMA journal_mode").fetchone()[0] != "wal":
                 self.db.execute("PRAGMA journal_mode = WAL")
             # WAL with synchronous NORMAL: a commit survives the process being killed (not a power cut) and
@@ -227,6 +248,17 @@ class CampaignStore:
             )
         if version == SCHEMA_VERSION:
             return
+        if self.readonly:
+            if version == 0:
+                raise PihimInputError(f"{self.path}: an empty SQLite database, not a campaign store "
+                                      "(pihim campaign run makes one)")
+            # an older store read without touching it: migrate a copy in memory
+            mem = sqlite3.connect(":memory:", isolation_level=None)
+            self.db.backup(mem)
+            self.db.close()
+            self.db = mem
+            self.db.row_factory = sqlite3.Row
+            self.db.execute("PRAGMA foreign_keys = ON")
         self.db.execute("BEGIN IMMEDIATE")
         try:
             version = int(self.db.execute("PRAGMA user_version").fetchone()[0])  # another process may have migrated
@@ -319,10 +351,12 @@ class CampaignStore:
     # ------------------------------------------------------------------ units of work
 
     def pending_frames(self, campaign_id: int) -> list[sqlite3.Row]:
+        """Frames whose selection is still to do: ``pending``, or skipped as unreadable (tried again)."""
         return self.db.execute(
             "SELECT frame.*, flight.name AS flight_name, flight.path AS flight_path FROM frame "
-            "JOIN flight ON flight.id = frame.flight_id WHERE flight.campaign_id = ? AND frame.stage = 'pending' "
-            "ORDER BY frame.id", (campaign_id,)).fetchall()
+            "JOIN flight ON flight.id = frame.flight_id WHERE flight.campaign_id = ? AND (frame.stage = 'pending' "
+            "OR (frame.stage = 'skipped' AND frame.reason LIKE 'unreadable: %')) ORDER BY frame.id",
+            (campaign_id,)).fetchall()
 
     def record_selection(self, frame_id: int, candidates: Iterable[Mapping[str, Any]], *, run_id: int,
                          seconds: float, skip_reason: str | None = None) -> None:
@@ -583,13 +617,18 @@ class _Transaction:
             self.db.execute("ROLLBACK")
 
 
-def open_store(path: str | os.PathLike[str], *, create: bool = True) -> CampaignStore:
+def open_store(path: str | os.PathLike[str], *, create: bool = True, readonly: bool = False) -> CampaignStore:
     """Open (and migrate) a campaign store; ``create=False`` refuses a missing file.
+
+    ``readonly=True`` (``pihim campaign report`` and ``export``) never writes
+    the file: a missing, empty or empty-SQLite file is refused and an older
+    schema is migrated in memory (:class:`CampaignStore`).
 
     Raises
     ------
     PihimInputError
         Not an SQLite file, an SQLite file of another application, a schema
-        newer than this pihim's (the file is left untouched).
+        newer than this pihim's (the file is left untouched); read-only, also
+        a missing, 0-byte or empty SQLite file.
     """
-    return CampaignStore(path, create=create)
+    return CampaignStore(path, create=create, readonly=readonly)

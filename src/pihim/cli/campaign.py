@@ -102,8 +102,10 @@ def simulate_flight(
     w, h = parse_size(size)
     if out.exists() and (out / "flight.json").exists():
         raise PihimInputError(f"--out {out}: already holds a flight (flight.json); choose a new directory")
+    from pihim.campaign.flight import load_plan, simulate_flight as _simulate
+
+    load_plan(plan, flight)  # a malformed plan is one line before --out is made
     make_out_dir(out)
-    from pihim.campaign.flight import simulate_flight as _simulate
 
     with _bars(sys.stderr.isatty()) as bar:
         summary = _simulate(plan, out, flight=flight, fps=fps, max_frames=max_frames, size=(w, h), log=log,
@@ -127,21 +129,34 @@ def run(
     facets: Annotated[Path | None, typer.Option("--facets", help="OpenCSP facet CSV (with --field CSV).")] = None,
     campaign: Annotated[str | None, typer.Option("--campaign", help="Campaign name (default FIELD-DATE of the first frame).")] = None,
     scheduler: Annotated[str | None, typer.Option("--scheduler", help="tcp://HOST:PORT of a running dask scheduler.")] = None,
-    workers: Annotated[int | None, typer.Option("--workers", help="Local worker processes (default: CPU count).")] = None,
+    workers: Annotated[int | None, typer.Option("--workers", help="Local worker processes (default: CPU count; at most 4 x CPU count).")] = None,
     stages: Annotated[str, typer.Option("--stages", help="select (polar + selection only) or all.")] = "all",
-    frames_per_pair: Annotated[int, typer.Option("--frames-per-pair", help="Frames kept per HUA-target pair for canting.")] = 3,
-    min_dolp: Annotated[float, typer.Option("--min-dolp", help="Reflection DoLP criterion (paper: 0.2).")] = 0.2,
+    frames_per_pair: Annotated[int, typer.Option("--frames-per-pair", help="Frames kept per HUA-target pair for canting (1 to 1000000).")] = 3,
+    min_dolp: Annotated[float, typer.Option("--min-dolp", help="Reflection DoLP criterion, in [0, 1) (paper: 0.2).")] = 0.2,
     skip_uncovered: Annotated[bool, typer.Option("--skip-uncovered", help="Record frames outside their log as skipped instead of refusing.")] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print the run summary as JSON on stdout.")] = False,
 ) -> int:
-    """Run or resume a campaign: polar, frame selection, edges and canting on dask; results in the store."""
-    from pihim.campaign.run import RunParameters, run_campaign
+    """Run or resume a campaign: polar, frame selection, edges and canting on dask; results in the store.
+
+    Frames that cannot be read are recorded as skipped (and tried again by the
+    next run) while the others are processed; the run then ends with one line
+    counting them and exit status 2 (1 if every such failure was an internal error).
+    """
+    import math
+
+    from pihim.campaign.run import MAX_FRAMES_PER_PAIR, RunParameters, check_scheduler_address, check_workers, \
+        run_campaign
     from pihim.campaign.selection import SelectionCriteria
 
     if not flights:
         raise PihimInputError("give at least one flight directory")
-    if workers is not None and workers < 1:
-        raise PihimInputError(f"--workers must be >= 1, got {workers}")
+    check_workers(workers)
+    if scheduler is not None:
+        check_scheduler_address(scheduler)
+    if not 1 <= frames_per_pair <= MAX_FRAMES_PER_PAIR:
+        raise PihimInputError(f"--frames-per-pair must be in [1, {MAX_FRAMES_PER_PAIR}], got {frames_per_pair}")
+    if not (math.isfinite(min_dolp) and 0 <= min_dolp < 1):
+        raise PihimInputError(f"--min-dolp must be in [0, 1) (a DoLP is at most 1), got {min_dolp}")
     spec = _field_spec(field, facets)
     params = RunParameters(frames_per_pair=frames_per_pair, criteria=SelectionCriteria(min_reflection_dolp=min_dolp),
                            stages=stages)
@@ -149,9 +164,11 @@ def run(
         from pihim.campaign.store import open_store
 
         open_store(store).close()  # a newer schema or a foreign file: refused before any work
+    unreadable: list[tuple[str, str]] = []
     with _bars(sys.stderr.isatty()) as bar:
         summary = run_campaign(flights, store, field_spec=spec, campaign=campaign, scheduler=scheduler,
-                               workers=workers, parameters=params, skip_uncovered=skip_uncovered, progress=bar)
+                               workers=workers, parameters=params, skip_uncovered=skip_uncovered, progress=bar,
+                               on_unreadable=lambda frame, why: unreadable.append((frame, why)))
     if json_out:
         emit_json(summary)
     else:
@@ -165,7 +182,35 @@ def run(
             f"({summary['seconds']:.1f} s)", highlight=False, soft_wrap=True)
         for reason, n in c["pairs_skipped_by_reason"].items():
             stderr_console.print(f"  pairs skipped: {n} x {reason}", highlight=False, soft_wrap=True)
-    return 0
+    return _unreadable_status(unreadable, sum(f["frames"] for f in summary["flights"]), store)
+
+
+def _unreadable_status(unreadable: list[tuple[str, str]], frames: int, store: Path) -> int:
+    """Exit status of a run, after one stderr line counting the frames it could not read (if any).
+
+    Parameters
+    ----------
+    unreadable : list of (str, str)
+        ``(FLIGHT/FRAME_ID, reason)`` of each frame the run could not read.
+    frames : int
+        Frames of the run's flights.
+    store : Path
+
+    Returns
+    -------
+    int
+        2 when a frame was bad input (truncated, not a frame, ...), 1 when
+        every failure was an internal error, 0 when there was none.
+    """
+    if not unreadable:
+        return 0
+    bad = [(f, why) for f, why in unreadable if not why.startswith("internal error")]
+    frame, why = (bad or unreadable)[0]
+    n = len(unreadable)
+    print(f"pihim: error: {n} of {frames} frames could not be read and {'are' if n > 1 else 'is'} recorded as "
+          f"skipped, the other frames' results are in {store} (a rerun tries {'them' if n > 1 else 'it'} again); "
+          f"first: {frame}: {why}", file=sys.stderr)
+    return 2 if bad else 1
 
 
 @app.command("report")
@@ -182,7 +227,7 @@ def report(
     from pihim.cli._common import check_out_dir
 
     check_out_dir(out)
-    with open_store(store, create=False) as st:
+    with open_store(store, readonly=True) as st:  # never writes the store (nor makes one of another file)
         summary = write_report(st, out, campaign=campaign, compare=compare)
     if json_out:
         emit_json(summary)
@@ -207,7 +252,7 @@ def export(
 
     if fmt not in ("csv", "parquet"):
         raise PihimInputError(f"--format must be csv or parquet, got {fmt!r}")
-    with open_store(store, create=False) as st:
+    with open_store(store, readonly=True) as st:  # never writes the store (nor makes one of another file)
         cid = None
         if campaign is not None:
             rows = [r for r in st.campaigns() if r["name"] == campaign]
