@@ -90,3 +90,23 @@ def test_malformed_plan_one_line_exit_2_nothing_written(plan_json, tmp_path, cap
     with pytest.raises(PihimInputError, match=msg):
         simulate_flight(plan, out, max_frames=1, size=(64, 54))
     assert not out.exists()
+
+
+@pytest.mark.parametrize("option, api, msg", [
+    ("--gps-sigma-m", "gps_sigma_m", r"GPS sigma \(m\) must be a finite number in \[0, 1000\]"),
+    ("--attitude-sigma-deg", "attitude_sigma_deg", r"attitude sigma \(deg\) must be a finite number in \[0, 180\]"),
+    ("--canting-sigma-mrad", "canting_sigma_mrad", r"canting sigma \(mrad\) must be a finite number in \[0, 1000\]"),
+])
+def test_huge_noise_is_one_line_exit_2_nothing_written(plan_json, tmp_path, capsys, option, api, msg) -> None:
+    """1e308 overflowed the logged poses (numpy warnings, a flight of meaningless positions, exit 0)."""
+    from pihim.cli import main
+
+    out = tmp_path / "flight"
+    assert main(["simulate-flight", str(plan_json), "--out", str(out), "--max-frames", "1", "--size", "64x54",
+                 option, "1e308"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"pihim: error: {option} must be a finite number in [0, "), err
+    assert not out.exists()
+    with pytest.raises(PihimInputError, match=msg):
+        simulate_flight(plan_json, out, max_frames=1, size=(64, 54), **{api: 1e308})
+    assert not out.exists()

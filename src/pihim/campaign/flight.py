@@ -59,8 +59,8 @@ from pihim.campaign.logs import (
 )
 from pihim.errors import PihimInputError
 
-__all__ = ["FLIGHT_SCHEMA_ID", "Flight", "check_frame_files", "frame_log", "load_flight", "load_plan",
-           "simulate_flight"]
+__all__ = ["FLIGHT_SCHEMA_ID", "SIGMA_LIMITS", "Flight", "check_frame_files", "check_sigmas", "frame_log",
+           "load_flight", "load_plan", "simulate_flight"]
 
 FLIGHT_SCHEMA_ID = "pihim.flight/1"
 
@@ -291,6 +291,18 @@ def _interp_heading(h0: float, h1: float, s: float) -> float:
     return (h0 + s * d) % 360.0
 
 
+#: Largest noise a simulated flight accepts: canting sigma (mrad), GPS sigma (m), attitude sigma (deg) -- far beyond
+#: any real error, so that a mistyped exponent is refused instead of overflowing the poses.
+SIGMA_LIMITS = {"canting sigma (mrad)": 1000.0, "GPS sigma (m)": 1000.0, "attitude sigma (deg)": 180.0}
+
+
+def check_sigmas(canting_sigma_mrad: float, gps_sigma_m: float, attitude_sigma_deg: float) -> None:
+    """Refuse a noise sigma that is not a finite number in ``[0, SIGMA_LIMITS[...]]`` (one-line PihimInputError)."""
+    for (name, top), v in zip(SIGMA_LIMITS.items(), (canting_sigma_mrad, gps_sigma_m, attitude_sigma_deg), strict=True):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and 0 <= v <= top):
+            raise PihimInputError(f"{name} must be a finite number in [0, {top:g}], got {v!r}")
+
+
 def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLike[str], *, flight: int = 1,
                     fps: float | None = None, max_frames: int | None = None, size: tuple[int, int] = (2448, 2048),
                     log: str = "csv", canting_sigma_mrad: float = 3.0, gps_sigma_m: float = 0.0,
@@ -359,6 +371,7 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
         raise PihimInputError(f"fps must be in (0, 60], got {fps!r}")
     if max_frames is not None and max_frames < 1:
         raise PihimInputError(f"max_frames must be >= 1, got {max_frames!r}")
+    check_sigmas(canting_sigma_mrad, gps_sigma_m, attitude_sigma_deg)
     plan = Path(plan_path)
     doc = load_plan(plan, flight)
     field = field or nsttf_like_field()

@@ -91,10 +91,12 @@ def simulate_flight(
         raise PihimInputError(f"--flight must be >= 1, got {flight}")
     if log not in ("csv", "ulog", "dataflash"):
         raise PihimInputError(f"--log must be csv, ulog or dataflash, got {log!r}")
-    for name, v in (("--canting-sigma-mrad", canting_sigma_mrad), ("--gps-sigma-m", gps_sigma_m),
-                    ("--attitude-sigma-deg", attitude_sigma_deg)):
-        if not math.isfinite(v) or v < 0:
-            raise PihimInputError(f"{name} must be a finite number >= 0, got {v}")
+    from pihim.campaign.flight import SIGMA_LIMITS
+
+    for name, v, top in zip(("--canting-sigma-mrad", "--gps-sigma-m", "--attitude-sigma-deg"),
+                            (canting_sigma_mrad, gps_sigma_m, attitude_sigma_deg), SIGMA_LIMITS.values(), strict=True):
+        if not (math.isfinite(v) and 0 <= v <= top):
+            raise PihimInputError(f"{name} must be a finite number in [0, {top:g}], got {v}")
     if seed < 0:
         raise PihimInputError(f"--seed must be >= 0, got {seed}")
     if not plan.is_file():
