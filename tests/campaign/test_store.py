@@ -34,8 +34,8 @@ def test_new_store_has_the_current_schema(tmp_path) -> None:
     assert {"campaign", "heliostat", "flight", "frame", "candidate", "observation", "facet_result", "run"} <= tables
 
 
-def test_version_1_store_is_migrated_and_keeps_its_rows(tmp_path) -> None:
-    path = tmp_path / "old.sqlite"
+def _version_1_store(path) -> None:
+    """A store of schema version 1 with one campaign, 'old'."""
     db = sqlite3.connect(path)
     db.executescript(MIGRATIONS[0])
     db.execute(f"PRAGMA application_id = {APPLICATION_ID}")
@@ -43,6 +43,11 @@ def test_version_1_store_is_migrated_and_keeps_its_rows(tmp_path) -> None:
     db.execute("INSERT INTO campaign (name, field_source, field_key, created_utc) VALUES ('old', 's', 'k', 'now')")
     db.commit()
     db.close()
+
+
+def test_version_1_store_is_migrated_and_keeps_its_rows(tmp_path) -> None:
+    path = tmp_path / "old.sqlite"
+    _version_1_store(path)
     with open_store(path) as s:
         assert s.schema_version == 2
         assert [r["name"] for r in s.campaigns()] == ["old"]
@@ -203,13 +208,7 @@ def test_read_only_store_reads_and_never_writes(tmp_path) -> None:
 
 def test_read_only_version_1_store_is_migrated_in_memory_only(tmp_path) -> None:
     path = tmp_path / "old.sqlite"
-    db = sqlite3.connect(path)
-    db.executescript(MIGRATIONS[0])
-    db.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-    db.execute("PRAGMA user_version = 1")
-    db.execute("INSERT INTO campaign (name, field_source, field_key, created_utc) VALUES ('old', 's', 'k', 'now')")
-    db.commit()
-    db.close()
+    _version_1_store(path)
     before = hashlib.sha256(path.read_bytes()).hexdigest()
     with open_store(path, readonly=True) as s:
         assert s.schema_version == 2 and [r["name"] for r in s.campaigns()] == ["old"]
