@@ -88,3 +88,11 @@ def test_defaults_are_the_conventions(tmp_path, capsys):
         assert np.array_equal(default[key], explicit[key], equal_nan=True), key
     assert not np.allclose(default["mirror_dolp"], fresnel["mirror_dolp"], equal_nan=True)
     assert not np.allclose(default["ground_dolp"], glass["ground_dolp"], equal_nan=True)
+
+
+def test_json_names_the_mirror_model_and_folds_its_azimuth(tmp_path, capsys):
+    """--mirror is matched case-insensitively: the record gives the model's name, and the azimuth in [0, 360)."""
+    assert main(["ground", "--sun-zenith", "30", "--sun-azimuth", "235", "--resolution", "10", "--mirror", " Ideal",
+                 "--mirror-normal-azimuth", "-90", "--out", str(tmp_path / "g"), "--json"]) == 0
+    rec = json.loads(capsys.readouterr().out)
+    assert rec["mirror"]["model"] == "ideal" and rec["mirror"]["normal_azimuth_deg"] == 270.0

@@ -134,6 +134,8 @@ def ground(
         raise PihimInputError(f"--mirror-normal-zenith must be in [0, 90] deg, got {mirror_normal_zenith:g}")
     if not math.isfinite(mirror_normal_azimuth):
         raise PihimInputError(f"--mirror-normal-azimuth must be a finite number of degrees, got {mirror_normal_azimuth:g}")
+    normal_azimuth = mirror_normal_azimuth % 360.0
+    normal_azimuth = 0.0 if normal_azimuth >= 360.0 else normal_azimuth  # a tiny negative rounds up to 360.0
     if not (math.isfinite(resolution) and resolution > 0 and abs(90.0 / resolution - round(90.0 / resolution)) < 1e-9):
         raise PihimInputError(f"--resolution must divide 90 deg, got {resolution:g}")
     if facets < 1:
@@ -199,8 +201,8 @@ def ground(
             "sky": sky.describe(),
             "ground": {"sigma_deg": sigma, "refractive_index": refractive_index, "diffuse_albedo": diffuse_albedo,
                        "sun_irradiance_w_m2": sun_irradiance, "sky_irradiance_w_m2": sky_irradiance},
-            "mirror": {"model": mirror, "normal_zenith_deg": mirror_normal_zenith,
-                       "normal_azimuth_deg": mirror_normal_azimuth},
+            "mirror": {"model": mirror.strip().lower(), "normal_zenith_deg": mirror_normal_zenith,
+                       "normal_azimuth_deg": normal_azimuth},
             "resolution_deg": resolution,
             "monte_carlo": {"facets": facets, "seed": seed} if monte_carlo else None,
             **_summary(maps),
