@@ -125,3 +125,12 @@ def test_each_command_loads_only_its_own_module(capsys):
 
     assert main(["windows", "--help"]) == 0
     assert "--step-min" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv", [[], ["campaign"]])
+def test_no_command_prints_the_help_and_one_error_line(capsys, argv):
+    """``pihim`` (or ``pihim campaign``) alone: the help on stdout, one line on stderr, exit status 2."""
+    assert main(argv) == 2
+    out, err = capsys.readouterr()
+    assert "Usage" in out
+    assert err.strip().splitlines() == ["pihim: error: no command given (listed above)"]

@@ -234,8 +234,9 @@ def _run(argv: list[str] | None) -> int:
     except PihimInputError as exc:
         print(f"pihim: error: {exc}", file=sys.stderr)
         return 2
-    except _click_exc.NoArgsIsHelpError as exc:
-        print(exc.format_message(), file=sys.stderr)
+    except _click_exc.NoArgsIsHelpError as exc:  # the help went to stdout: say on stderr what was missing
+        print(f"pihim: error: {' '.join(exc.format_message().split()) or 'no command given (listed above)'}",
+              file=sys.stderr)
         return 2
     except _click_exc.UsageError as exc:
         print(f"pihim: error: {' '.join(exc.format_message().split())}", file=sys.stderr)
