@@ -55,6 +55,7 @@ def test_simulate_run_report_export_json(plan_json, tmp_path, capsys) -> None:
     (["simulate-flight", "PLAN", "--out", "X", "--flight", "9"], "flights"),
     (["campaign", "run", "NOWHERE", "--store", "S"], "not a flight directory"),
     (["campaign", "run", "NOWHERE", "--store", "S", "--stages", "edges"], "stages"),
+    (["campaign", "run", "NOWHERE", "--store", "S", "--campaign", " "], "--campaign must be a name"),
     (["campaign", "export", "S", "--out", "E", "--format", "xlsx"], "csv or parquet"),
 ])
 def test_bad_options_one_line_exit_2(plan_json, tmp_path, capsys, argv, msg) -> None:

@@ -152,6 +152,8 @@ def run(
 
     if not flights:
         raise PihimInputError("give at least one flight directory")
+    if campaign is not None and not campaign.strip():
+        raise PihimInputError("--campaign must be a name, got an empty one (leave it out for FIELD-DATE)")
     check_workers(workers)
     if scheduler is not None:
         check_scheduler_address(scheduler)
