@@ -124,6 +124,27 @@ def test_negative_dark_level_refused():
         polar_image(np.zeros((4, 4), np.uint16), dark_level=-10.0)
 
 
+@pytest.mark.parametrize("mosaic", [np.full((4, 4), 100, np.uint16), np.full((4, 4), 100.0, np.float32)])
+@pytest.mark.parametrize("levels, match", [
+    # a saturation level at or below the dark level flags every pixel: all DoLP and AoP would be NaN
+    (dict(saturation_level=-1.0), r"saturation level must be above the dark level \(0\)"),
+    (dict(saturation_level=0.0), r"saturation level must be above the dark level \(0\)"),
+    (dict(dark_level=100.0, saturation_level=50.0), r"above the dark level \(100\)"),
+    (dict(saturation_level=float("nan")), "saturation level must be above"),
+    # beyond float32 the kernels' cast overflows (numpy's warning, then infinities)
+    (dict(saturation_level=1e300), r"at most 3\.403e\+38 \(float32\), got 1e\+300"),
+    (dict(dark_level=1e300), r"dark level must be at most 3\.403e\+38 \(float32\)"),
+])
+def test_dark_and_saturation_levels_out_of_range_are_refused(mosaic, levels, match):
+    with pytest.raises(PihimInputError, match=match):
+        polar_image(mosaic, **levels)
+
+
+def test_an_infinite_saturation_level_means_none():
+    out = polar_image(np.full((4, 4), 60000.0, np.float32), saturation_level=float("inf"))
+    assert not out.saturated.any()
+
+
 @pytest.mark.parametrize("demosaic", ["superpixel", "full"])
 def test_summary_matches_its_numpy_definition(demosaic):
     """The fast summary against the definitions computed with numpy on float64 copies."""

@@ -361,6 +361,8 @@ def test_scheduler_address_checked_before_connecting() -> None:
     assert check_scheduler_address("tcp://10.0.0.2:8786") == "tcp://10.0.0.2:8786"
     assert check_scheduler_address("10.0.0.2:8786") == "tcp://10.0.0.2:8786"
     assert check_scheduler_address("tls://[::1]:8786") == "tls://[::1]:8786"
+    for other in ("ws://proxy.example:8786", "wss://proxy.example:443", "ucx://10.0.0.2:8786"):  # dask comms too
+        assert check_scheduler_address(other) == other
     for bad in ("foo", "tcp://host", "tcp://host:0", "tcp://host:65536", "udp://host:8786", "tcp://:8786",
                 "tcp://host:8786/x", "tcp://::1:8786"):
         with pytest.raises(PihimInputError, match="not a dask scheduler address"):
@@ -408,6 +410,59 @@ def test_unreadable_frame_exit_2_others_kept_and_retried(flight_copy, tmp_path, 
     again = json.loads(capsys.readouterr().out)
     assert again["processed_this_run"]["frames_selected"] == 1
     assert again["counts"]["frames"] == {"pending": 0, "selected": 2, "done": 0, "skipped": 0}
+
+
+def test_frame_unreadable_at_canting_is_said_as_such(flight_copy, tmp_path) -> None:
+    """A frame read at selection and truncated before canting: its pair is stored as failed (not retried), and the
+    run's error line says that, not "a rerun tries it again"."""
+    from pihim.cli.campaign import _unreadable_status
+
+    store = tmp_path / "c.sqlite"
+    run_campaign([flight_copy], store, workers=1, processes=False, parameters=RunParameters(stages="select"))
+    frames = read_frames_csv(flight_copy / "frames.csv")
+    bad = flight_copy / frames[1].file
+    bad.write_bytes(bad.read_bytes()[:1000])
+    seen = []
+    s = run_campaign([flight_copy], store, workers=1, processes=False, inspector=TruthInspector(_truth(flight_copy)),
+                     on_unreadable=lambda *args: seen.append(args))
+    assert [(f, stage) for f, _, stage in seen] == [(f"f1/{frames[1].frame_id}", "canting")]
+    assert s["counts"]["observations"] == {"done": 1, "failed": 1}
+    assert _unreadable_status(seen, 2, store) == 2
+
+
+def test_unreadable_status_line_names_each_stage(tmp_path, capsys) -> None:
+    from pihim.cli.campaign import _unreadable_status
+
+    assert _unreadable_status([], 5, tmp_path / "s") == 0
+    got = [("f/1", "cannot read TIFF", "select"), ("f/2", "cannot read TIFF", "select"),
+           ("f/3", "no such file", "canting")]
+    assert _unreadable_status(got, 5, tmp_path / "s") == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("pihim: error: 3 of 5 frames could not be read (2 at selection, recorded as skipped "
+                           "(a rerun tries them again); 1 at canting, its pairs recorded as failed)")
+    assert line.endswith("first: f/1: cannot read TIFF")
+    assert _unreadable_status([("f/1", "internal error: KeyError: x", "select")], 5, tmp_path / "s") == 1
+
+
+def test_quiet_interrupt_silences_dask_then_puts_everything_back() -> None:
+    """While a run is on, Ctrl-C raises KeyboardInterrupt with dask's loggers at CRITICAL (its shutdown would log
+    tracebacks); once the run has closed its cluster, the handler and the loggers' levels are what they were."""
+    import logging
+
+    from pihim.campaign.run import _quiet_interrupt
+
+    logging.getLogger("distributed.client").setLevel(logging.WARNING)
+    undo = _quiet_interrupt()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1)
+        assert logging.getLogger("distributed.client").level == logging.CRITICAL
+        assert logging.getLogger("distributed").level == logging.CRITICAL
+    finally:
+        undo()
+    assert logging.getLogger("distributed.client").level == logging.WARNING
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 def test_ctrl_c_stops_the_run_quietly_exit_130(flight_copy, tmp_path) -> None:

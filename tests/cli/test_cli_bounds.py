@@ -74,7 +74,7 @@ def test_polar_levels(tmp_path, capsys, frame, option, needle):
 def test_calibrate_polarizer_bounds(tmp_path, capsys):
     frames = [str(tmp_path / f"p{k}.tiff") for k in range(4)]  # refused before any frame is read
     base = ["calibrate-polarizer", *frames, "--out", str(tmp_path / "c.json")]
-    _refused(capsys, [*base, "--angles", "0,45,1e308,135"], "--angles: polarizer angles must be within +-3600 deg")
+    _refused(capsys, [*base, "--angles", "0,45,1e308,135"], "--angles: polarizer angles must be within +-1e+06 deg")
     _refused(capsys, [*base, "--angles", "0:180:45", "--dark-level", "1e308"],
              "--dark-level must be a raw level in [0, 65535]")
     assert not (tmp_path / "c.json").exists()

@@ -35,11 +35,12 @@ def no_serving(monkeypatch):
     (["--bit-depth", "0"], "--bit-depth", "1..16, got 0"),
     (["--bit-depth", "17"], "--bit-depth", "1..16, got 17"),
     (["--bit-depth", "8", "--dark-level", "255"], "--dark-level 255", "8-bit full scale"),
+    (["--dark-level", "70000"], "--dark-level", "[0, 65535], got 70000"),  # served nothing, exit 0
     (["--field", "/nonexistent/pihim-fuzz/nope.csv"], "--field", "nope.csv"),
     (["--max-gain-db", "1e308"], "--max-gain-db", "at most 100 dB"),
     (["--host", "x" * 64 + ".invalid"], "--host xxx", "cannot resolve"),  # (a 64-letter label fails without DNS)
 ], ids=["exposure-huge", "max-exposure-huge", "exposure-above-max", "exposure-above-default-max", "bit-depth-0",
-        "bit-depth-17", "dark-level-at-full-scale", "field-missing", "max-gain-huge", "host-unresolvable"])
+        "bit-depth-17", "dark-level-at-full-scale", "dark-level-huge", "field-missing", "max-gain-huge", "host-unresolvable"])
 def test_bad_option_is_one_line_exit_2(tmp_path, capsys, no_serving, options, named, says):
     captures, record = tmp_path / "captures", tmp_path / "rec"
     rc = main([*BASE, "--captures", str(captures), "--record", str(record), *options])

@@ -281,10 +281,13 @@ def polar_image(
             raw = raw >> depth.shift
         sat = float(depth.full_scale if saturation_level is None else saturation_level)
     f32_max = float(np.finfo(np.float32).max)  # the kernels work in float32
-    if not math.isfinite(dark_level) or not 0 <= dark_level <= f32_max:
+    if not math.isfinite(dark_level) or dark_level < 0:
         raise PihimInputError(f"dark level must be a finite number of raw units >= 0, got {dark_level:g}")
-    if sat != np.inf and not (math.isfinite(sat) and abs(sat) <= f32_max):
-        raise PihimInputError(f"saturation level must be a finite number of raw units, got {sat:g}")
+    if dark_level > f32_max:
+        raise PihimInputError(f"dark level must be at most {f32_max:.4g} (float32), got {dark_level:g}")
+    if not (sat > dark_level and (sat == np.inf or sat <= f32_max)):
+        raise PihimInputError(f"saturation level must be above the dark level ({dark_level:g}) and at most "
+                              f"{f32_max:.4g} (float32), got {sat:g}")
     w_pos = _position_ordered_pinv(analyser or AnalyserMatrix.ideal(), layout)
     h, w = raw.shape
     shape = (h // 2, w // 2) if demosaic == "superpixel" else (h, w)

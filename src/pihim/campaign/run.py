@@ -52,7 +52,7 @@ import numpy as np
 from pihim.campaign.selection import SelectionCriteria
 from pihim.errors import PihimInputError
 
-__all__ = ["MAX_FRAMES_PER_PAIR", "RUN_SCHEMA_ID", "STAGES", "WORKERS_PER_CPU", "RunParameters",
+__all__ = ["MAX_FRAMES_PER_PAIR", "RUN_SCHEMA_ID", "SCHEDULER_SCHEMES", "STAGES", "WORKERS_PER_CPU", "RunParameters",
            "check_scheduler_address", "check_workers", "connect", "max_local_workers", "run_campaign"]
 
 RUN_SCHEMA_ID = "pihim.campaign-run/1"
@@ -60,6 +60,8 @@ RUN_SCHEMA_ID = "pihim.campaign-run/1"
 STAGES = ("select", "all")
 #: Largest ``frames_per_pair``: more than the frames of any campaign (a 20-minute flight at 15 fps has 18,000).
 MAX_FRAMES_PER_PAIR = 1_000_000
+#: Network schemes of dask.distributed's comms a scheduler address may use (``inproc://`` also, from Python).
+SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss", "ucx")
 #: A LocalCluster has at most this many worker processes per CPU (see :func:`max_local_workers`).
 WORKERS_PER_CPU = 4
 
@@ -208,13 +210,20 @@ def inspect_task(path: str, log: Mapping[str, Any], field_spec: tuple[str, str |
 # --------------------------------------------------------------------------- client side
 
 
-def _silence_dask_logs() -> None:
-    """Set the ``distributed`` and ``tornado`` loggers (and their children already made) to CRITICAL."""
+def _silence_dask_logs() -> dict[str, int]:
+    """Set the ``distributed`` and ``tornado`` loggers (and their children already made) to CRITICAL.
+
+    Returns the levels they had (``logging.Logger.level``), to put back.
+    """
     import logging
 
     names = [n for n in logging.root.manager.loggerDict if n.startswith(("distributed.", "tornado."))]
+    before = {}
     for name in ("distributed", "tornado", *names):
-        logging.getLogger(name).setLevel(logging.CRITICAL)
+        logger = logging.getLogger(name)
+        before[name] = logger.level
+        logger.setLevel(logging.CRITICAL)
+    return before
 
 
 def _quiet_interrupt() -> Callable[[], None]:
@@ -223,24 +232,31 @@ def _quiet_interrupt() -> Callable[[], None]:
     An interrupt cancels the client's pending calls, and distributed and
     tornado log the cancellations (tracebacks, at ERROR) while the cluster
     closes. While the run is on, SIGINT raises their loggers to CRITICAL
-    (left so: the process is stopping) before raising KeyboardInterrupt, so
-    the command's own line (exit 130) is all that is said. Only in the main
-    thread, and only over Python's default handler; the returned function
-    puts that handler back.
+    before raising KeyboardInterrupt, so the command's own line (exit 130)
+    is all that is said. Only in the main thread, and only over Python's
+    default handler; the returned function (called once the cluster is
+    closed) puts that handler and the loggers' levels back.
     """
+    import logging
     import signal
     import threading
 
     if threading.current_thread() is not threading.main_thread() \
             or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
         return lambda: None
+    silenced: dict[str, int] = {}
 
     def interrupt(signum: int, frame: Any) -> None:
-        _silence_dask_logs()
+        silenced.update({k: v for k, v in _silence_dask_logs().items() if k not in silenced})
         raise KeyboardInterrupt
 
+    def undo() -> None:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        for name, level in silenced.items():
+            logging.getLogger(name).setLevel(level)
+
     signal.signal(signal.SIGINT, interrupt)
-    return lambda: signal.signal(signal.SIGINT, signal.default_int_handler)
+    return undo
 
 
 def dask_setup(worker: Any) -> None:
@@ -297,7 +313,7 @@ def check_scheduler_address(address: str) -> str:
     Parameters
     ----------
     address : str
-        ``tcp://HOST:PORT``, ``tls://HOST:PORT`` or ``HOST:PORT``; an IPv6
+        ``tcp://HOST:PORT`` (or ``tls``, ``ws``, ``wss``, ``ucx``) or ``HOST:PORT``; an IPv6
         host in brackets (``tcp://[::1]:8786``); ``inproc://...`` of a
         scheduler in this process.
 
@@ -314,12 +330,12 @@ def check_scheduler_address(address: str) -> str:
     host, colon, port = loc.rpartition(":")
     bracketed = host.startswith("[") and host.endswith("]")
     bare = host[1:-1] if bracketed else host
-    ok = (scheme in ("tcp", "tls") and bool(colon) and port.isascii() and port.isdigit()
+    ok = (scheme in SCHEDULER_SCHEMES and bool(colon) and port.isascii() and port.isdigit()
           and 1 <= int(port) <= 65535 and bool(bare) and not any(c.isspace() or c in "/?#@[]" for c in bare)
           and (bracketed or ":" not in bare))  # an IPv6 host needs its brackets
     if not ok:
         raise PihimInputError(f"--scheduler {address!r}: not a dask scheduler address tcp://HOST:PORT "
-                              "(port 1-65535)")
+                              f"(or {', '.join(s + '://' for s in SCHEDULER_SCHEMES[1:])}; port 1-65535)")
     return f"{scheme}://{loc}"
 
 
@@ -473,12 +489,14 @@ def run_campaign(flight_dirs: Sequence[str | os.PathLike[str]], store_path: str 
     progress : callable, optional
         ``progress(stage, done, total)``.
     on_unreadable : callable, optional
-        ``on_unreadable(frame, reason)`` for each frame of this run that could
-        not be read (or whose selection failed), ``frame`` as
-        ``FLIGHT/FRAME_ID``; the reason is one line, ``internal error: ...``
-        for a failure that is not the frame's fault. Such a frame is recorded
-        as skipped (``unreadable: reason``) and the run goes on; the next run
-        tries it again.
+        ``on_unreadable(frame, reason, stage)`` for each frame of this run that
+        could not be read, ``frame`` as ``FLIGHT/FRAME_ID``; the reason is one
+        line, ``internal error: ...`` for a failure that is not the frame's
+        fault. At ``stage`` ``"select"`` (or when its selection failed) the
+        frame is recorded as skipped (``unreadable: reason``) and the next run
+        tries it again; at ``"canting"`` (a frame read at selection that could
+        not be read again) its pairs are recorded as failed observations, not
+        tried again. The run goes on either way.
 
     Returns
     -------
@@ -557,7 +575,7 @@ def run_campaign(flight_dirs: Sequence[str | os.PathLike[str]], store_path: str 
             store.record_selection(frame_id, res["candidates"], run_id=run_id, seconds=res["seconds_total"],
                                    skip_reason=None if res["error"] is None else f"unreadable: {res['error']}")
             if res["error"] is not None and on_unreadable is not None:
-                on_unreadable(frame_names[frame_id], res["error"])
+                on_unreadable(frame_names[frame_id], res["error"], "select")
             done_sel += 1
             processed += 1
             if progress:
@@ -588,7 +606,7 @@ def run_campaign(flight_dirs: Sequence[str | os.PathLike[str]], store_path: str 
                 nonlocal done_insp, observed, processed
                 store.record_observations(frame_id, obs, run_id=run_id, parameters=params)
                 if obs and obs[0].get("unreadable") and on_unreadable is not None:
-                    on_unreadable(frame_names[frame_id], obs[0]["reason"])
+                    on_unreadable(frame_names[frame_id], obs[0]["reason"], "canting")
                 done_insp += 1
                 observed += len(obs)
                 processed += 1

@@ -31,8 +31,9 @@ from pihim.polarimetry.analyser import NOMINAL_ANGLES_DEG
 
 #: Most angles ``--angles START:STOP:STEP`` may expand to (one frame per angle).
 MAX_ANGLES = 10_000
-#: Largest polarizer angle magnitude accepted, deg (ten turns of a rotation stage).
-MAX_ANGLE_DEG = 3600.0
+#: Largest polarizer angle magnitude accepted, deg: a multi-turn encoder's cumulative reading (2,777 turns) is fine,
+#: a mistyped exponent is refused before the fit (cos 2 theta of 1e308 deg is NaN).
+MAX_ANGLE_DEG = 1e6
 
 
 def parse_angles(text: str, *, max_count: int = MAX_ANGLES) -> list[float]:

@@ -172,7 +172,7 @@ def run(
     with _bars(sys.stderr.isatty()) as bar:
         summary = run_campaign(flights, store, field_spec=spec, campaign=campaign, scheduler=scheduler,
                                workers=workers, parameters=params, skip_uncovered=skip_uncovered, progress=bar,
-                               on_unreadable=lambda frame, why: unreadable.append((frame, why)))
+                               on_unreadable=lambda frame, why, stage: unreadable.append((frame, why, stage)))
     if json_out:
         emit_json(summary)
     else:
@@ -189,13 +189,14 @@ def run(
     return _unreadable_status(unreadable, sum(f["frames"] for f in summary["flights"]), store)
 
 
-def _unreadable_status(unreadable: list[tuple[str, str]], frames: int, store: Path) -> int:
+def _unreadable_status(unreadable: list[tuple[str, str, str]], frames: int, store: Path) -> int:
     """Exit status of a run, after one stderr line counting the frames it could not read (if any).
 
     Parameters
     ----------
-    unreadable : list of (str, str)
-        ``(FLIGHT/FRAME_ID, reason)`` of each frame the run could not read.
+    unreadable : list of (str, str, str)
+        ``(FLIGHT/FRAME_ID, reason, stage)`` of each frame the run could not read, ``stage`` ``"select"``
+        (recorded as skipped, tried again by the next run) or ``"canting"`` (its pairs recorded as failed).
     frames : int
         Frames of the run's flights.
     store : Path
@@ -208,12 +209,17 @@ def _unreadable_status(unreadable: list[tuple[str, str]], frames: int, store: Pa
     """
     if not unreadable:
         return 0
-    bad = [(f, why) for f, why in unreadable if not why.startswith("internal error")]
-    frame, why = (bad or unreadable)[0]
-    n = len(unreadable)
-    print(f"pihim: error: {n} of {frames} frames could not be read and {'are' if n > 1 else 'is'} recorded as "
-          f"skipped, the other frames' results are in {store} (a rerun tries {'them' if n > 1 else 'it'} again); "
-          f"first: {frame}: {why}", file=sys.stderr)
+    bad = [u for u in unreadable if not u[1].startswith("internal error")]
+    frame, why, _ = (bad or unreadable)[0]
+    n_sel = sum(stage == "select" for *_, stage in unreadable)
+    n_cant = len(unreadable) - n_sel
+    parts = []
+    if n_sel:
+        parts.append(f"{n_sel} at selection, recorded as skipped (a rerun tries {'them' if n_sel > 1 else 'it'} again)")
+    if n_cant:
+        parts.append(f"{n_cant} at canting, {'their' if n_cant > 1 else 'its'} pairs recorded as failed")
+    print(f"pihim: error: {len(unreadable)} of {frames} frames could not be read ({'; '.join(parts)}); the other "
+          f"frames' results are in {store}; first: {frame}: {why}", file=sys.stderr)
     return 2 if bad else 1
 
 

@@ -98,6 +98,7 @@ def live(
     json_out: Annotated[bool, typer.Option("--json", help="Print a session summary as JSON on exit.")] = False,
 ) -> None:
     """Live view in the browser: S0 / DoLP / AoP at 15 fps, adaptive exposure, raw capture."""
+    from pihim.camera.frames import MAX_RAW_VALUE
     from pihim.cli._common import check_out_dir, emit_json, load_field_option, parse_layout
 
     # every option is checked before the server or a camera is touched
@@ -119,6 +120,8 @@ def live(
         raise PihimInputError(f"--max-gain-db must be at most {MAX_GAIN_DB:g} dB, got {max_gain_db:g}")
     _positive("--speed", speed, allow_zero=True)
     _positive("--dark-level", dark_level, allow_zero=True)
+    if dark_level > MAX_RAW_VALUE:
+        raise PihimInputError(f"--dark-level must be a raw level in [0, {MAX_RAW_VALUE}], got {dark_level:g}")
     if bit_depth is not None and not 1 <= bit_depth <= 16:
         raise PihimInputError(f"--bit-depth must be in 1..16, got {bit_depth}")
     if bit_depth is not None and dark_level >= 2**bit_depth - 1:
