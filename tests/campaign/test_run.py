@@ -245,6 +245,22 @@ def test_corrupt_log_exit_2(flight_copy, tmp_path, capsys) -> None:
     assert not (tmp_path / "c.sqlite").exists()
 
 
+@pytest.mark.parametrize("change, msg", [
+    (dict(heliostats=[{"name": "5E3", "az_deg": 180.0, "el_deg": 40.0}, {"name": "5e3", "az_deg": 183.0,
+                                                                         "el_deg": 40.0}]), "5E3 is listed twice"),
+    (dict(aim_point_m=[60.0, 8.8, -5.0]), "'aim_point_m' must be above the ground"),
+])
+def test_flight_log_refused_once_before_the_store(flight_copy, tmp_path, capsys, change, msg) -> None:
+    """A flight's aim point and drive angles are checked when it loads: one line, no store, not every frame
+    counted as unreadable on every run."""
+    settings = json.loads((flight_copy / "flight.json").read_text())
+    (flight_copy / "flight.json").write_text(json.dumps({**settings, **change}))
+    assert main(["campaign", "run", str(flight_copy), "--store", str(tmp_path / "c.sqlite")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(flight_copy) in err[0] and msg in err[0], err
+    assert not (tmp_path / "c.sqlite").exists()
+
+
 def test_frame_of_another_camera_exit_2(flight_copy, tmp_path, capsys) -> None:
     import tifffile
 

@@ -506,6 +506,7 @@ def run_campaign(flight_dirs: Sequence[str | os.PathLike[str]], store_path: str 
     from pihim.campaign.flight import check_frame_files, frame_log, load_flight
     from pihim.campaign.logs import format_utc
     from pihim.campaign.store import open_store
+    from pihim.inspection.pipeline import logged_aim_and_drives
 
     t_start = _time.perf_counter()
     if not flight_dirs:
@@ -527,6 +528,11 @@ def run_campaign(flight_dirs: Sequence[str | os.PathLike[str]], store_path: str 
         if len(bad) == len(fl.matches):
             raise PihimInputError(f"{fl.directory}: the log covers none of the frames")
         check_frame_files(fl)
+        covered = next(m for m in fl.matches if m.ok)
+        try:  # the log's aim point and drive angles are the flight's: refused once, not frame by frame
+            logged_aim_and_drives(fld, frame_log(fl, covered))
+        except PihimInputError as exc:
+            raise PihimInputError(f"{fl.directory}: {exc}") from None
         flights.append(fl)
     client = cluster = store = None
     restore_sigint = _quiet_interrupt()

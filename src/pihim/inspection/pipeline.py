@@ -54,7 +54,7 @@ from pihim.polarimetry.analyser import AnalyserMatrix
 from pihim.sky.sun import Site, sun_position
 
 __all__ = ["InspectionResult", "SIGMA_FLOOR_MRAD", "combine_results",
-           "field_pose_from_log", "inspect_frame"]
+           "field_pose_from_log", "inspect_frame", "logged_aim_and_drives"]
 
 #: Floor of the per-facet standard errors used as inverse-variance weights, mrad.
 SIGMA_FLOOR_MRAD = 0.05
@@ -103,12 +103,18 @@ def _site(log: Mapping[str, Any]) -> Site:
         raise PihimInputError(f"log 'site' has no {exc.args[0]!r}") from None
 
 
-def field_pose_from_log(field: Any, log: Mapping[str, Any]) -> FieldPose:
-    """The field as logged: tracking ``log["aim_point_m"]`` at ``log["time"]``, logged drive angles applied."""
-    site = _site(log)
-    sun = sun_position(site, _need(log, "time"))
-    if not float(sun.elevation_deg) > 0.0:
-        raise PihimInputError(f"the sun is below the horizon at {log['time']}: the field does not track")
+def logged_aim_and_drives(field: Any, log: Mapping[str, Any]) -> tuple[NDArray[np.float64], dict[int, tuple[float, float]]]:
+    """The log's aim point and the drive angles it gives (``{heliostat index: (az_deg, el_deg)}``), checked.
+
+    What does not depend on the frame's time, so that a campaign can refuse a flight's log once, before any
+    frame is read.
+
+    Raises
+    ------
+    PihimInputError
+        An aim point that is not 3 finite numbers above the ground; a ``heliostats`` entry that is not
+        ``{name, az_deg, el_deg}`` with finite angles, names an unknown heliostat, or repeats one.
+    """
     try:
         aim = np.asarray(_need(log, "aim_point_m"), dtype=float)
     except (TypeError, ValueError):
@@ -117,14 +123,11 @@ def field_pose_from_log(field: Any, log: Mapping[str, Any]) -> FieldPose:
         raise PihimInputError(f"log 'aim_point_m' must be 3 finite numbers, got {log['aim_point_m']!r}")
     if aim[2] <= 0:  # as pihim plan and pihim windows: a field aims above the ground (the tower's target)
         raise PihimInputError(f"log 'aim_point_m' must be above the ground (z > 0), got z = {aim[2]:g} m")
-    pose = track_field(field, sun.vector, aim)
-    da = drive_angles(pose.normals)
-    az = np.array(da.azimuth_deg, float)
-    el = np.array(da.elevation_deg, float)
     helio = _need(log, "heliostats")
     if not isinstance(helio, Sequence) or isinstance(helio, str):
         raise PihimInputError("log 'heliostats' must be a list of {name, az_deg, el_deg}")
     # an empty list is fine: no heliostat off its tracking, every one tracks the aim point (docs/campaign.md)
+    drives: dict[int, tuple[float, float]] = {}
     seen: dict[int, str] = {}
     for entry in helio:
         try:
@@ -138,6 +141,22 @@ def field_pose_from_log(field: Any, log: Mapping[str, Any]) -> FieldPose:
             again = "" if seen[i] == str(entry["name"]) else f" (as {entry['name']!r})"
             raise PihimInputError(f"log 'heliostats': {seen[i]} is listed twice{again}; give each heliostat once")
         seen[i] = str(entry["name"])
+        drives[i] = (a, e)
+    return aim, drives
+
+
+def field_pose_from_log(field: Any, log: Mapping[str, Any]) -> FieldPose:
+    """The field as logged: tracking ``log["aim_point_m"]`` at ``log["time"]``, logged drive angles applied."""
+    site = _site(log)
+    sun = sun_position(site, _need(log, "time"))
+    if not float(sun.elevation_deg) > 0.0:
+        raise PihimInputError(f"the sun is below the horizon at {log['time']}: the field does not track")
+    aim, drives = logged_aim_and_drives(field, log)
+    pose = track_field(field, sun.vector, aim)
+    da = drive_angles(pose.normals)
+    az = np.array(da.azimuth_deg, float)
+    el = np.array(da.elevation_deg, float)
+    for i, (a, e) in drives.items():
         az[i], el[i] = a, e
     return pose.with_drive(az, el)
 
