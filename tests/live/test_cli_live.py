@@ -67,6 +67,15 @@ def test_exposure_above_max_is_fine_without_the_controller(tmp_path, capsys, mon
     assert seen["settings"].exposure_us == 50000.0
 
 
+def test_a_folder_replay_takes_any_first_exposure(tmp_path, frame_folder, monkeypatch):
+    """--max-exposure-us bounds the controller's commands: a folder of frames takes none, so it is not checked."""
+    import pihim.live.server as server_mod
+
+    monkeypatch.setattr(server_mod, "serve", lambda engine, sock, **kwargs: sock.close())
+    assert main(["live", "--source", str(frame_folder), "--duration", "2", "--port", "0", "--captures",
+                 str(tmp_path / "c"), "--exposure-us", "50000", "--max-exposure-us", "1000"]) == 0
+
+
 def test_sigterm_says_terminated(tmp_path):
     """SIGTERM while serving: the --json summary, ``pihim: terminated`` on stderr, status 143 (docs/cli.md)."""
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2] / "src")}

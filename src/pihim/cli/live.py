@@ -112,7 +112,8 @@ def live(
     for name, value in (("--exposure-us", exposure_us), ("--max-exposure-us", max_exposure_us)):
         if value > MAX_EXPOSURE_US:
             raise PihimInputError(f"{name} must be at most {MAX_EXPOSURE_US:.0f} us (10 s), got {value:g}")
-    if auto_exposure and exposure_us > max_exposure_us:
+    controlled = source.lower() == "synthetic" or source.lower().startswith(("synthetic:", "genicam"))
+    if auto_exposure and controlled and exposure_us > max_exposure_us:  # a folder replay takes no commands
         raise PihimInputError(f"--exposure-us {exposure_us:g} is above --max-exposure-us {max_exposure_us:g}: "
                               f"the first exposure must be one the controller may set")
     _positive("--max-gain-db", max_gain_db, allow_zero=True)
