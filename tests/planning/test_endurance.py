@@ -148,6 +148,15 @@ def test_throughput_and_fleet_match_the_paper_figures() -> None:
     assert fleet_estimate(10_000, 50.0, 10.0).drones == 20
     with pytest.raises(PihimInputError):
         fleet_estimate(100, 0.0, 8.0)
+    assert fleet_estimate(100, 50.0, 24.0).drones == 1
+    with pytest.raises(PihimInputError, match="at most 24"):
+        fleet_estimate(100, 50.0, 24.5)  # working hours are per day
+
+
+def test_battery_longer_than_a_day_refused() -> None:
+    assert DroneEndurance(battery_min=1440.0).usable_s == pytest.approx(1440 * 60 * 0.8)
+    with pytest.raises(PihimInputError, match="at most 1440 minutes"):
+        DroneEndurance(battery_min=1440.5)
 
 
 def test_throughput_of_a_plan(passes, home) -> None:

@@ -33,11 +33,11 @@ def plan(
     sky_model: Annotated[str, typer.Option(help="Sky polarization model: rayleigh or berry.")] = "rayleigh",
     dmax: Annotated[float, typer.Option(help="Maximum sky DoLP, [0, 1].")] = 0.8,
     mirror: Annotated[str, typer.Option(help="Mirror model: second-surface, ideal or fresnel.")] = "second-surface",
-    battery_min: Annotated[float, typer.Option(help="Battery endurance per flight, minutes.")] = 20.0,
+    battery_min: Annotated[float, typer.Option(help="Battery endurance per flight, minutes (at most 1440).")] = 20.0,
     max_mission_items: Annotated[int, typer.Option(
         "--max-mission-items", help="Most mission items per flight the autopilot stores (home included).")] = 700,
     autopilot: Annotated[str, typer.Option(help="Mission files for ardupilot (default) or px4.")] = "ardupilot",
-    fleet_hours: Annotated[float, typer.Option(help="Working hours per day for the fleet estimate.")] = 8.0,
+    fleet_hours: Annotated[float, typer.Option(help="Working hours per day for the fleet estimate (at most 24).")] = 8.0,
     no_shift: Annotated[bool, typer.Option("--no-shift", help="Do not shift passes to raise contrast.")] = False,
     facet_target: Annotated[float, typer.Option(
         "--facet-target", help="Share of the imaged HUAs' facets to show a heliostat's back, [0, 1].")] = 0.96,
@@ -48,7 +48,7 @@ def plan(
     """Plan UFACET scan passes scored for polarimetric contrast and export missions."""
     t0 = _time.perf_counter()
     # the planner and its dependencies (scipy, numba, pandas) load only when the command runs, not for --help
-    from pihim.planning.endurance import DroneEndurance
+    from pihim.planning.endurance import MAX_BATTERY_MIN, DroneEndurance
     from pihim.planning.facet_captures import FacetCaptureSettings
     from pihim.planning.export import export_all
     from pihim.planning.pipeline import build_plan
@@ -61,8 +61,12 @@ def plan(
     site_obj = parse_site(site)
     aim_point = parse_point(aim, name="--aim")
     check_out_dir(out)
-    if not (math.isfinite(battery_min) and battery_min > 0):
-        raise PihimInputError(f"--battery-min must be a positive number of minutes, got {battery_min:g}")
+    if not (math.isfinite(battery_min) and 0 < battery_min <= MAX_BATTERY_MIN):
+        raise PihimInputError(f"--battery-min must be a positive number of minutes, at most {MAX_BATTERY_MIN:g} "
+                              f"(a day), got {battery_min:g}")
+    if not (math.isfinite(fleet_hours) and 0 < fleet_hours <= 24):
+        raise PihimInputError(f"--fleet-hours must be a positive number of hours per day, at most 24, "
+                              f"got {fleet_hours:g}")
     if max_mission_items < 4:
         raise PihimInputError(f"--max-mission-items must be at least 4, got {max_mission_items}")
     if autopilot not in ("ardupilot", "px4"):

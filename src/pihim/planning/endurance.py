@@ -62,6 +62,8 @@ __all__ = [
 PAPER_HELIOSTATS_PER_HOUR = 36.0
 #: Range hoped for with faster acquisition, planning and endurance (paper section 5).
 PAPER_HOPED_HELIOSTATS_PER_HOUR = (50.0, 100.0)
+#: Longest battery a :class:`DroneEndurance` accepts, minutes: a day (a tethered drone's "battery" included).
+MAX_BATTERY_MIN = 24 * 60.0
 
 
 @dataclass(frozen=True)
@@ -72,7 +74,7 @@ class DroneEndurance:
     ----------
     battery_min : float
         Flight time of a full battery, minutes (paper: typical 20-minute
-        flights).
+        flights); at most :data:`MAX_BATTERY_MIN` (a day).
     reserve_fraction : float
         Fraction of the battery kept in reserve, in [0, 1).
     transit_speed_m_s : float
@@ -124,6 +126,9 @@ class DroneEndurance:
             v = getattr(self, label)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise PihimInputError(f"DroneEndurance.{label} must be a number >= 0, got {v!r}")
+        if self.battery_min > MAX_BATTERY_MIN:
+            raise PihimInputError(f"DroneEndurance.battery_min must be at most {MAX_BATTERY_MIN:g} minutes (a day), "
+                                  f"got {self.battery_min!r}")
         if not (isinstance(self.reserve_fraction, (int, float)) and 0.0 <= self.reserve_fraction < 1.0):
             raise PihimInputError(f"reserve_fraction must be in [0, 1), got {self.reserve_fraction!r}")
 
@@ -187,7 +192,7 @@ class FleetEstimate:
 
 
 def fleet_estimate(n_heliostats: int, heliostats_per_hour_per_drone: float, working_hours: float) -> FleetEstimate:
-    """Drone-hours and drones to inspect ``n_heliostats`` in ``working_hours``.
+    """Drone-hours and drones to inspect ``n_heliostats`` in ``working_hours`` a day (at most 24).
 
     Examples
     --------
@@ -203,6 +208,8 @@ def fleet_estimate(n_heliostats: int, heliostats_per_hour_per_drone: float, work
                      ("working_hours", working_hours)):
         if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
             raise PihimInputError(f"{label} must be a positive number, got {v!r}")
+    if working_hours > 24:
+        raise PihimInputError(f"working_hours are hours per day, at most 24, got {working_hours!r}")
     hours = n_heliostats / heliostats_per_hour_per_drone
     return FleetEstimate(int(n_heliostats), float(heliostats_per_hour_per_drone), float(working_hours), hours,
                          math.ceil(hours / working_hours - 1e-12))
