@@ -110,3 +110,141 @@ def test_huge_noise_is_one_line_exit_2_nothing_written(plan_json, tmp_path, caps
     with pytest.raises(PihimInputError, match=msg):
         simulate_flight(plan_json, out, max_frames=1, size=(64, 54), **{api: 1e308})
     assert not out.exists()
+
+
+# --------------------------------------------------------------------------- resuming a killed run
+
+RESUME = {"max_frames": 3, "size": (64, 54), "log": "ulog", "seed": 5}
+
+
+def _tree(d) -> dict[str, bytes]:
+    return {p.relative_to(d).as_posix(): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+def _assert_same_tree(a, b) -> None:
+    ta, tb = _tree(a), _tree(b)
+    assert sorted(ta) == sorted(tb)
+    assert [k for k in ta if ta[k] != tb[k]] == []
+
+
+def _count_renders(mp) -> list[str]:
+    """Record the frame time of every simulate_frame call (the real renderer still runs)."""
+    import pihim.render.simulate as sim_mod
+
+    calls: list[str] = []
+    real = sim_mod.simulate_frame
+
+    def counted(field, time, **kwargs):
+        calls.append(time)
+        return real(field, time, **kwargs)
+
+    mp.setattr(sim_mod, "simulate_frame", counted)
+    return calls
+
+
+@pytest.fixture()
+def renders(monkeypatch) -> list[str]:
+    return _count_renders(monkeypatch)
+
+
+@pytest.fixture(scope="module")
+def fresh_flight(tmp_path_factory, plan_json):
+    """A fresh run of RESUME (the reference of every resumed run), its summary and its frame times."""
+    with pytest.MonkeyPatch.context() as mp:
+        calls = _count_renders(mp)
+        out = tmp_path_factory.mktemp("fresh") / "f"
+        summary = simulate_flight(plan_json, out, **RESUME)
+    assert summary["rendered"] == 3 and summary["reused"] == 0 and len(calls) == 3
+    return out, summary, calls
+
+
+def _summary_counts(s) -> tuple[int, int, int]:
+    return s["frames"], s["rendered"], s["reused"]
+
+
+def test_rerun_of_a_killed_flight_renders_only_the_missing_frames(plan_json, tmp_path, fresh_flight, renders) -> None:
+    ref, ref_summary, times = fresh_flight
+    out = tmp_path / "f"
+
+    class Killed(BaseException):
+        pass
+
+    def kill_at_third(frames_done, total):
+        if frames_done == 2:
+            raise Killed  # after frame 000001 is on disk: no frames.csv, log, truth/flight.json nor flight.json
+    with pytest.raises(Killed):
+        simulate_flight(plan_json, out, progress=kill_at_third, **RESUME)
+    assert not (out / "flight.json").exists() and len(list((out / "frames").iterdir())) == 2
+    renders.clear()
+    s = simulate_flight(plan_json, out, **RESUME)
+    assert renders == times[2:] and _summary_counts(s) == (3, 1, 2)
+    _assert_same_tree(out, ref)
+    assert {k: v for k, v in s.items() if k not in ("out", "files", "rendered", "reused")} == \
+        {k: v for k, v in ref_summary.items() if k not in ("out", "files", "rendered", "reused")}
+
+    # a complete flight is reused whole; damaged frames are rendered again, byte for byte as before
+    renders.clear()
+    assert _summary_counts(simulate_flight(plan_json, out, **RESUME)) == (3, 0, 3) and renders == []
+    (out / "frames" / "000000.tiff").write_bytes(b"")  # size 0
+    doc = json.loads((out / "truth" / "000002.json").read_text())
+    (out / "truth" / "000002.json").write_text(json.dumps(doc)[:-200])  # cut short: corrupt JSON
+    s = simulate_flight(plan_json, out, **RESUME)
+    assert renders == [times[0], times[2]] and _summary_counts(s) == (3, 2, 1)
+    _assert_same_tree(out, ref)
+
+
+def test_rerun_replaces_a_frame_of_another_shape_or_without_truth(plan_json, tmp_path, fresh_flight, renders) -> None:
+    import shutil
+
+    import tifffile
+
+    ref, _, times = fresh_flight
+    out = tmp_path / "f"
+    shutil.copytree(ref, out)
+    (out / "flight.json").unlink()
+    tifffile.imwrite(out / "frames" / "000001.tiff", np.zeros((54, 66), np.uint16))  # another camera's frame
+    (out / "truth" / "000002.json").unlink()  # killed between the TIFF and its truth
+    s = simulate_flight(plan_json, out, **RESUME)
+    assert renders == times[1:] and _summary_counts(s) == (3, 2, 1)
+    _assert_same_tree(out, ref)
+
+
+def test_shorter_rerun_reuses_its_frames_and_removes_the_rest(plan_json, tmp_path, fresh_flight, renders) -> None:
+    import shutil
+
+    ref, _, _ = fresh_flight
+    out = tmp_path / "f"
+    shutil.copytree(ref, out)
+    s = simulate_flight(plan_json, out, **{**RESUME, "max_frames": 2})
+    assert renders == [] and _summary_counts(s) == (2, 0, 2)
+    fresh = tmp_path / "fresh" / "f"
+    simulate_flight(plan_json, fresh, **{**RESUME, "max_frames": 2})
+    _assert_same_tree(out, fresh)  # 000002.tiff / .json of the longer run are gone
+    assert [r.frame_id for r in read_frames_csv(out / "frames.csv")] == ["000000", "000001"]
+
+
+@pytest.mark.parametrize("change", [{"seed": 6}, {"size": (64, 56)}, {"canting_sigma_mrad": 1.0}])
+def test_other_inputs_render_every_frame_again(plan_json, tmp_path, fresh_flight, renders, change) -> None:
+    import shutil
+
+    ref, _, _ = fresh_flight
+    out = tmp_path / "f"
+    shutil.copytree(ref, out)
+    s = simulate_flight(plan_json, out, **{**RESUME, **change})
+    assert len(renders) == 3 and _summary_counts(s) == (3, 3, 0)
+    frame = json.loads((out / "truth" / "000000.json").read_text())
+    assert frame["truth"]["simulation"]["inputs_sha256"] != \
+        json.loads((ref / "truth" / "000000.json").read_text())["truth"]["simulation"]["inputs_sha256"]
+
+
+def test_cli_resumes_a_killed_run_and_says_so(plan_json, tmp_path, capsys, renders) -> None:
+    from pihim.cli import main
+
+    out = tmp_path / "flight"
+    argv = ["simulate-flight", str(plan_json), "--out", str(out), "--max-frames", "2", "--size", "64x54"]
+    assert main(argv) == 0
+    (out / "flight.json").unlink()  # as if killed before its last write
+    renders.clear()
+    capsys.readouterr()
+    assert main(argv) == 0 and renders == []
+    assert "wrote 2 frames (64x54, 2 reused from an earlier run)" in " ".join(capsys.readouterr().err.split())

@@ -31,12 +31,16 @@ A **flight directory** holds what one flight of the drone recorded::
 
 :func:`simulate_flight` writes such a directory for a flight of a
 ``plan.json``, with ``truth/`` beside it: one ``FRAME.json`` per frame (the
-frame's log and its ground truth, as ``pihim simulate`` writes) and
-``truth/flight.json`` (true poses, the field's true canting).
+frame's log and its ground truth, as ``pihim simulate`` writes, with the
+digests of the frame's inputs and TIFF in ``truth.simulation``, so that a rerun
+reuses it) and ``truth/flight.json`` (true poses, the field's true canting).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import json
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -303,6 +307,42 @@ def check_sigmas(canting_sigma_mrad: float, gps_sigma_m: float, attitude_sigma_d
             raise PihimInputError(f"{name} must be a finite number in [0, {top:g}], got {v!r}")
 
 
+def _sha256_file(path: Path) -> str:
+    """The sha256 of a file's bytes (hex)."""
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+def _field_sha256(field: Any) -> str:
+    """A digest of a field's geometry: names, tower, pivots and heliostat spec (facet centroids included)."""
+    h = hashlib.sha256()
+    for part in (field.names, field.tower, field.pivots,
+                 *(getattr(field.spec, f.name) for f in dataclasses.fields(field.spec))):
+        if isinstance(part, np.ndarray):
+            h.update(repr(part.shape).encode() + np.ascontiguousarray(part, "<f8").tobytes())
+        else:
+            h.update(repr(part).encode())
+    return h.hexdigest()
+
+
+def _inputs_sha256(inputs: Mapping[str, Any]) -> str:
+    """sha256 of the canonical JSON (sorted keys, no blanks) of a frame's inputs."""
+    text = json.dumps(inputs, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _reusable_frame(tiff: Path, truth: Path, inputs_sha256: str) -> dict[str, Any] | None:
+    """The frame's ``FRAME.json`` document if it records ``inputs_sha256`` and the TIFF's digest, else None."""
+    try:
+        doc = json.loads(truth.read_text(encoding="utf-8"))
+        sim = doc["truth"]["simulation"]
+        if sim["inputs_sha256"] == inputs_sha256 and sim["raw_sha256"] == _sha256_file(tiff):
+            return doc
+    except (OSError, ValueError, LookupError, TypeError):  # missing, unreadable, corrupt, another document
+        pass
+    return None
+
+
 def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLike[str], *, flight: int = 1,
                     fps: float | None = None, max_frames: int | None = None, size: tuple[int, int] = (2448, 2048),
                     log: str = "csv", canting_sigma_mrad: float = 3.0, gps_sigma_m: float = 0.0,
@@ -346,22 +386,37 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     Returns
     -------
     dict
-        Summary (``pihim.simulate-flight/1``): files, frames, time span, log kind.
+        Summary (``pihim.simulate-flight/1``): files, frames (``rendered``
+        now, ``reused`` from an earlier run), time span, log kind.
 
     Raises
     ------
     PihimInputError
         A plan :func:`load_plan` refuses (before anything is written), a
         flight that records no frame, bad options.
+
+    Notes
+    -----
+    A rerun resumes: frame ``k`` is not rendered again when ``frames/k.tiff``
+    and ``truth/k.json`` are there, the JSON's ``truth.simulation`` records
+    the same ``inputs_sha256`` (a sha256 of the canonical JSON of what the
+    frame is rendered from: pihim version, plan file digest, frame time, pose
+    request and true pose, site, aim point, camera, seed, canting sigma,
+    field source and geometry digest) and ``raw_sha256`` is the TIFF's
+    digest; its truth is read back from the JSON. Anything else (another
+    seed, size, sigma or plan, a missing or corrupt file) is rendered again.
+    Frames beyond this run's count left by an earlier, longer run are
+    removed, so the directory is byte for byte the one a fresh run writes.
     """
     import pandas as pd
     import tifffile
 
-    from pihim._atomic import write_atomic, write_json_atomic
+    from pihim import __version__
+    from pihim._atomic import clean_stale_temporaries_tree, write_atomic, write_json_atomic
     from pihim.camera.pose import CameraPose
     from pihim.campaign.logs import write_dataflash, write_frames_csv, write_ulog
     from pihim.camera.model import camera_for_size
-    from pihim.field import enu_to_geodetic, nsttf_like_field
+    from pihim.field import Field, enu_to_geodetic, nsttf_like_field
     from pihim.render.simulate import LookAtPose, WaypointPose, simulate_frame
     from pihim.sky.sun import parse_time
 
@@ -375,6 +430,8 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     plan = Path(plan_path)
     doc = load_plan(plan, flight)
     field = field or nsttf_like_field()
+    if not isinstance(field, Field):
+        raise PihimInputError(f"field must be a pihim.field.Field, got {type(field).__name__}")
     site = _site(doc, plan)
     start = parse_time(doc["time_iso"])
     aim = [float(v) for v in doc["aim_point"]]
@@ -412,6 +469,7 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     out = Path(out_dir)
     (out / "frames").mkdir(parents=True, exist_ok=True)
     (out / "truth").mkdir(parents=True, exist_ok=True)
+    clean_stale_temporaries_tree(out, depth=1)  # what a killed run was writing
     t_start = start.timestamp()
     rng = np.random.default_rng(np.random.SeedSequence([seed, 14]))
     gps_offset = rng.standard_normal(3) * gps_sigma_m
@@ -419,23 +477,40 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     truth_frames: list[dict[str, Any]] = []
     canting: dict[str, list[dict[str, Any]]] = {}
     sensor_log: dict[str, Any] | None = None
+    common = {"pihim": __version__, "plan_sha256": _sha256_file(plan), "site": site.as_dict(), "aim_point_m": aim,
+              "camera": camera.to_dict(), "seed": seed, "canting_sigma_mrad": canting_sigma_mrad,
+              "field_source": field_source, "field_sha256": _field_sha256(field)}
+    rendered = 0
     for k, (t, pose, request) in enumerate(shots):
         when = start + pd.Timedelta(seconds=t)
-        sim = simulate_frame(field, when.isoformat(), site=site, aim_point=aim, camera=camera, pose_request=request,
-                             canting_sigma_mrad=canting_sigma_mrad, seed=seed, field_source=field_source)
         fid = f"{k:06d}"
-        rel = f"frames/{fid}.tiff"
-        raw = np.ascontiguousarray(sim.raw, dtype=np.uint16)
-        write_atomic(out / rel, lambda p, raw=raw: tifffile.imwrite(p, raw))
-        write_json_atomic(out / "truth" / f"{fid}.json", sim.document())
-        sensor_log = {"model": sim.log["sensor"]["model"], "layout": sim.log["sensor"]["layout"]}
-        for h in sim.truth["heliostats"]:
+        rel, truth_path = f"frames/{fid}.tiff", out / "truth" / f"{fid}.json"
+        inputs = _inputs_sha256({**common, "time": when.isoformat(), "pose": pose.to_dict(),
+                                 "request": {"type": type(request).__name__, **dataclasses.asdict(request)}})
+        doc = _reusable_frame(out / rel, truth_path, inputs)
+        if doc is None:
+            sim = simulate_frame(field, when.isoformat(), site=site, aim_point=aim, camera=camera,
+                                 pose_request=request, canting_sigma_mrad=canting_sigma_mrad, seed=seed,
+                                 field_source=field_source)
+            raw = np.ascontiguousarray(sim.raw, dtype=np.uint16)
+            write_atomic(out / rel, lambda p, raw=raw: tifffile.imwrite(p, raw))
+            doc = sim.document()
+            doc["truth"]["simulation"].update(inputs_sha256=inputs, raw_sha256=_sha256_file(out / rel))
+            write_json_atomic(truth_path, doc)
+            rendered += 1
+        flog, ftruth = doc["log"], doc["truth"]
+        sensor_log = {"model": flog["sensor"]["model"], "layout": flog["sensor"]["layout"]}
+        for h in ftruth["heliostats"]:
             canting.setdefault(h["name"], h["facets"])
-        truth_frames.append({"frame_id": fid, "time_utc": format_utc(t_start + t), "hua": sim.log["hua"],
-                             "target": sim.log["target"], "pose": sim.truth["pose"]})
+        truth_frames.append({"frame_id": fid, "time_utc": format_utc(t_start + t), "hua": flog["hua"],
+                             "target": flog["target"], "pose": ftruth["pose"]})
         records.append(FrameRecord(fid, rel, t_start + t))
         if progress is not None:
             progress(k + 1, len(shots))
+
+    for p in [*(out / "frames").glob("*.tiff"), *(out / "truth").glob("*.json")]:
+        if p.stem.isascii() and p.stem.isdigit() and int(p.stem) >= len(shots):
+            p.unlink()  # left by an earlier, longer run
 
     # the logged track: true vehicle (yaw = heading, airframe pitch, no roll) + errors
     t_lo, t_hi = shots[0][0] - 2.0, shots[-1][0] + 2.0
@@ -531,6 +606,8 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
         "out": str(out),
         "flight": flight,
         "frames": len(records),
+        "rendered": rendered,
+        "reused": len(records) - rendered,
         "width_px": camera.width_px,
         "height_px": camera.height_px,
         "log": settings["log"],

@@ -62,7 +62,7 @@ def _field_spec(field: str, facets: Path | None) -> tuple[str, str | None]:
 
 def simulate_flight(
     plan: Annotated[Path, typer.Argument(help="plan.json written by pihim plan.", show_default=False)],
-    out: Annotated[Path, typer.Option("--out", help="Flight directory to write (frames/, frames.csv, flight.json, truth/).")],
+    out: Annotated[Path, typer.Option("--out", help="Flight directory to write (frames/, frames.csv, flight.json, truth/); a killed run's frames are reused.")],
     flight: Annotated[int, typer.Option("--flight", help="1-based flight of the plan.")] = 1,
     fps: Annotated[float | None, typer.Option("--fps", help="Record N frames per second along the scan passes.")] = None,
     captures_only: Annotated[bool, typer.Option("--captures-only", help="One frame per capture waypoint (default).")] = False,
@@ -118,7 +118,8 @@ def simulate_flight(
         emit_json(summary)
     else:
         stderr_console.print(f"[bold]pihim simulate-flight[/bold]: wrote {summary['frames']} frames "
-                             f"({w}x{h}) to {out}, poses in {summary['log']}, truth in {out / 'truth'}",
+                             f"({w}x{h}, {summary['reused']} reused from an earlier run) to {out}, "
+                             f"poses in {summary['log']}, truth in {out / 'truth'}",
                              highlight=False, soft_wrap=True)
     return 0
 
