@@ -859,9 +859,10 @@ class GroundModel:
         else:
             table = _SkyTable(sky, sun, sky_table_size)
         out = np.zeros((v.shape[0], 4))
+        # writable C arrays always: a read-only view (a broadcast reference axis) would compile a second specialization
         _sky_kernel(
-            np.ascontiguousarray(v),
-            np.ascontiguousarray(ee),
+            np.require(v, np.float64, ["C", "W"]),
+            np.require(ee, np.float64, ["C", "W"]),
             nodes,
             weights,
             table.table,
