@@ -841,7 +841,8 @@ def solve(prob: tuple, x0: NDArray, m: int, x_scale: NDArray, max_nfev: int, sof
             cost = cost_new
             f, f_new = f_new, f
             jac, jac_new = jac_new, jac
-            f_true[:] = f
+            for i in range(m):  # an element loop: a slice copy would compile numba's shape-mismatch error
+                f_true[i] = f[i]
             _robust(f, f_scale, soft_l1, jac, True)
     return x, f_true, jac
 

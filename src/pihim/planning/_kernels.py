@@ -503,9 +503,15 @@ def improve_sweep(order: NDArray, dirs: NDArray, pts: NDArray, out: NDArray, kee
         for j in range(i + 1, min(hi_i + 1, i + window + 1)):
             old = leg(e_(i - 1), s_(i)) + leg(e_(j), s_(j + 1))
             new = leg(e_(i - 1), e_(j)) + leg(s_(i), s_(j + 1))
-            if new < old - 1e-6:
-                order[i:j + 1] = order[i:j + 1][::-1].copy()
-                dirs[i:j + 1] = 1 - dirs[i:j + 1][::-1]
+            if new < old - 1e-6:  # reverse positions i..j in place, each pass flown the other way
+                a, b = i, j
+                while a < b:
+                    order[a], order[b] = order[b], order[a]
+                    dirs[a], dirs[b] = 1 - dirs[b], 1 - dirs[a]
+                    a += 1
+                    b -= 1
+                if a == b:
+                    dirs[a] = 1 - dirs[a]
                 improved = True
     for length in range(1, 4):
         i = lo_i
@@ -528,16 +534,23 @@ def improve_sweep(order: NDArray, dirs: NDArray, pts: NDArray, out: NDArray, kee
                     delta = gain - (add - base)
                     if delta > best:
                         best, best_p, best_rev = delta, p, rev
-            if best_p >= 0:
+            if best_p >= 0:  # move positions i..j before position best_p, in place (element loops, no slices)
                 seg_o = order[i:j + 1].copy()
                 seg_d = dirs[i:j + 1].copy()
-                if best_rev:
-                    seg_o, seg_d = seg_o[::-1].copy(), 1 - seg_d[::-1]
-                rest_o = np.concatenate((order[:i], order[j + 1:]))
-                rest_d = np.concatenate((dirs[:i], dirs[j + 1:]))
-                q = best_p if best_p < i else best_p - length
-                order[:] = np.concatenate((rest_o[:q], seg_o, rest_o[q:]))
-                dirs[:] = np.concatenate((rest_d[:q], seg_d, rest_d[q:]))
+                if best_p < i:  # positions best_p..i-1 move up by length
+                    for k in range(i - 1, best_p - 1, -1):
+                        order[k + length] = order[k]
+                        dirs[k + length] = dirs[k]
+                    q = best_p
+                else:  # positions j+1..best_p-1 move down by length
+                    for k in range(j + 1, best_p):
+                        order[k - length] = order[k]
+                        dirs[k - length] = dirs[k]
+                    q = best_p - length
+                for k in range(length):
+                    src = length - 1 - k if best_rev else k
+                    order[q + k] = seg_o[src]
+                    dirs[q + k] = 1 - seg_d[src] if best_rev else seg_d[src]
                 improved = True
             i += 1
     return improved

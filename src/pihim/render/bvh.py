@@ -147,8 +147,9 @@ def _build(lo, hi, centroid, leaf_size):  # pragma: no cover - compiled
                 bh[j] = max(bh[j], hi[p, j])
                 cl[j] = min(cl[j], centroid[p, j])
                 ch[j] = max(ch[j], centroid[p, j])
-        node_lo[node] = bl
-        node_hi[node] = bh
+        for j in range(3):  # element copies: a row assignment would compile numba's shape-mismatch error
+            node_lo[node, j] = bl[j]
+            node_hi[node, j] = bh[j]
         count = b - a
         best_cost = np.inf
         best_axis = -1
