@@ -34,6 +34,9 @@ def test_demo_writes_a_report_whose_every_link_resolves(demo_run):
     rc, doc, out, err = demo_run
     assert rc == 0, err
     assert json.loads((out / "demo.json").read_text()) == doc
+    # with --json too, the summary and per-pair lines go to stderr (stdout holds the JSON alone)
+    pair = doc["pairs"][0]
+    assert f"{pair['hua']}/{pair['target']}: " in err and f"report: {out / 'report.html'}" in err
     page = (out / "report.html").read_text()
     links = re.findall(r'(?:src|href)="([^"]+)"', page)
     assert any(s.endswith("plan.png") for s in links)
