@@ -37,6 +37,17 @@ def test_folder_replay_order_loop_and_rate(frame_folder):
     assert not src.controllable
 
 
+def test_folder_replay_skips_the_images_pihim_writes_beside_frames(frame_folder):
+    # pihim simulate's truth images and pihim polar's products / previews are not raw frames
+    for tag in ("S0", "DoLP", "AoP", "labels"):
+        tifffile.imwrite(frame_folder / f"f1.{tag}.tiff", np.zeros((32, 40), np.float32))
+        (frame_folder / f"f2.{tag}.png").write_bytes(b"\x89PNG")
+    tifffile.imwrite(frame_folder / "f11.v2.tiff", mosaic())  # a dotted name is still a frame
+    src = FolderSource(frame_folder, fps=1000.0)
+    assert [p.name for p in src.files] == ["f1.tiff", "f2.tiff", "f10.tiff", "f11.v2.tiff"]
+    assert [src.read().meta["file"] for _ in range(4)] == ["f1.tiff", "f2.tiff", "f10.tiff", "f11.v2.tiff"]
+
+
 def test_folder_wrong_size_frame_is_skipped_and_stream_goes_on(frame_folder):
     tifffile.imwrite(frame_folder / "f3.tiff", mosaic(shape=(16, 20)))
     (frame_folder / "f4.tiff").write_bytes(b"not a tiff")

@@ -74,6 +74,15 @@ __all__ = [
 
 #: File types a folder source replays.
 FRAME_SUFFIXES: tuple[str, ...] = (".tif", ".tiff", ".png", ".raw", ".bin")
+#: The images pihim writes beside a frame (``pihim simulate``'s truth, ``pihim polar``'s products and previews):
+#: ``NAME.S0.tiff`` etc. are not frames, and a folder replay skips them.
+DERIVED_IMAGE_TAGS: frozenset[str] = frozenset({"S0", "DoLP", "AoP", "labels"})
+
+
+def _is_frame_file(p: Path) -> bool:
+    stem = p.stem
+    return (p.suffix.lower() in FRAME_SUFFIXES and not p.name.startswith(".")
+            and not ("." in stem and stem.rsplit(".", 1)[1] in DERIVED_IMAGE_TAGS) and p.is_file())
 
 
 class FrameError(Exception):
@@ -198,8 +207,9 @@ class FolderSource:
     ----------
     folder : path
         Folder with ``.tif``/``.tiff``, ``.png``, ``.raw``/``.bin`` frames
-        (hidden files and pihim's temporaries are skipped), replayed in
-        natural name order.
+        (hidden files and pihim's temporaries are skipped, and so are the
+        images pihim writes beside frames, ``NAME.S0/.DoLP/.AoP/.labels.*``),
+        replayed in natural name order.
     fps : float
         Frames per second.
     loop : bool
@@ -231,8 +241,7 @@ class FolderSource:
             raise PihimInputError(f"--source {folder}: not a folder (give a folder of frames, 'synthetic' or "
                                   f"'genicam[:SERIAL]')")
         try:
-            files = [p for p in self.folder.iterdir()
-                     if p.suffix.lower() in FRAME_SUFFIXES and not p.name.startswith(".") and p.is_file()]
+            files = [p for p in self.folder.iterdir() if _is_frame_file(p)]
         except OSError as exc:
             raise PihimInputError(f"--source {folder}: cannot list the folder ({exc.strerror or exc})") from None
         if not files:
