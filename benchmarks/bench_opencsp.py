@@ -20,7 +20,9 @@ launch to return in 26 passes (the figure the issue quotes; OpenCSP was not
 re-run here, and its mission is not known at other hours).
 
 Targets, at every hour: distance <= 5,363 m, planned coverage >= 0.9 and
->= 95 % of the imaged HUAs' facets showing a heliostat's back.
+>= 95 % of the imaged HUAs' facets showing a heliostat's back -- on the
+surveyed layout only (OpenCSP's mission flies it); on the embedded field the
+rows are printed without a verdict.
 
 Each plan is timed once (wall and CPU time, ``time.process_time``), with the
 load average of the machine; the planner is deterministic.
@@ -93,6 +95,11 @@ def plan_hour(field: Any, hour: int, **kwargs: Any) -> dict[str, Any]:
     }
 
 
+def field_is_surveyed(source: str) -> bool:
+    """Whether :func:`bench_plan.nsttf_field` found the surveyed layout (the targets are for it alone)."""
+    return source.startswith("NSTTF survey")
+
+
 def run_benchmark(hours: Sequence[int] = HOURS, configs: Sequence[str] = tuple(CONFIGS)) -> dict[str, Any]:
     """Every hour, every configuration."""
     field, source = nsttf_field()
@@ -101,7 +108,7 @@ def run_benchmark(hours: Sequence[int] = HOURS, configs: Sequence[str] = tuple(C
     rows = {name: [plan_hour(field, h, **CONFIGS[name]) for h in hours] for name in configs}
     mine = rows.get("pihim", [])
     targets = []
-    if mine:
+    if mine and field_is_surveyed(source):  # OpenCSP's mission flies the surveyed layout: no verdict on another
         targets = [
             harness.target("pihim distance, every hour", max(r["distance_m"] for r in mine), OPENCSP["distance_m"],
                            "m"),
@@ -139,6 +146,9 @@ def markdown_report(report: dict[str, Any]) -> str:
         lines.append("")
     if report["targets"]:
         lines += harness.target_table(report["targets"], spec=".3f", unit_spec={"m": ",.0f"})
+    elif not field_is_surveyed(s["source"]):
+        lines.append("No verdict: OpenCSP's mission flies the surveyed NSTTF layout, which this run lacks "
+                     "(../shared/data/nsttf); the embedded field's rows are for reference.")
     return "\n".join(lines)
 
 
