@@ -194,7 +194,8 @@ class CampaignStore:
         Open the file read-only (SQLite ``mode=ro``): nothing is ever written
         to it, a missing, empty (0-byte) or empty-SQLite file is refused
         instead of becoming a store, and an older schema is migrated in a
-        copy in memory, never in the file. Writing methods then fail.
+        private temporary copy (SQLite's temporary database: on disk,
+        deleted when the store closes), never in the file. Writing methods then fail.
     """
 
     def __init__(self, path: str | os.PathLike[str], *, create: bool = True, readonly: bool = False) -> None:
@@ -252,8 +253,9 @@ class CampaignStore:
             if version == 0:
                 raise PihimInputError(f"{self.path}: an empty SQLite database, not a campaign store "
                                       "(pihim campaign run makes one)")
-            # an older store read without touching it: migrate a copy in memory
-            mem = sqlite3.connect(":memory:", isolation_level=None)
+            # an older store read without touching it: migrate a copy in SQLite's private temporary database
+            # (the empty name: on disk in the temporary directory, deleted on close; RAM only for its page cache)
+            mem = sqlite3.connect("", isolation_level=None)
             self.db.backup(mem)
             self.db.close()
             self.db = mem
@@ -622,7 +624,7 @@ def open_store(path: str | os.PathLike[str], *, create: bool = True, readonly: b
 
     ``readonly=True`` (``pihim campaign report`` and ``export``) never writes
     the file: a missing, empty or empty-SQLite file is refused and an older
-    schema is migrated in memory (:class:`CampaignStore`).
+    schema is migrated in a temporary copy (:class:`CampaignStore`).
 
     Raises
     ------
