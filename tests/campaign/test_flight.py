@@ -248,3 +248,63 @@ def test_cli_resumes_a_killed_run_and_says_so(plan_json, tmp_path, capsys, rende
     capsys.readouterr()
     assert main(argv) == 0 and renders == []
     assert "wrote 2 frames (64x54, 2 reused from an earlier run)" in " ".join(capsys.readouterr().err.split())
+
+
+def test_killed_rerun_over_a_complete_flight_leaves_it_incomplete(plan_json, tmp_path, fresh_flight) -> None:
+    import shutil
+
+    ref, _, _ = fresh_flight
+    out = tmp_path / "f"
+    shutil.copytree(ref, out)
+
+    class Killed(BaseException):
+        pass
+
+    def kill(done, total):
+        if done == 1:
+            raise Killed
+    with pytest.raises(Killed):  # another seed over the finished seed-5 flight, killed after one frame
+        simulate_flight(plan_json, out, progress=kill, **{**RESUME, "seed": 6})
+    # the directory no longer says it is complete, and holds no stale log of the old run
+    assert not (out / "flight.json").exists() and not (out / "frames.csv").exists()
+    assert not (out / "flight.ulg").exists() and not (out / "truth" / "flight.json").exists()
+    assert not (out / ".simulate-flight.lock").exists()
+
+
+def test_rerun_reuses_frames_whatever_the_plan_path_spelling(plan_json, tmp_path, fresh_flight, renders,
+                                                           monkeypatch) -> None:
+    import shutil
+
+    ref, _, _ = fresh_flight
+    out = tmp_path / "f"
+    shutil.copytree(ref, out)
+    monkeypatch.chdir(plan_json.parent)
+    s = simulate_flight(plan_json.name, out, **RESUME)  # relative, not the absolute path of the first run
+    assert renders == [] and _summary_counts(s) == (3, 0, 3)
+
+
+def test_rerun_with_another_log_kind_and_unrelated_files(plan_json, tmp_path, fresh_flight, renders) -> None:
+    import shutil
+
+    ref, _, _ = fresh_flight
+    out = tmp_path / "f"
+    shutil.copytree(ref, out)
+    for name in ("frames/42.tiff", "frames/0000007.tiff", "truth/notes.json"):
+        (out / name).write_bytes(b"mine")
+    s = simulate_flight(plan_json, out, **{**RESUME, "log": "csv"})
+    assert renders == [] and s["log"] == "frames.csv"
+    assert not (out / "flight.ulg").exists()  # the ulog of the first run is gone with it
+    for name in ("frames/42.tiff", "frames/0000007.tiff", "truth/notes.json"):  # not frame names it writes
+        assert (out / name).read_bytes() == b"mine"
+
+
+def test_one_run_per_directory_at_a_time(plan_json, tmp_path) -> None:
+    import fcntl
+
+    out = tmp_path / "f"
+    out.mkdir()
+    with open(out / ".simulate-flight.lock", "a+b") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)  # as a run in progress holds it
+        with pytest.raises(PihimInputError, match="another simulate-flight is writing this directory"):
+            simulate_flight(plan_json, out, **RESUME)
+    assert not (out / "frames" / "000000.tiff").exists()

@@ -38,12 +38,14 @@ reuses it) and ``truth/flight.json`` (true poses, the field's true canting).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
 import math
 import os
-from collections.abc import Mapping, Sequence
+import re
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -331,6 +333,33 @@ def _inputs_sha256(inputs: Mapping[str, Any]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+_FRAME_ID = re.compile(r"[0-9]{6}")
+
+
+def _request_record(request: Any) -> dict[str, Any]:
+    """A pose request as digest input: its type and fields, the plan by its content (digested apart), not its path."""
+    fields = dataclasses.asdict(request)
+    fields.pop("plan_path", None)
+    return {"type": type(request).__name__, **fields}
+
+
+@contextlib.contextmanager
+def _flight_directory_lock(out: Path) -> Iterator[None]:
+    """Hold an exclusive lock on ``out`` (``out/.simulate-flight.lock``) while a run writes it; one line if held."""
+    import fcntl
+
+    path = out / ".simulate-flight.lock"
+    with open(path, "a+b") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise PihimInputError(f"{out}: another simulate-flight is writing this directory") from None
+        try:
+            yield
+        finally:
+            path.unlink(missing_ok=True)  # before the lock is released, so no later run finds a stale file
+
+
 def _reusable_frame(tiff: Path, truth: Path, inputs_sha256: str) -> dict[str, Any] | None:
     """The frame's ``FRAME.json`` document if it records ``inputs_sha256`` and the TIFF's digest, else None."""
     try:
@@ -406,7 +435,13 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     digest; its truth is read back from the JSON. Anything else (another
     seed, size, sigma or plan, a missing or corrupt file) is rendered again.
     Frames beyond this run's count left by an earlier, longer run are
-    removed, so the directory is byte for byte the one a fresh run writes.
+    removed, and ``flight.json``, ``frames.csv``, the logs and
+    ``truth/flight.json`` are removed first and written anew last, so the
+    directory is byte for byte the one a fresh run writes, and a killed rerun
+    leaves no ``flight.json``. One run writes a directory at a time (a lock
+    file; a second run raises :class:`PihimInputError`). Code changes are not
+    in the digest (the package version is): after changing the renderer,
+    simulate into a new directory.
     """
     import pandas as pd
     import tifffile
@@ -469,150 +504,154 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     out = Path(out_dir)
     (out / "frames").mkdir(parents=True, exist_ok=True)
     (out / "truth").mkdir(parents=True, exist_ok=True)
-    clean_stale_temporaries_tree(out, depth=1)  # what a killed run was writing
-    t_start = start.timestamp()
-    rng = np.random.default_rng(np.random.SeedSequence([seed, 14]))
-    gps_offset = rng.standard_normal(3) * gps_sigma_m
-    records: list[FrameRecord] = []
-    truth_frames: list[dict[str, Any]] = []
-    canting: dict[str, list[dict[str, Any]]] = {}
-    sensor_log: dict[str, Any] | None = None
-    common = {"pihim": __version__, "plan_sha256": _sha256_file(plan), "site": site.as_dict(), "aim_point_m": aim,
-              "camera": camera.to_dict(), "seed": seed, "canting_sigma_mrad": canting_sigma_mrad,
-              "field_source": field_source, "field_sha256": _field_sha256(field)}
-    rendered = 0
-    for k, (t, pose, request) in enumerate(shots):
-        when = start + pd.Timedelta(seconds=t)
-        fid = f"{k:06d}"
-        rel, truth_path = f"frames/{fid}.tiff", out / "truth" / f"{fid}.json"
-        inputs = _inputs_sha256({**common, "time": when.isoformat(), "pose": pose.to_dict(),
-                                 "request": {"type": type(request).__name__, **dataclasses.asdict(request)}})
-        doc = _reusable_frame(out / rel, truth_path, inputs)
-        if doc is None:
-            sim = simulate_frame(field, when.isoformat(), site=site, aim_point=aim, camera=camera,
-                                 pose_request=request, canting_sigma_mrad=canting_sigma_mrad, seed=seed,
-                                 field_source=field_source)
-            raw = np.ascontiguousarray(sim.raw, dtype=np.uint16)
-            write_atomic(out / rel, lambda p, raw=raw: tifffile.imwrite(p, raw))
-            doc = sim.document()
-            doc["truth"]["simulation"].update(inputs_sha256=inputs, raw_sha256=_sha256_file(out / rel))
-            write_json_atomic(truth_path, doc)
-            rendered += 1
-        flog, ftruth = doc["log"], doc["truth"]
-        sensor_log = {"model": flog["sensor"]["model"], "layout": flog["sensor"]["layout"]}
-        for h in ftruth["heliostats"]:
-            canting.setdefault(h["name"], h["facets"])
-        truth_frames.append({"frame_id": fid, "time_utc": format_utc(t_start + t), "hua": flog["hua"],
-                             "target": flog["target"], "pose": ftruth["pose"]})
-        records.append(FrameRecord(fid, rel, t_start + t))
-        if progress is not None:
-            progress(k + 1, len(shots))
+    with _flight_directory_lock(out):
+        # a rerun first withdraws what said the directory was complete: killed, it leaves no flight.json
+        for name in ("flight.json", "frames.csv", "flight.ulg", "flight.bin", "truth/flight.json"):
+            (out / name).unlink(missing_ok=True)
+        clean_stale_temporaries_tree(out, depth=1)  # what a killed run was writing
+        t_start = start.timestamp()
+        rng = np.random.default_rng(np.random.SeedSequence([seed, 14]))
+        gps_offset = rng.standard_normal(3) * gps_sigma_m
+        records: list[FrameRecord] = []
+        truth_frames: list[dict[str, Any]] = []
+        canting: dict[str, list[dict[str, Any]]] = {}
+        sensor_log: dict[str, Any] | None = None
+        common = {"pihim": __version__, "plan_sha256": _sha256_file(plan), "site": site.as_dict(), "aim_point_m": aim,
+                  "camera": camera.to_dict(), "seed": seed, "canting_sigma_mrad": canting_sigma_mrad,
+                  "field_source": field_source, "field_sha256": _field_sha256(field)}
+        rendered = 0
+        for k, (t, pose, request) in enumerate(shots):
+            when = start + pd.Timedelta(seconds=t)
+            fid = f"{k:06d}"
+            rel, truth_path = f"frames/{fid}.tiff", out / "truth" / f"{fid}.json"
+            inputs = _inputs_sha256({**common, "time": when.isoformat(), "pose": pose.to_dict(),
+                                     "request": _request_record(request)})
+            doc = _reusable_frame(out / rel, truth_path, inputs)
+            if doc is None:
+                sim = simulate_frame(field, when.isoformat(), site=site, aim_point=aim, camera=camera,
+                                     pose_request=request, canting_sigma_mrad=canting_sigma_mrad, seed=seed,
+                                     field_source=field_source)
+                raw = np.ascontiguousarray(sim.raw, dtype=np.uint16)
+                write_atomic(out / rel, lambda p, raw=raw: tifffile.imwrite(p, raw))
+                doc = sim.document()
+                doc["truth"]["simulation"].update(inputs_sha256=inputs, raw_sha256=_sha256_file(out / rel))
+                write_json_atomic(truth_path, doc)
+                rendered += 1
+            flog, ftruth = doc["log"], doc["truth"]
+            sensor_log = {"model": flog["sensor"]["model"], "layout": flog["sensor"]["layout"]}
+            for h in ftruth["heliostats"]:
+                canting.setdefault(h["name"], h["facets"])
+            truth_frames.append({"frame_id": fid, "time_utc": format_utc(t_start + t), "hua": flog["hua"],
+                                 "target": flog["target"], "pose": ftruth["pose"]})
+            records.append(FrameRecord(fid, rel, t_start + t))
+            if progress is not None:
+                progress(k + 1, len(shots))
 
-    for p in [*(out / "frames").glob("*.tiff"), *(out / "truth").glob("*.json")]:
-        if p.stem.isascii() and p.stem.isdigit() and int(p.stem) >= len(shots):
-            p.unlink()  # left by an earlier, longer run
+        for p in [*(out / "frames").glob("*.tiff"), *(out / "truth").glob("*.json")]:
+            if _FRAME_ID.fullmatch(p.stem) and int(p.stem) >= len(shots):
+                p.unlink()  # left by an earlier, longer run (only names this function writes: NNNNNN)
 
-    # the logged track: true vehicle (yaw = heading, airframe pitch, no roll) + errors
-    t_lo, t_hi = shots[0][0] - 2.0, shots[-1][0] + 2.0
+        # the logged track: true vehicle (yaw = heading, airframe pitch, no roll) + errors
+        t_lo, t_hi = shots[0][0] - 2.0, shots[-1][0] + 2.0
 
-    def truth_at(t: float) -> tuple[np.ndarray, float, float]:
-        i = int(np.clip(np.searchsorted(arrive, t) - 1, 0, len(wps) - 2))
-        a, b = wps[i], wps[i + 1]
-        span = arrive[i + 1] - arrive[i]
-        s = float(np.clip((t - arrive[i]) / span, 0.0, 1.0)) if span > 0 else 0.0
-        pos = np.array([a[c] + s * (b[c] - a[c]) for c in ("x_m", "y_m", "z_m")])
-        return pos, _interp_heading(a["heading_deg"], b["heading_deg"], s), \
-            a["gimbal_pitch_deg"] + s * (b["gimbal_pitch_deg"] - a["gimbal_pitch_deg"])
-    # frames use their own true pose; the track carries the same pose at the frame times exactly
-    shot_t = np.array([s[0] for s in shots])
-    tp = np.union1d(np.arange(t_lo, t_hi, 0.1), shot_t)
-    ta = np.union1d(np.arange(t_lo, t_hi, 0.02), shot_t)
+        def truth_at(t: float) -> tuple[np.ndarray, float, float]:
+            i = int(np.clip(np.searchsorted(arrive, t) - 1, 0, len(wps) - 2))
+            a, b = wps[i], wps[i + 1]
+            span = arrive[i + 1] - arrive[i]
+            s = float(np.clip((t - arrive[i]) / span, 0.0, 1.0)) if span > 0 else 0.0
+            pos = np.array([a[c] + s * (b[c] - a[c]) for c in ("x_m", "y_m", "z_m")])
+            return pos, _interp_heading(a["heading_deg"], b["heading_deg"], s), \
+                a["gimbal_pitch_deg"] + s * (b["gimbal_pitch_deg"] - a["gimbal_pitch_deg"])
+        # frames use their own true pose; the track carries the same pose at the frame times exactly
+        shot_t = np.array([s[0] for s in shots])
+        tp = np.union1d(np.arange(t_lo, t_hi, 0.1), shot_t)
+        ta = np.union1d(np.arange(t_lo, t_hi, 0.02), shot_t)
 
-    def state(t: float) -> tuple[np.ndarray, float, float]:
-        j = np.flatnonzero(np.abs(shot_t - t) < 1e-9)
-        if j.size:
-            pose = shots[int(j[0])][1]
-            return np.array(pose.position_m), pose.heading_deg, pose.pitch_deg
-        return truth_at(t)
+        def state(t: float) -> tuple[np.ndarray, float, float]:
+            j = np.flatnonzero(np.abs(shot_t - t) < 1e-9)
+            if j.size:
+                pose = shots[int(j[0])][1]
+                return np.array(pose.position_m), pose.heading_deg, pose.pitch_deg
+            return truth_at(t)
 
-    pos = np.array([state(t)[0] for t in tp]) + gps_offset
-    lat, lon, hgt = enu_to_geodetic(pos, site)
-    hp = np.array([state(t)[1:] for t in ta])
-    yaw = hp[:, 0] + rng.standard_normal(len(ta)) * attitude_sigma_deg
-    vpitch = np.full(len(ta), vehicle_pitch_deg) + rng.standard_normal(len(ta)) * attitude_sigma_deg
-    vroll = rng.standard_normal(len(ta)) * attitude_sigma_deg
-    gpitch = hp[:, 1]
-    settings: dict[str, Any] = {
-        "schema": FLIGHT_SCHEMA_ID,
-        "name": out.name,
-        "plan": str(plan),
-        "flight": flight,
-        "frames": "frames.csv",
-        "site": site.as_dict(),
-        "aim_point_m": aim,
-        "heliostats": [],
-        "camera": camera.to_dict(),
-        "sensor": sensor_log,
-        "max_gap_s": DEFAULT_MAX_GAP_S,
-    }
-    files = {"flight.json": out / "flight.json", "frames.csv": out / "frames.csv"}
-    ta_abs, tp_abs = ta + t_start, tp + t_start
-    if log == "csv":
-        # body-mounted gimbal: camera = Rz(yaw) Ry(vehicle pitch) Rx(roll) * Ry(gimbal pitch); with the airframe's
-        # roll 0 the gimbal pitch making the true camera pitch is the difference (noise stays in the log)
-        idx = {round(float(t), 9): k for k, t in enumerate(ta)}
-        out_records = []
-        for r, t in zip(records, shot_t, strict=True):
-            k = idx[round(float(t), 9)]
-            j = int(np.searchsorted(tp, t))
-            out_records.append(FrameRecord(r.frame_id, r.file, r.time_utc_s, {
-                "latitude_deg": float(lat[j]), "longitude_deg": float(lon[j]), "height_m": float(hgt[j]),
-                "roll_deg": float(vroll[k]), "pitch_deg": float(vpitch[k]), "yaw_deg": float(yaw[k] % 360.0),
-                "gimbal_pitch_deg": float(gpitch[k] - vehicle_pitch_deg), "gimbal_yaw_deg": 0.0}))
-        records = out_records
-        settings.update({"log": "frames.csv", "gimbal_mode": "body"})
-    else:
-        from scipy.spatial.transform import Rotation
-
-        position = {"t": tp_abs, "latitude_deg": lat, "longitude_deg": lon, "height_m": hgt}
-        zeros = np.zeros(len(ta))
-        if log == "ulog":
-            att = Rotation.from_euler("ZYX", np.stack([yaw, vpitch, vroll], axis=1), degrees=True).as_quat()
-            gim = Rotation.from_euler("ZYX", np.stack([zeros, gpitch, zeros], axis=1), degrees=True).as_quat()
-            files["flight.ulg"] = write_ulog(out / "flight.ulg", boot_utc_s=t_start + t_lo - 30.0, position=position,
-                                             attitude={"t": ta_abs, "quat": att}, gimbal={"t": ta_abs, "quat": gim})
-            settings["log"] = "flight.ulg"
+        pos = np.array([state(t)[0] for t in tp]) + gps_offset
+        lat, lon, hgt = enu_to_geodetic(pos, site)
+        hp = np.array([state(t)[1:] for t in ta])
+        yaw = hp[:, 0] + rng.standard_normal(len(ta)) * attitude_sigma_deg
+        vpitch = np.full(len(ta), vehicle_pitch_deg) + rng.standard_normal(len(ta)) * attitude_sigma_deg
+        vroll = rng.standard_normal(len(ta)) * attitude_sigma_deg
+        gpitch = hp[:, 1]
+        settings: dict[str, Any] = {
+            "schema": FLIGHT_SCHEMA_ID,
+            "name": out.name,
+            "plan": str(plan),
+            "flight": flight,
+            "frames": "frames.csv",
+            "site": site.as_dict(),
+            "aim_point_m": aim,
+            "heliostats": [],
+            "camera": camera.to_dict(),
+            "sensor": sensor_log,
+            "max_gap_s": DEFAULT_MAX_GAP_S,
+        }
+        files = {"flight.json": out / "flight.json", "frames.csv": out / "frames.csv"}
+        ta_abs, tp_abs = ta + t_start, tp + t_start
+        if log == "csv":
+            # body-mounted gimbal: camera = Rz(yaw) Ry(vehicle pitch) Rx(roll) * Ry(gimbal pitch); with the airframe's
+            # roll 0 the gimbal pitch making the true camera pitch is the difference (noise stays in the log)
+            idx = {round(float(t), 9): k for k, t in enumerate(ta)}
+            out_records = []
+            for r, t in zip(records, shot_t, strict=True):
+                k = idx[round(float(t), 9)]
+                j = int(np.searchsorted(tp, t))
+                out_records.append(FrameRecord(r.frame_id, r.file, r.time_utc_s, {
+                    "latitude_deg": float(lat[j]), "longitude_deg": float(lon[j]), "height_m": float(hgt[j]),
+                    "roll_deg": float(vroll[k]), "pitch_deg": float(vpitch[k]), "yaw_deg": float(yaw[k] % 360.0),
+                    "gimbal_pitch_deg": float(gpitch[k] - vehicle_pitch_deg), "gimbal_yaw_deg": 0.0}))
+            records = out_records
+            settings.update({"log": "frames.csv", "gimbal_mode": "body"})
         else:
-            und = -22.0
-            files["flight.bin"] = write_dataflash(
-                out / "flight.bin", boot_utc_s=t_start + t_lo - 30.0, position=position, geoid_undulation_m=und,
-                attitude={"t": ta_abs, "yaw_deg": yaw, "pitch_deg": vpitch, "roll_deg": vroll},
-                gimbal={"t": ta_abs, "yaw_deg": zeros, "pitch_deg": gpitch, "roll_deg": zeros})
-            settings.update({"log": "flight.bin", "geoid_undulation_m": und})
-    write_frames_csv(out / "frames.csv", records)
-    true_doc = {
-        "schema": "pihim.flight-truth/1",
-        "canting_sigma_mrad": canting_sigma_mrad,
-        "gps_offset_m": [float(v) for v in gps_offset],
-        "attitude_sigma_deg": attitude_sigma_deg,
-        "seed": seed,
-        "frames": truth_frames,
-        "heliostats": [{"name": n, "facets": f} for n, f in sorted(canting.items())],
-    }
-    files["truth/flight.json"] = write_json_atomic(out / "truth" / "flight.json", true_doc)
-    write_json_atomic(out / "flight.json", settings)  # last: a directory with flight.json is complete
-    return {
-        "schema": "pihim.simulate-flight/1",
-        "out": str(out),
-        "flight": flight,
-        "frames": len(records),
-        "rendered": rendered,
-        "reused": len(records) - rendered,
-        "width_px": camera.width_px,
-        "height_px": camera.height_px,
-        "log": settings["log"],
-        "first_time_utc": format_utc(records[0].time_utc_s),
-        "last_time_utc": format_utc(records[-1].time_utc_s),
-        "files": {k: str(v) for k, v in files.items()},
-    }
+            from scipy.spatial.transform import Rotation
+
+            position = {"t": tp_abs, "latitude_deg": lat, "longitude_deg": lon, "height_m": hgt}
+            zeros = np.zeros(len(ta))
+            if log == "ulog":
+                att = Rotation.from_euler("ZYX", np.stack([yaw, vpitch, vroll], axis=1), degrees=True).as_quat()
+                gim = Rotation.from_euler("ZYX", np.stack([zeros, gpitch, zeros], axis=1), degrees=True).as_quat()
+                files["flight.ulg"] = write_ulog(out / "flight.ulg", boot_utc_s=t_start + t_lo - 30.0, position=position,
+                                                 attitude={"t": ta_abs, "quat": att}, gimbal={"t": ta_abs, "quat": gim})
+                settings["log"] = "flight.ulg"
+            else:
+                und = -22.0
+                files["flight.bin"] = write_dataflash(
+                    out / "flight.bin", boot_utc_s=t_start + t_lo - 30.0, position=position, geoid_undulation_m=und,
+                    attitude={"t": ta_abs, "yaw_deg": yaw, "pitch_deg": vpitch, "roll_deg": vroll},
+                    gimbal={"t": ta_abs, "yaw_deg": zeros, "pitch_deg": gpitch, "roll_deg": zeros})
+                settings.update({"log": "flight.bin", "geoid_undulation_m": und})
+        write_frames_csv(out / "frames.csv", records)
+        true_doc = {
+            "schema": "pihim.flight-truth/1",
+            "canting_sigma_mrad": canting_sigma_mrad,
+            "gps_offset_m": [float(v) for v in gps_offset],
+            "attitude_sigma_deg": attitude_sigma_deg,
+            "seed": seed,
+            "frames": truth_frames,
+            "heliostats": [{"name": n, "facets": f} for n, f in sorted(canting.items())],
+        }
+        files["truth/flight.json"] = write_json_atomic(out / "truth" / "flight.json", true_doc)
+        write_json_atomic(out / "flight.json", settings)  # last: a directory with flight.json is complete
+        return {
+            "schema": "pihim.simulate-flight/1",
+            "out": str(out),
+            "flight": flight,
+            "frames": len(records),
+            "rendered": rendered,
+            "reused": len(records) - rendered,
+            "width_px": camera.width_px,
+            "height_px": camera.height_px,
+            "log": settings["log"],
+            "first_time_utc": format_utc(records[0].time_utc_s),
+            "last_time_utc": format_utc(records[-1].time_utc_s),
+            "files": {k: str(v) for k, v in files.items()},
+        }
 
