@@ -42,10 +42,19 @@ def test_folder_replay_skips_the_images_pihim_writes_beside_frames(frame_folder)
     for tag in ("S0", "DoLP", "AoP", "labels"):
         tifffile.imwrite(frame_folder / f"f1.{tag}.tiff", np.zeros((32, 40), np.float32))
         (frame_folder / f"f2.{tag}.png").write_bytes(b"\x89PNG")
+    for name in ("f1.polar.png", "f1.edges.S0.png", "f1.edges.combined.png", "f1.gradient.combined.tiff"):
+        (frame_folder / name).write_bytes(b"\x89PNG")  # pihim polar's figure, pihim edges' maps
     tifffile.imwrite(frame_folder / "f11.v2.tiff", mosaic())  # a dotted name is still a frame
     src = FolderSource(frame_folder, fps=1000.0)
     assert [p.name for p in src.files] == ["f1.tiff", "f2.tiff", "f10.tiff", "f11.v2.tiff"]
     assert [src.read().meta["file"] for _ in range(4)] == ["f1.tiff", "f2.tiff", "f10.tiff", "f11.v2.tiff"]
+
+
+def test_folder_of_derived_images_only_says_so(tmp_path):
+    tifffile.imwrite(tmp_path / "run.S0.tiff", np.zeros((32, 40), np.float32))
+    (tmp_path / "run.polar.png").write_bytes(b"\x89PNG")
+    with pytest.raises(PihimInputError, match="no frames in the folder .*; 2 images pihim writes beside frames"):
+        FolderSource(tmp_path)
 
 
 def test_folder_wrong_size_frame_is_skipped_and_stream_goes_on(frame_folder):

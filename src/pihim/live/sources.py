@@ -74,15 +74,18 @@ __all__ = [
 
 #: File types a folder source replays.
 FRAME_SUFFIXES: tuple[str, ...] = (".tif", ".tiff", ".png", ".raw", ".bin")
-#: The images pihim writes beside a frame (``pihim simulate``'s truth, ``pihim polar``'s products and previews):
-#: ``NAME.S0.tiff`` etc. are not frames, and a folder replay skips them.
-DERIVED_IMAGE_TAGS: frozenset[str] = frozenset({"S0", "DoLP", "AoP", "labels"})
+#: The images pihim writes beside a frame, named ``NAME.TAG[.MORE].ext``: ``pihim simulate``'s truth
+#: (``S0 DoLP AoP labels``), ``pihim polar``'s products, previews and figure (``polar``), ``pihim edges``' maps
+#: (``edges gradient``). They are not frames, and a folder replay skips them.
+DERIVED_IMAGE_TAGS: frozenset[str] = frozenset({"S0", "DoLP", "AoP", "labels", "polar", "edges", "gradient"})
 
 
-def _is_frame_file(p: Path) -> bool:
-    stem = p.stem
-    return (p.suffix.lower() in FRAME_SUFFIXES and not p.name.startswith(".")
-            and not ("." in stem and stem.rsplit(".", 1)[1] in DERIVED_IMAGE_TAGS) and p.is_file())
+def _is_derived_image(p: Path) -> bool:
+    return any(tag in DERIVED_IMAGE_TAGS for tag in p.stem.split(".")[1:])
+
+
+def _is_frame_candidate(p: Path) -> bool:
+    return p.suffix.lower() in FRAME_SUFFIXES and not p.name.startswith(".") and p.is_file()
 
 
 class FrameError(Exception):
@@ -208,7 +211,7 @@ class FolderSource:
     folder : path
         Folder with ``.tif``/``.tiff``, ``.png``, ``.raw``/``.bin`` frames
         (hidden files and pihim's temporaries are skipped, and so are the
-        images pihim writes beside frames, ``NAME.S0/.DoLP/.AoP/.labels.*``),
+        images pihim writes beside frames, see :data:`DERIVED_IMAGE_TAGS`),
         replayed in natural name order.
     fps : float
         Frames per second.
@@ -241,12 +244,16 @@ class FolderSource:
             raise PihimInputError(f"--source {folder}: not a folder (give a folder of frames, 'synthetic' or "
                                   f"'genicam[:SERIAL]')")
         try:
-            files = [p for p in self.folder.iterdir() if _is_frame_file(p)]
+            candidates = [p for p in self.folder.iterdir() if _is_frame_candidate(p)]
         except OSError as exc:
             raise PihimInputError(f"--source {folder}: cannot list the folder ({exc.strerror or exc})") from None
+        files = [p for p in candidates if not _is_derived_image(p)]
         if not files:
+            derived = len(candidates)
             raise PihimInputError(f"--source {folder}: no frames in the folder (expected "
-                                  f"{', '.join(FRAME_SUFFIXES)} files)")
+                                  f"{', '.join(FRAME_SUFFIXES)} files" + (
+                                      f"; {derived} images pihim writes beside frames, NAME.S0.tiff, "
+                                      f"NAME.polar.png and the like, were skipped" if derived else "") + ")")
         self.files = sorted(files, key=_natural_key)
         self._read_kw = {"width": width, "height": height, "pixel_format": pixel_format}
         self._read = read_frame
