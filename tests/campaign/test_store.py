@@ -206,13 +206,15 @@ def test_read_only_store_reads_and_never_writes(tmp_path) -> None:
     assert hashlib.sha256(path.read_bytes()).hexdigest() == before
 
 
-def test_read_only_version_1_store_is_migrated_in_memory_only(tmp_path) -> None:
+def test_read_only_version_1_store_is_migrated_in_a_temporary_copy_only(tmp_path) -> None:
     path = tmp_path / "old.sqlite"
     _version_1_store(path)
     before = hashlib.sha256(path.read_bytes()).hexdigest()
     with open_store(path, readonly=True) as s:
         assert s.schema_version == 2 and [r["name"] for r in s.campaigns()] == ["old"]
         assert s.table_rows("runs")[1] == []  # the schema 2 table, in the copy
+        with pytest.raises(sqlite3.OperationalError, match="readonly"):  # the copy takes no writes either
+            s.ensure_campaign("new", field_source="x", field_key="k", heliostats=[("A", 0.0, 0.0, 0.0)])
     assert hashlib.sha256(path.read_bytes()).hexdigest() == before
     with sqlite3.connect(path) as db:
         assert db.execute("PRAGMA user_version").fetchone()[0] == 1

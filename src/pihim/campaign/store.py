@@ -254,11 +254,17 @@ class CampaignStore:
                 raise PihimInputError(f"{self.path}: an empty SQLite database, not a campaign store "
                                       "(pihim campaign run makes one)")
             # an older store read without touching it: migrate a copy in SQLite's private temporary database
-            # (the empty name: on disk in the temporary directory, deleted on close; RAM only for its page cache)
-            mem = sqlite3.connect("", isolation_level=None)
-            self.db.backup(mem)
+            # (the empty name: on disk in the temporary directory, deleted on close; RAM only for its page cache),
+            # or in memory where the temporary directory cannot hold it
+            try:
+                copy = sqlite3.connect("", isolation_level=None)
+                self.db.backup(copy)
+            except sqlite3.OperationalError:
+                copy.close()
+                copy = sqlite3.connect(":memory:", isolation_level=None)
+                self.db.backup(copy)
             self.db.close()
-            self.db = mem
+            self.db = copy
             self.db.row_factory = sqlite3.Row
             self.db.execute("PRAGMA foreign_keys = ON")
         self.db.execute("BEGIN IMMEDIATE")
@@ -274,6 +280,8 @@ class CampaignStore:
         except BaseException:
             self.db.execute("ROLLBACK")
             raise
+        if self.readonly:
+            self.db.execute("PRAGMA query_only = ON")  # the migrated copy is read-only too: writes fail
 
     @property
     def schema_version(self) -> int:
