@@ -506,3 +506,14 @@ def test_build_plan_names_each_stage_as_it_starts(monkeypatch):
     build_plan(field_, parse_time(TIME), NSTTF, heliostats=rows, facet_captures=False, facet_report=False,
                progress=seen.append)
     assert seen == ["passes", "scoring", "route and flights"]
+
+
+def test_build_plan_refuses_a_bad_fleet_hours_before_planning(monkeypatch) -> None:
+    import pihim.planning.pipeline as pipeline
+
+    def no_planning(*args, **kwargs):
+        raise AssertionError("planning started")
+    monkeypatch.setattr(pipeline, "track_at", no_planning)
+    for bad in (25.0, 0.0, float("nan")):
+        with pytest.raises(PihimInputError, match="working_hours"):
+            build_plan(nsttf_like_field(), parse_time(TIME), NSTTF, fleet_hours=bad)

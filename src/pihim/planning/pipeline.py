@@ -137,6 +137,7 @@ def build_plan(
         raise PihimInputError(f"the aim point must be above the ground (z > 0), got z = {aim[2]:g}")
     if heliostats is not None:
         field.indices(heliostats)  # unknown names -> one-line error
+    fleet_estimate(0, 1.0, fleet_hours)  # a bad fleet_hours refused now, not after the planning
     camera = camera or CameraModel()
     endurance = endurance or DroneEndurance()
     scoring = scoring or ScoringModel()
