@@ -98,3 +98,19 @@ def test_a_calibration_never_replaces_its_input(tmp_path, capsys, command):
     opts = ["--angles", "0:180:45"] if command == "calibrate-polarizer" else ["--grey", "--board", "9x6", "--square", "25"]
     _refused(capsys, [command, *map(str, inputs), *opts, "--out", str(victim)], "writing it would replace that input")
     assert [p.read_bytes() for p in inputs] == [b"an input image %d" % k for k in range(4)]
+
+
+@pytest.mark.parametrize("argv", [
+    ["sky", "--sun-zenith", "30", "--sun-azimuth", "235", "--out", ""],
+    ["plan", "--time", TIME, "--out="],
+    ["calibrate-polarizer", "f.tiff", "--angles", "0,45,90,135", "-o", ""],
+    ["canting", "f.tiff", "--meta", "", "--out", "x"],
+    ["live", "--source", "synthetic", "--record", ""],
+])
+def test_empty_path_option_is_refused(tmp_path, capsys, monkeypatch, argv):
+    # typer turns '' into Path('.'): '--out ""' wrote into the working directory
+    monkeypatch.chdir(tmp_path)
+    option = next(a.partition("=")[0] for k, a in enumerate(argv)
+                  if a.endswith("=") or (k + 1 < len(argv) and argv[k + 1] == ""))
+    _refused(capsys, argv, f"{option} needs a path, got an empty string")
+    assert list(tmp_path.iterdir()) == []

@@ -227,8 +227,28 @@ def main(argv: list[str] | None = None) -> int:
             return 128 + signal.SIGTERM
 
 
+#: Options that take a path: typer turns an empty value into ``Path(".")``, so an empty one is refused up front.
+_PATH_OPTIONS = frozenset({"--out", "-o", "--meta", "--facets", "--store", "--record", "--captures", "--cti", "--plan",
+                           "--calibration"})
+
+
+def _empty_path_option(args: list[str]) -> str | None:
+    """The first path option given an empty value (``--out ''`` or ``--out=``), if any."""
+    for k, arg in enumerate(args):
+        if arg == "--":
+            return None
+        name, eq, value = arg.partition("=")
+        if name in _PATH_OPTIONS and ((eq and not value) or (not eq and k + 1 < len(args) and args[k + 1] == "")):
+            return name
+    return None
+
+
 def _run(argv: list[str] | None) -> int:
     """The command, with every failure turned into one stderr line and an exit status."""
+    empty = _empty_path_option(sys.argv[1:] if argv is None else list(argv))
+    if empty is not None:
+        print(f"pihim: error: {empty} needs a path, got an empty string", file=sys.stderr)
+        return 2
     try:
         rv = _command().main(args=argv, standalone_mode=False, prog_name="pihim")
     except PihimInputError as exc:
