@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import os
 import sqlite3
 
 import pytest
@@ -204,6 +205,25 @@ def test_read_only_store_reads_and_never_writes(tmp_path) -> None:
         with pytest.raises(sqlite3.OperationalError, match="readonly"):
             s.ensure_campaign("june", field_source="test", field_key="k1", heliostats=HELIOSTATS)
     assert hashlib.sha256(path.read_bytes()).hexdigest() == before
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write anywhere: the folder would not be read-only")
+def test_read_only_store_in_a_folder_the_user_cannot_write(tmp_path) -> None:
+    # a WAL-mode store closed cleanly (no -wal file) in a read-only folder: SQLite's mode=ro cannot make the
+    # -shm file ("unable to open database file"); the store is read as immutable instead
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    path = folder / "c.sqlite"
+    with open_store(path) as s:
+        _fill(s)
+    assert not path.with_name("c.sqlite-wal").exists()
+    folder.chmod(0o555)
+    try:
+        with open_store(path, readonly=True) as s:
+            assert [r["name"] for r in s.campaigns()] == ["may"]
+            assert len(s.table_rows("frames")[1]) == 4
+    finally:
+        folder.chmod(0o755)
 
 
 def test_read_only_version_1_store_is_migrated_in_a_temporary_copy_only(tmp_path) -> None:

@@ -217,8 +217,7 @@ class CampaignStore:
             raise PihimInputError(f"{self.path}: an empty file, not a campaign store (pihim campaign run makes one)")
         try:
             if readonly:
-                self.db = sqlite3.connect(self.path.resolve().as_uri() + "?mode=ro", uri=True, timeout=30.0,
-                                          isolation_level=None)
+                self.db = self._connect_readonly()
             else:
                 self.db = sqlite3.connect(str(self.path), timeout=30.0, isolation_level=None)
             self.db.row_factory = sqlite3.Row
@@ -233,6 +232,26 @@ class CampaignStore:
             self.db.execute("PRAGMA synchronous = NORMAL")
         except sqlite3.DatabaseError as exc:
             raise PihimInputError(f"{self.path}: not a usable campaign store ({exc})") from None
+
+    def _connect_readonly(self) -> sqlite3.Connection:
+        """SQLite ``mode=ro``; a WAL-mode store in a folder this user cannot write opened as ``immutable``.
+
+        ``mode=ro`` on a store in WAL mode needs its ``-shm`` file, which SQLite cannot create in a read-only
+        folder (a read-only medium, another user's campaign): "unable to open database file". Where no ``-wal``
+        file holds changes, the store file alone is the whole store and is read as immutable; with one, the
+        error stands (the changes are in the ``-wal`` file, which only a writable folder lets SQLite read).
+        """
+        uri = self.path.resolve().as_uri()
+        db = sqlite3.connect(uri + "?mode=ro", uri=True, timeout=30.0, isolation_level=None)
+        try:
+            db.execute("PRAGMA user_version").fetchone()
+            return db
+        except sqlite3.OperationalError:
+            db.close()
+            wal = self.path.with_name(self.path.name + "-wal")
+            if wal.exists() and wal.stat().st_size > 0:
+                raise
+        return sqlite3.connect(uri + "?mode=ro&immutable=1", uri=True, timeout=30.0, isolation_level=None)
 
     # ------------------------------------------------------------------ schema
 
