@@ -246,11 +246,11 @@ class CampaignStore:
         try:
             db.execute("PRAGMA user_version").fetchone()
             return db
-        except sqlite3.OperationalError:
+        except sqlite3.OperationalError as exc:
             db.close()
             wal = self.path.with_name(self.path.name + "-wal")
-            if wal.exists() and wal.stat().st_size > 0:
-                raise
+            if "unable to open" not in str(exc) or (wal.exists() and wal.stat().st_size > 0):
+                raise  # a lock held by a writer, or changes in the -wal file: never read the file as immutable
         return sqlite3.connect(uri + "?mode=ro&immutable=1", uri=True, timeout=30.0, isolation_level=None)
 
     # ------------------------------------------------------------------ schema
