@@ -223,6 +223,20 @@ def test_shorter_rerun_reuses_its_frames_and_removes_the_rest(plan_json, tmp_pat
     assert [r.frame_id for r in read_frames_csv(out / "frames.csv")] == ["000000", "000001"]
 
 
+def test_frames_of_other_code_are_rendered_again(plan_json, tmp_path, fresh_flight, renders, monkeypatch) -> None:
+    import shutil
+
+    import pihim.campaign.flight as flight_mod
+
+    ref, _, _ = fresh_flight
+    out = tmp_path / "f"
+    shutil.copytree(ref, out)
+    assert flight_mod._code_sha256() == flight_mod._code_sha256()  # deterministic
+    monkeypatch.setattr(flight_mod, "_code_sha256", lambda: "0" * 64)  # as after an edit of pihim's sources
+    s = simulate_flight(plan_json, out, **RESUME)
+    assert len(renders) == 3 and _summary_counts(s) == (3, 3, 0)
+
+
 @pytest.mark.parametrize("change", [{"seed": 6}, {"size": (64, 56)}, {"canting_sigma_mrad": 1.0}])
 def test_other_inputs_render_every_frame_again(plan_json, tmp_path, fresh_flight, renders, change) -> None:
     import shutil

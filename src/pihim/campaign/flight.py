@@ -315,6 +315,15 @@ def _sha256_file(path: Path) -> str:
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
+def _code_sha256() -> str:
+    """A digest of pihim's own Python sources (relative paths and bytes): any code change makes frames stale."""
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
 def _field_sha256(field: Any) -> str:
     """A digest of a field's geometry: names, tower, pivots and heliostat spec (facet centroids included)."""
     h = hashlib.sha256()
@@ -429,7 +438,7 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     A rerun resumes: frame ``k`` is not rendered again when ``frames/k.tiff``
     and ``truth/k.json`` are there, the JSON's ``truth.simulation`` records
     the same ``inputs_sha256`` (a sha256 of the canonical JSON of what the
-    frame is rendered from: pihim version, plan file digest, frame time, pose
+    frame is rendered from: pihim version and sources, plan file digest, frame time, pose
     request and true pose, site, aim point, camera, seed, canting sigma,
     field source and geometry digest) and ``raw_sha256`` is the TIFF's
     digest; its truth is read back from the JSON. Anything else (another
@@ -439,9 +448,9 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     ``truth/flight.json`` are removed first and written anew last, so the
     directory is byte for byte the one a fresh run writes, and a killed rerun
     leaves no ``flight.json``. One run writes a directory at a time (a lock
-    file; a second run raises :class:`PihimInputError`). Code changes are not
-    in the digest (the package version is): after changing the renderer,
-    simulate into a new directory.
+    file; a second run raises :class:`PihimInputError`). The digest also
+    covers pihim's own sources, so frames rendered by other code are
+    rendered again.
     """
     import pandas as pd
     import tifffile
@@ -516,7 +525,7 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
         truth_frames: list[dict[str, Any]] = []
         canting: dict[str, list[dict[str, Any]]] = {}
         sensor_log: dict[str, Any] | None = None
-        common = {"pihim": __version__, "plan_sha256": _sha256_file(plan), "site": site.as_dict(), "aim_point_m": aim,
+        common = {"pihim": __version__, "code_sha256": _code_sha256(), "plan_sha256": _sha256_file(plan), "site": site.as_dict(), "aim_point_m": aim,
                   "camera": camera.to_dict(), "seed": seed, "canting_sigma_mrad": canting_sigma_mrad,
                   "field_source": field_source, "field_sha256": _field_sha256(field)}
         rendered = 0
