@@ -242,6 +242,7 @@ def estimate_frame(field: Any, sim: Any, refine_kw: dict[str, Any], orientation_
             facets.append({"id": f.id, "true_az_mrad": float(a), "true_el_mrad": float(e),
                            "err_az_mrad": float(f.az_mrad - a), "err_el_mrad": float(f.el_mrad - e),
                            "grid_err_az_mrad": float(f.grid_az_mrad - a), "grid_err_el_mrad": float(f.grid_el_mrad - e),
+                           "sigma_az_mrad": _num(f.az_sigma_mrad), "sigma_el_mrad": _num(f.el_sigma_mrad),
                            "rms_px": float(f.rms_px), "points": int(f.points),
                            "support": None if f.support is None else float(f.support)})
     out["facets"] = facets
@@ -297,6 +298,29 @@ def edge_success_per_type(sim: Any, pim: Any, hua: str) -> dict[str, bool]:
             for name in ("S0", "DoLP", "AoP")}
 
 
+def _num(v: Any) -> float | None:
+    return None if v is None or not np.isfinite(v) else float(v)
+
+
+def uncertainty_calibration(facets: list[dict[str, Any]]) -> dict[str, Any]:
+    """How well the reported standard errors (``az_sigma_mrad``, ``el_sigma_mrad``) describe the errors.
+
+    Per axis: the RMS of ``z = error / sigma`` (1 if the errors were normal with those sigmas), the
+    shares with ``|z| <= 1, 2, 3`` (68, 95, 99.7 % for normal errors), the median sigma beside the RMS
+    error, and how many facets had no sigma.
+    """
+    out: dict[str, Any] = {}
+    for ax in ("az", "el"):
+        pairs = [(x[f"err_{ax}_mrad"], x.get(f"sigma_{ax}_mrad")) for x in facets]
+        z = [e / s for e, s in pairs if s is not None and s > 0]
+        sig = [s for _, s in pairs if s is not None and s > 0]
+        out[ax] = {"facets": len(z), "without_sigma": len(pairs) - len(z), "rms_z": _rms(z),
+                   "share_within": {str(k): float(np.mean(np.abs(z) <= k)) if z else None for k in (1, 2, 3)},
+                   "median_sigma_mrad": float(np.median(sig)) if sig else None,
+                   "rms_error_mrad": _rms([e for e, _ in pairs])}
+    return out
+
+
 def _rms(v: Sequence[float]) -> float | None:
     return float(np.sqrt(np.mean(np.square(v)))) if len(v) else None
 
@@ -332,6 +356,7 @@ def summarise(frames: list[dict[str, Any]]) -> dict[str, Any]:
         "drive_correction_rms_mrad": [_rms([f["drive_correction_err_mrad"][i] for f in good
                                             if len(f["facets"]) >= 2 and f.get("drive_correction_err_mrad")])
                                       for i in (0, 1)],
+        "uncertainty": uncertainty_calibration(facets),
         "max_abs_err_mrad": max((max(abs(x["err_az_mrad"]), abs(x["err_el_mrad"])) for x in facets), default=None),
         "facets_used_per_good_frame": [f["used"] for f in good],
         "skip_reasons_good_frames": dict(reasons.most_common()),
@@ -477,6 +502,10 @@ def markdown_report(rep: dict[str, Any]) -> str:
             (f"| canting RMS elevation, mrad | {_f(s['rms_el_mrad'], '.3f')} | {_f(s['grid_rms_el_mrad'], '.3f')} "
              f"| target <= {TARGET_MRAD:g}; paper grid step {GRID_STEP_MRAD:.2f}; H-FACET {HFACET_MRAD:.2f} |"),
             f"| largest facet error (either axis), mrad | {_f(s['max_abs_err_mrad'], '.3f')} | | |",
+            *(f"| reported standard error against the error, {ax}: median sigma, mrad; RMS of error / sigma; share "
+              f"within 2 sigma | {_f(u['median_sigma_mrad'], '.4f')}; {_f(u['rms_z'], '.1f')}; "
+              f"{_f(u['share_within']['2'], '.0%')} | | calibrated: 1.0; 95 % |"
+              for ax, u in (s.get("uncertainty") or {}).items()),
             (f"| HUA drive-angle correction against its truth (drive-angle error + mean true canting of the facets "
              f"used), RMS az / el, mrad | {_f((s.get('drive_correction_rms_mrad') or [None, None])[0], '.3f')} / "
              f"{_f((s.get('drive_correction_rms_mrad') or [None, None])[1], '.3f')} | | |"),

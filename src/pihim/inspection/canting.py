@@ -109,6 +109,7 @@ from pihim.inspection.reflection import (
     target_outline_segments,
 )
 from pihim.inspection.pose import match_edge_points, sample_segments
+from pihim.inspection.uncertainty import jackknife_covariance, relative_variance
 from pihim.render.scene import StructureSizes
 
 __all__ = ["CantingResult", "FacetCanting", "OrientationSearch", "PAPER_GRID_STEP_MRAD", "PAPER_ORIENTATION_SPAN_MRAD",
@@ -126,6 +127,11 @@ class FacetCanting:
     ``az_mrad`` / ``el_mrad`` are relative to the best-fit heliostat
     orientation; ``grid_*`` are the paper's grid-search values (same
     reference); ``used`` is False with ``reason`` for a skipped facet.
+    ``az_sigma_mrad`` / ``el_sigma_mrad`` are standard errors of the relative
+    deviations from a delete-one-segment jackknife of the fit
+    (:mod:`pihim.inspection.uncertainty`; NaN with fewer than three target
+    outline segments matched); they leave out camera pose errors and a fit
+    locked onto other features.
     """
 
     id: int
@@ -275,24 +281,29 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
         raise error
     best = fits[0]
     for fit in fits[1:]:  # a farther peak must be clearly better supported to displace a nearer one
-        if fit[6] > best[6] + support_margin:
+        if fit[4] > best[4] + support_margin:
             best = fit
     # two distinct fits that the image supports alike: the facet shows too little of the target to tell them
     # apart (a part of its back whose edges repeat), and either would be a made-up number
     for fit in fits:
         apart = math.hypot(fit[0] - best[0], fit[1] - best[1])
-        if fit is not best and apart > step_mrad and fit[6] >= best[6] - support_margin:
-            raise PihimInputError(f"two fits {apart:.1f} mrad apart explain it alike (support {best[6]:.2f} and "
-                                  f"{fit[6]:.2f})")
-    az, el, sa, se, n, rms, support, found = best
+        if fit is not best and apart > step_mrad and fit[4] >= best[4] - support_margin:
+            raise PihimInputError(f"two fits {apart:.1f} mrad apart explain it alike (support {best[4]:.2f} and "
+                                  f"{fit[4]:.2f})")
+    az, el, n, rms, support, found, segments = best
     if matches is not None:
         matches.append(found)
+    sa, se = _jackknife_sigma(model, found, segments, az, el, gates_px[-1])
     return grid_az, grid_el, az, el, sa, se, n, rms, support
 
 
 def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gates_px: tuple[float, ...],
                   az: float, el: float) -> tuple:
-    """Point-to-line ICP with LM from ``(az, el)``: (az, el, sigma az, sigma el, points, rms, support, matches)."""
+    """Point-to-line ICP with LM from ``(az, el)``: (az, el, points, rms, support, matches, segments).
+
+    ``matches`` are the last round's matched model points (world), image points and line normals;
+    ``segments`` the target outline segment of each.
+    """
     from pihim.inspection import _kernels
 
     aux = np.concatenate([np.ravel(model.rot), model.centre, model.normal_local])
@@ -313,24 +324,43 @@ def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gat
                                 q=np.column_stack([q, nq]), aux=aux, idx=inv, gate=gate)
         x, r, jac = _kernels.solve(prob, np.array([az, el]), len(q), _X_SCALE, 200, True, 0.5)
         az, el = float(x[0]), float(x[1])
-    assert jac is not None
     found = (model.pts[idx], q, nq)
     inl = np.abs(r) < 1.0
     n = int(inl.sum())
-    jac = jac[inl] if n > 2 else jac
-    s2 = float(np.sum(r[inl] ** 2) / max(n - 2, 1))
-    try:
-        cov = s2 * np.linalg.inv(jac.T @ jac)
-        sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    except np.linalg.LinAlgError:
-        sig = np.array([np.nan, np.nan])
     rms = float(np.sqrt(np.mean(r[inl] ** 2))) if n else float("nan")
     # support: the share of the reflected outline (inside the facet) that lies on an image edge
     uv, _ = model.project(az, el)
     ins = mask.inside(uv)
     qq = np.rint(uv[ins]).astype(int)
     support = float(np.mean(dt[qq[:, 1], qq[:, 0]] <= 1.5)) if ins.any() else 0.0
-    return az, el, float(sig[0]), float(sig[1]), n, rms, support, found
+    return az, el, n, rms, support, found, model.seg[idx]
+
+
+def _jackknife_sigma(model: _FacetModel, found: tuple, segments: NDArray, az: float, el: float,
+                     gate: float) -> tuple[float, float]:
+    """Standard uncertainty (az, el) of a facet fit, mrad: the delete-one-segment jackknife.
+
+    The fit's last round (matches ``found`` on the target outline's ``segments``) is solved again
+    from ``(az, el)`` without each segment's points in turn (:func:`pihim.inspection.uncertainty.
+    jackknife_covariance`); NaN with fewer than three segments matched.
+    """
+    from pihim.inspection import _kernels
+
+    pts_w, q, nq = found
+    aux = np.concatenate([np.ravel(model.rot), model.centre, model.normal_local])
+    obs = np.column_stack([q, nq])
+    x_fit = np.array([az, el])
+
+    def refit(keep: NDArray[np.bool_]) -> NDArray:
+        prob = _kernels.problem(_kernels.REFLECTION, model._r, model._c, pts_w[keep], model._cam, q=obs[keep],
+                                aux=aux, idx=np.arange(int(keep.sum())), gate=gate)
+        return _kernels.solve(prob, x_fit, int(keep.sum()), _X_SCALE, 200, True, 0.5)[0]
+
+    cov, _ = jackknife_covariance(segments, refit)
+    if cov is None:
+        return float("nan"), float("nan")
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return float(sd[0]), float(sd[1])
 
 
 def estimate_canting(
@@ -602,14 +632,18 @@ def estimate_canting(
     else:
         o_az = o_el = g_az = g_el = None
         notes.append("no facet could be measured")
+    # each fit's standard uncertainty, taken (as the deviations are) relative to the mean over the used facets
+    sd = np.sqrt(relative_variance(np.array([[r[4] ** 2, r[5] ** 2] for _, r in used]).reshape(-1, 2)))
     out = []
+    k = 0
     for fid, r in raw:
         if isinstance(r, str):
             out.append(FacetCanting(fid, False, r))
         else:
-            ga, ge, a, e, sa, se, n, rms, support = r
-            out.append(FacetCanting(fid, True, None, a - o_az, e - o_el, sa, se, ga - g_az, ge - g_el, n, rms,
-                                    support))
+            ga, ge, a, e, _, _, n, rms, support = r
+            out.append(FacetCanting(fid, True, None, a - o_az, e - o_el, float(sd[k, 0]), float(sd[k, 1]), ga - g_az,
+                                    ge - g_el, n, rms, support))
+            k += 1
     corr = None
     if o_az is not None:
         rest = drive_correction(field_pose, h, o_az, o_el)

@@ -166,7 +166,9 @@ def canting_figure(record: dict[str, Any]) -> Any:
         orient += f"; drive correction az {dc['az']:+.3f}, el {dc['el']:+.3f} deg"
     fig.suptitle(f"Facet canting of {record['hua']} (target {record['target']}, {record['frames']} frame(s), "
                  f"{record['facets_used']} facets used), seen from the front\n"
-                 f"relative to the best-fit heliostat orientation ({orient}); value ± standard error",
+                 f"relative to the best-fit heliostat orientation ({orient})\n"
+                 "value ± standard error (a jackknife over the reflected outline's segments; a fit locked onto "
+                 "other features is off by more: docs/cli.md)",
                  fontsize=11)
     items = [f"{code}: {text}" for _, code, text in REASON_CODES]
     half = (len(items) + 1) // 2

@@ -114,9 +114,9 @@ def _pair_section(p: dict[str, Any]) -> str:
                         + f"<td class=l>{e(f['reason'] or '')}</td></tr>")
     parts.append("<p class=note>Facet deviations in mrad, heliostat frame, relative to the mean over the facets "
                  "used (estimate) and to the true mean over the same facets (truth); grid = the paper's "
-                 "0.1&deg; (1.75 mrad) grid search on the same frame; &sigma; is the fit's formal standard error "
-                 "(residuals and Jacobian), which leaves out model and lock-on errors and so understates the "
-                 "real error.</p>")
+                 "0.1&deg; (1.75 mrad) grid search on the same frame; &sigma; is the fit's standard error (a "
+                 "jackknife over the target outline's segments matched in the facet), which leaves out a fit "
+                 "locked onto other features and camera pose errors.</p>")
     parts.append("<table>" + "".join(rows) + "</table>")
     pf = p["pose_fit"]
     parts.append(
