@@ -1,4 +1,4 @@
-"""Standard uncertainties of the inspection's estimates (camera pose, facet canting).
+"""Standard errors of the inspection's estimates (facet canting): a jackknife over correlated groups.
 
 The facet fits of :mod:`pihim.inspection.canting` match hundreds to
 thousands of edge points, sampled a centimetre apart along a few outline
