@@ -119,7 +119,8 @@ def aop_to_rgb(
     if d is not None:
         d = d.astype(np.float64)
         valid &= np.isfinite(d)
-        v = np.clip(np.nan_to_num(d) / dolp_max, 0.0, 1.0)
+        with np.errstate(over="ignore"):  # an infinite DoLP (nan_to_num: 1.8e308) saturates, as compiled
+            v = np.clip(np.nan_to_num(d) / dolp_max, 0.0, 1.0)
     rgb = _hsv_to_rgb(np.nan_to_num(a) / 180.0, v)
     rgb[~valid] = 0.0
     return _into(out, _to_u8(rgb))
@@ -153,7 +154,8 @@ def dolp_to_rgb(
         lut_colour(np.ascontiguousarray(d), float(vmax), lut, rgb)
         return rgb
     d = d.astype(np.float64)
-    idx = np.clip(np.rint(np.nan_to_num(d) / vmax * 255.0), 0, 255).astype(np.intp)
+    with np.errstate(over="ignore"):  # an infinite DoLP saturates, as compiled
+        idx = np.clip(np.rint(np.nan_to_num(d) / vmax * 255.0), 0, 255).astype(np.intp)
     rgb = lut[idx].copy()
     rgb[~np.isfinite(d)] = 0
     return _into(out, rgb)
