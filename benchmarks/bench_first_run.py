@@ -3,17 +3,21 @@
 pihim's compiled kernels are cached on disk (``cache=True``), so only the
 first run on a machine (or after an upgrade) compiles them; that first run
 is the README's first command. This benchmark runs ``pihim demo`` as a whole
-process twice with ``NUMBA_CACHE_DIR`` set to a new empty folder: **cold**
-(every kernel compiled) and **warm** (every kernel loaded from that cache,
-what every later run pays: the anchor, in the same run). The difference is
-the first run's cost. Inside each process a listener on numba's compile
-events (``numba.core.event``, ``numba:compile``) adds up the outermost
-compilations, so the table also gives the compile time itself, the number
-of kernels compiled and the five that take longest.
+process three times: **cold** with ``--no-compile-helper`` (every kernel
+compiled in the demo's process, ``NUMBA_CACHE_DIR`` a new empty folder),
+**cold** as the README runs it (a helper process compiles the renderer's and
+the solver's kernels while the demo plans, :mod:`pihim._warmup`; another new
+empty folder) and **warm** (every kernel loaded from the second folder, what
+every later run pays: the anchor, in the same run). The differences are the
+first run's cost without and with the helper. Inside the demo's process a
+listener on numba's compile events (``numba.core.event``, ``numba:compile``)
+adds up the outermost compilations, so the table also gives the compile time
+in that process (not the helper's), the number of kernels it compiled and the
+five that took longest.
 
-Each row gives wall and CPU time (the process and its threads, from
-``getrusage(RUSAGE_CHILDREN)``), the share of the CPUs other processes used
-meanwhile and the load average.
+Each row gives wall and CPU time (the process, its threads and the helper it
+reaped, from ``getrusage(RUSAGE_CHILDREN)``), the share of the CPUs other
+processes used meanwhile and the load average.
 
 Run ``python benchmarks/run.py --only bench_first_run`` or this file
 directly (``--quick``: ``--size 612x512 --pairs 1``; the kernels compiled
@@ -37,6 +41,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _harness as harness
 
 RESULTS_PATH = Path(__file__).resolve().parent / "results" / "first_run.json"
+#: The runs, in the order they are made: the first run without and with the compiling helper, then a later run.
+ROWS = (("cold_no_helper", "cold, `--no-compile-helper`"), ("cold", "cold (default: compiling helper)"),
+        ("warm", "warm"))
 COUNTS = harness.Counts(repeat=1, warmup=0, quick_repeat=1, quick_warmup=0, cap_quick=True)
 
 #: Runs ``pihim demo`` in this process with a listener on numba's compile events; writes a JSON record.
@@ -97,33 +104,43 @@ def markdown_report(report: dict[str, Any]) -> str:
              f"{report['machine']['cpu_count']} CPUs.", "",
              "| run | wall s | CPU s | compiled kernels | compile s | other CPU % | load |",
              "|---|--:|--:|--:|--:|--:|--:|"]
-    for name in ("cold", "warm"):
+    for name, label in ROWS:
+        if name not in report:
+            continue
         r = report[name]
         other = "-" if r["other_cpu"] is None else f"{100 * r['other_cpu']:.0f}"
-        lines.append(f"| {name} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | {r['kernels']} | {r['compile_s']:.1f} | "
+        lines.append(f"| {label} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | {r['kernels']} | {r['compile_s']:.1f} | "
                      f"{other} | {r['load_avg']:.1f} |")
-    c, w = report["cold"], report["warm"]
-    lines += ["", f"First run's cost: {c['wall_s'] - w['wall_s']:.1f} s wall, {c['cpu_s'] - w['cpu_s']:.1f} s CPU "
-              f"({c['wall_s'] / w['wall_s']:.2f}x the warm run). Slowest compilations: "
-              + ", ".join(f"{name.rsplit('.', 1)[-1]} {t:.1f} s" for t, name in c["slowest"]) + "."]
+    w = report["warm"]
+    for name in ("cold", "cold_no_helper"):
+        if name in report:
+            c = report[name]
+            lines += ["", f"First run's cost, {dict(ROWS)[name]}: {c['wall_s'] - w['wall_s']:.1f} s wall, "
+                      f"{c['cpu_s'] - w['cpu_s']:.1f} s CPU ({c['wall_s'] / w['wall_s']:.2f}x the warm run). "
+                      "Slowest compilations in the demo's process: "
+                      + ", ".join(f"{n.rsplit('.', 1)[-1]} {t:.1f} s" for t, n in c["slowest"]) + "."]
     return "\n".join(lines)
 
 
 def main(argv: Sequence[str] | None = None, *, quick: bool = False, json_path: Path | None = RESULTS_PATH,
          echo: bool = True) -> dict[str, Any]:
-    """Run cold then warm, print the table and write the JSON report."""
+    """Run cold without and with the helper, then warm; print the table and write the JSON report."""
     import numba
 
     o = harness.options(argv, description="pihim demo's first run (numba compiling) against a later one.",
                         counts=COUNTS, repeat=None, warmup=None, quick=quick, json_path=json_path)
     demo_args = ["--size", "612x512", "--pairs", "1"] if o.quick else []
+    report: dict[str, Any] = {"benchmark": "bench_first_run",
+                              "settings": {"demo_args": demo_args, "numba": numba.__version__}}
     with tempfile.TemporaryDirectory(prefix="pihim-first-run-") as tmp:
+        bare = Path(tmp) / "numba-cache-no-helper"
+        bare.mkdir()
+        report["cold_no_helper"] = run_demo(bare, Path(tmp) / "cold-no-helper", [*demo_args, "--no-compile-helper"])
         cache = Path(tmp) / "numba-cache"
         cache.mkdir()
-        cold = run_demo(cache, Path(tmp) / "cold", demo_args)
-        warm = run_demo(cache, Path(tmp) / "warm", demo_args)
-    report = {"benchmark": "bench_first_run", "settings": {"demo_args": demo_args, "numba": numba.__version__},
-              "cold": cold, "warm": warm, "machine": harness.machine_info()}
+        report["cold"] = run_demo(cache, Path(tmp) / "cold", demo_args)
+        report["warm"] = run_demo(cache, Path(tmp) / "warm", demo_args)
+    report["machine"] = harness.machine_info()
     if echo:
         print(markdown_report(report))
     harness.write_json(report, o.json_path)

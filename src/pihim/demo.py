@@ -273,7 +273,7 @@ def _previews(pair_dir: Path, pim: Any, maps: Any) -> dict[str, str]:
 
 def run_demo(out: Path, settings: DemoSettings = DemoSettings(), *,
              steps: Callable[[list[Any], str], Iterator[Any]] | None = None,
-             edge_k_px: float = 3.0) -> dict[str, Any]:
+             edge_k_px: float = 3.0, compile_helper: bool = True) -> dict[str, Any]:
     """Plan, render, inspect, score and report on the embedded NSTTF-like field.
 
     Parameters
@@ -287,12 +287,29 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), *,
         progress bar); default plain iteration.
     edge_k_px : float
         Tolerance of the edge-success judgement, pixels.
+    compile_helper : bool
+        On a first run (numba's cache empty), compile the renderer's and the
+        solver's kernels in a helper process while this one plans
+        (:mod:`pihim._warmup`); ended when the demo returns.
 
     Returns
     -------
     dict
         The ``demo.json`` document (``schema`` ``pihim.demo/2``).
     """
+    from pihim import _warmup
+
+    helper = _warmup.start() if compile_helper else None
+    try:
+        return _run_demo(Path(out), settings, steps, edge_k_px, helper)
+    finally:
+        _warmup.stop(helper)
+
+
+def _run_demo(out: Path, settings: DemoSettings, steps: Callable[[list[Any], str], Iterator[Any]] | None,
+              edge_k_px: float, helper: Any) -> dict[str, Any]:
+    """:func:`run_demo`'s work; ``helper`` the compiling process (:func:`pihim._warmup.start`) or None."""
+    from pihim import _warmup
     from pihim._atomic import write_group, write_json_atomic
     from pihim.camera import CameraModel, polar_image
     from pihim.field import nsttf_like_field
@@ -306,7 +323,6 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), *,
     from pihim.sky.sun import NSTTF, parse_time
 
     iterate = steps or (lambda items, _desc: iter(items))
-    out = Path(out)
     t0 = _time.perf_counter()
     field = nsttf_like_field()
     plan = build_plan(field, parse_time(settings.time), NSTTF)  # the field's tower target, as pihim plan
@@ -324,6 +340,7 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), *,
     refused: list[str] = []
     queue = list(candidates)
     for k in iterate(list(range(settings.pairs)), "render, inspect, score"):
+        _warmup.wait_for(helper, "render")
         while queue:
             hua, target = queue.pop(0)
             t1 = _time.perf_counter()
@@ -346,6 +363,15 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), *,
         rec: dict[str, Any] = {"hua": hua, "target": target, "seed": settings.seed + k,
                                "dir": str(pair_dir.relative_to(out)),
                                "frame": str(frame_paths["raw"].relative_to(out))}
+        # the polar images and edge maps of the previews first: they compile the polar kernel while a helper
+        # (first run) compiles the solver the inspection needs
+        t2 = _time.perf_counter()
+        sensor = sensor_settings(sim.log)
+        pim = polar_image(sim.raw, layout=sensor["layout"], analyser=sensor["analyser"], demosaic="full",
+                          dark_level=sensor["dark_level"], bit_depth=sensor["bit_depth"])
+        maps = edge_maps(pim.s0, pim.dolp, pim.aop_deg, "canny")
+        maps_s = _time.perf_counter() - t2
+        _warmup.wait_for(helper, "solve")
         try:
             result = inspect_frame(sim.raw, sim.log, field, hua=hua, target=target)
         except PihimInputError as exc:
@@ -359,13 +385,9 @@ def run_demo(out: Path, settings: DemoSettings = DemoSettings(), *,
         text = json.dumps(crec, indent=2, allow_nan=False) + "\n"
         write_group({canting_paths["canting.json"]: lambda p, t=text: p.write_text(t, encoding="utf-8"),
                      canting_paths["canting.png"]: canting_png_writer(crec)})
-        t2 = _time.perf_counter()
-        sensor = sensor_settings(sim.log)
-        pim = polar_image(sim.raw, layout=sensor["layout"], analyser=sensor["analyser"], demosaic="full",
-                          dark_level=sensor["dark_level"], bit_depth=sensor["bit_depth"])
-        maps = edge_maps(pim.s0, pim.dolp, pim.aop_deg, "canny")
+        t3 = _time.perf_counter()
         previews = _previews(pair_dir, pim, maps)
-        edges_s = _time.perf_counter() - t2
+        edges_s = maps_s + _time.perf_counter() - t3
         score = score_inspection(result, sim, field)
         score["edge_success"] = _edge_success(sim, maps, hua, edge_k_px)
         rec.update(previews=previews, canting="canting.png", canting_json="canting.json",

@@ -35,6 +35,9 @@ def demo(
     size: Annotated[str, typer.Option(help="Frame size WxH (even; a centre crop of the Triton's 2448x2048).")]
     = "2448x2048",
     json_out: Annotated[bool, typer.Option("--json", help="Print demo.json on stdout.")] = False,
+    compile_helper: Annotated[bool, typer.Option(
+        help="On a first run, compile the renderer's and the solver's kernels in a second process while planning.")]
+    = True,
 ) -> int:
     """Plan, render, inspect and score a polarimetric inspection; write DIR/report.html."""
     from pihim.demo import DEMO_TIME, DemoSettings, run_demo
@@ -50,7 +53,8 @@ def demo(
     make_out_dir(out)  # one line if it cannot be made; removes the temporaries killed runs left in DIR
     clean_stale_temporaries_tree(out, depth=2)  # ... and in DIR/plan, DIR/pairs/NN_HUA-TARGET
     stderr_console.print(f"[bold]pihim demo[/bold]: planning the NSTTF-like field at {DEMO_TIME} ...")
-    doc = run_demo(out, settings, steps=lambda items, desc: progress(items, desc, min_items=1))
+    doc = run_demo(out, settings, steps=lambda items, desc: progress(items, desc, min_items=1),
+                   compile_helper=compile_helper)
     sm, plan = doc["summary"], doc["plan"]
     from pihim.planning.scoring import images_text
 
