@@ -2,6 +2,7 @@
 waits for it only while it lives."""
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -42,7 +43,7 @@ def test_the_helper_compiles_the_specializations_the_demo_runs():
 def _fake_kernel(tmp_path, name):
     index = tmp_path / f"mod.{name}-10.py311.nbi"
     files = types.SimpleNamespace(_index_path=str(index))
-    kernel = types.SimpleNamespace(_cache=types.SimpleNamespace(_cache_file=files))
+    kernel = types.SimpleNamespace(_cache=types.SimpleNamespace(_cache_file=files, _cache_path=str(tmp_path)))
     return index, kernel
 
 
@@ -56,16 +57,28 @@ def test_cached_needs_the_index_and_a_data_file(tmp_path, monkeypatch):
     (tmp_path / "mod.k-10.py311.1.nbc").write_bytes(b"data")
     assert _warmup.cached("k")
     assert not _warmup.cached("plain")  # no cache attributes (numba changed, or JIT off): uncached
+    assert _warmup.writable("k") and not _warmup.writable("plain")
+    tmp_path.chmod(0o500)
+    try:
+        if os.access(tmp_path, os.W_OK):  # root writes anywhere
+            return
+        assert not _warmup.writable("k")
+    finally:
+        tmp_path.chmod(0o700)
 
 
-def test_no_helper_when_cached_or_jit_disabled(monkeypatch):
+def test_no_helper_when_cached_uncachable_or_jit_disabled(monkeypatch):
     from numba.core import config
 
     spawned = []
     monkeypatch.setattr(subprocess, "Popen", lambda *a, **k: spawned.append(a) or "proc")
+    monkeypatch.setattr(_warmup, "writable", lambda what: True)
     monkeypatch.setattr(_warmup, "cached", lambda what: True)
     assert _warmup.start() is None
     monkeypatch.setattr(_warmup, "cached", lambda what: False)
+    monkeypatch.setattr(_warmup, "writable", lambda what: what != "solve")
+    assert _warmup.start() is None  # a kernel numba cannot cache: the demo would wait for nothing
+    monkeypatch.setattr(_warmup, "writable", lambda what: True)
     monkeypatch.setattr(config, "DISABLE_JIT", True)
     assert _warmup.start() is None
     monkeypatch.setattr(config, "DISABLE_JIT", False)

@@ -14,21 +14,32 @@ for the helper's renderer and solver (:func:`wait_for`: the helper started on
 them earlier, so its rest is shorter than the demo's own compilation); any
 other kernel the demo reaches first it compiles itself, as without the
 helper. Nothing is started when the two slowest kernels are cached already
-(every later run) or numba's JIT is disabled.
+(every later run), when numba cannot write their cache, or when its JIT is
+disabled.
 """
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
-__all__ = ["KERNELS", "cached", "compile_kernels", "start", "stop", "wait_for"]
+__all__ = ["KERNELS", "cached", "compile_kernels", "start", "stop", "wait_for", "writable"]
 
 
 #: The kernels the demo waits for: the renderer's and the least-squares solver's (module, name).
 KERNELS = {"render": ("pihim.render.kernel", "_kernel"), "solve": ("pihim.inspection._kernels", "solve")}
+
+
+def _cache(what: str) -> Any:
+    """numba's on-disk cache of kernel ``what`` (a key of :data:`KERNELS`), or None without one."""
+    import importlib
+
+    module, name = KERNELS[what]
+    return getattr(getattr(importlib.import_module(module), name), "_cache", None)
 
 
 def cached(what: str) -> bool:
@@ -36,21 +47,28 @@ def cached(what: str) -> bool:
 
     numba writes the index before the data file, each whole (a temporary file renamed).
     """
-    import importlib
-
-    module, name = KERNELS[what]
     try:
-        index = Path(getattr(importlib.import_module(module), name)._cache._cache_file._index_path)
-    except AttributeError:  # numba's cache internals moved: take it for uncached
+        index = Path(_cache(what)._cache_file._index_path)
+    except AttributeError:  # no cache, or numba's cache internals moved: take it for uncached
         return False
     return index.is_file() and any(index.parent.glob(index.stem + ".*.nbc"))
+
+
+def writable(what: str) -> bool:
+    """Whether numba can write kernel ``what``'s cache (its folder, chosen by numba as writable, is)."""
+    try:
+        folder = _cache(what)._cache_path
+    except AttributeError:
+        return False
+    return os.path.isdir(folder) and os.access(folder, os.W_OK)
 
 
 def start() -> subprocess.Popen | None:
     """Spawn the helper (:func:`compile_kernels` in ``python -m pihim._warmup``), or None when not needed."""
     from numba.core import config
 
-    if config.DISABLE_JIT or all(cached(k) for k in KERNELS):
+    # a helper whose kernels cannot be cached would only make the demo wait for nothing
+    if config.DISABLE_JIT or all(cached(k) for k in KERNELS) or not all(writable(k) for k in KERNELS):
         return None
     try:
         return subprocess.Popen([sys.executable, "-m", "pihim._warmup"], stdin=subprocess.DEVNULL,
