@@ -8,7 +8,7 @@ import sys
 import time
 import types
 
-from pihim import _warmup
+from pihim import _resources, _warmup
 
 #: In a fresh process: the helper's calls, then the quick demo without a helper; the compiled kernels'
 #: signatures after each (numba's dispatchers list what was compiled or loaded in the process).
@@ -79,6 +79,9 @@ def test_no_helper_when_cached_uncachable_or_jit_disabled(monkeypatch):
     monkeypatch.setattr(_warmup, "writable", lambda what: what != "solve")
     assert _warmup.start() is None  # a kernel numba cannot cache: the demo would wait for nothing
     monkeypatch.setattr(_warmup, "writable", lambda what: True)
+    monkeypatch.setattr(_resources, "available_memory", lambda: _warmup.HELPER_BYTES - 1)
+    assert _warmup.start() is None  # no room for the helper
+    monkeypatch.setattr(_resources, "available_memory", lambda: None)
     monkeypatch.setattr(config, "DISABLE_JIT", True)
     assert _warmup.start() is None
     monkeypatch.setattr(config, "DISABLE_JIT", False)

@@ -14,8 +14,9 @@ for the helper's renderer and solver (:func:`wait_for`: the helper started on
 them earlier, so its rest is shorter than the demo's own compilation); any
 other kernel the demo reaches first it compiles itself, as without the
 helper. Nothing is started when the two slowest kernels are cached already
-(every later run), when numba cannot write their cache, or when its JIT is
-disabled.
+(every later run), when numba cannot write their cache, when its JIT is
+disabled, or when the memory available cannot hold the helper
+(:data:`HELPER_BYTES`; ``pihim demo`` asks for it beside the demo's own).
 """
 
 from __future__ import annotations
@@ -27,8 +28,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["KERNELS", "cached", "compile_kernels", "start", "stop", "wait_for", "writable"]
+__all__ = ["HELPER_BYTES", "KERNELS", "cached", "compile_kernels", "start", "stop", "wait_for", "writable"]
 
+
+#: Peak resident size of the helper with an empty cache: 558 MB measured (``/usr/bin/time -v python -m
+#: pihim._warmup``, 2026-11-26), with a 25 % margin.
+HELPER_BYTES = 700_000_000
 
 #: The kernels the demo waits for: the renderer's and the least-squares solver's (module, name).
 KERNELS = {"render": ("pihim.render.kernel", "_kernel"), "solve": ("pihim.inspection._kernels", "solve")}
@@ -67,8 +72,13 @@ def start() -> subprocess.Popen | None:
     """Spawn the helper (:func:`compile_kernels` in ``python -m pihim._warmup``), or None when not needed."""
     from numba.core import config
 
+    from pihim._resources import available_memory
+
     # a helper whose kernels cannot be cached would only make the demo wait for nothing
     if config.DISABLE_JIT or all(cached(k) for k in KERNELS) or not all(writable(k) for k in KERNELS):
+        return None
+    avail = available_memory()
+    if avail is not None and avail < HELPER_BYTES:
         return None
     try:
         return subprocess.Popen([sys.executable, "-m", "pihim._warmup"], stdin=subprocess.DEVNULL,

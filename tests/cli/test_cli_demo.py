@@ -92,3 +92,30 @@ def test_demo_out_is_a_file(tmp_path):
     f.write_text("x")
     rc, so, se = _run(["demo", "--out", str(f)])
     assert rc == 2 and "not a directory" in se
+
+
+@pytest.mark.parametrize("avail, flag, expected", [
+    (None, [], True),  # memory unknown: the helper runs
+    ("tight", [], False),  # room for the demo but not beside it for the helper
+    ("ample", [], True),
+    ("ample", ["--no-compile-helper"], False),
+])
+def test_demo_starts_the_compiling_helper_only_where_it_fits(tmp_path, monkeypatch, avail, flag, expected):
+    import pihim.cli.demo as cli_demo
+    import pihim.demo
+    from pihim._warmup import HELPER_BYTES
+    from pihim.errors import PihimInputError
+
+    need = 612 * 512 * cli_demo.DEMO_BYTES_PER_PIXEL + cli_demo.DEMO_FIXED_BYTES
+    value = {None: None, "tight": need + HELPER_BYTES - 1, "ample": need + HELPER_BYTES}[avail]
+    monkeypatch.setattr(cli_demo, "available_memory", lambda: value)
+    seen = []
+
+    def fake_run_demo(out, settings, **kw):
+        seen.append(kw["compile_helper"])
+        raise PihimInputError("stop here")
+
+    monkeypatch.setattr(pihim.demo, "run_demo", fake_run_demo)
+    rc, so, se = _run(["demo", "--out", str(tmp_path / "o"), "--size", "612x512", *flag])
+    assert rc == 2 and "stop here" in se
+    assert seen == [expected]

@@ -16,7 +16,7 @@ from typing import Annotated
 import typer
 
 from pihim._atomic import clean_stale_temporaries_tree
-from pihim._resources import require_memory
+from pihim._resources import available_memory, require_memory
 from pihim.cli._common import emit_json, make_out_dir, progress, stderr_console
 from pihim.errors import PihimInputError
 
@@ -48,7 +48,13 @@ def demo(
         raise PihimInputError(f"--size must look like 2448x2048, got {size!r}") from None
     if not all(64 <= v <= 2 * 2448 and v % 2 == 0 for v in (w, h)):
         raise PihimInputError(f"--size must be WxH with even sides in 64..4896, got {size}")
-    require_memory(w * h * DEMO_BYTES_PER_PIXEL + DEMO_FIXED_BYTES, f"pihim demo --size {w}x{h}")
+    need = w * h * DEMO_BYTES_PER_PIXEL + DEMO_FIXED_BYTES
+    require_memory(need, f"pihim demo --size {w}x{h}")
+    if compile_helper:  # the helper only where it fits beside the demo
+        from pihim._warmup import HELPER_BYTES
+
+        avail = available_memory()
+        compile_helper = avail is None or avail >= need + HELPER_BYTES
     settings = DemoSettings(time=DEMO_TIME, pairs=pairs, seed=seed, width_px=w, height_px=h)
     make_out_dir(out)  # one line if it cannot be made; removes the temporaries killed runs left in DIR
     clean_stale_temporaries_tree(out, depth=2)  # ... and in DIR/plan, DIR/pairs/NN_HUA-TARGET
