@@ -55,3 +55,35 @@ def test_facets_polarized_at_most_02_are_skipped_by_default(ufacet):
     in_view = [f for f in res.facets if f.reason != "facet not in view (or too small)"]
     assert len(in_view) >= 4
     assert all(not f.used and f.reason == "DoLP <= 0.2 on the reflection (paper sec. 4.1)" for f in in_view)
+
+
+def test_each_facet_gets_its_own_fits_uncertainty_relative_to_the_mean(ufacet, monkeypatch):
+    """The jackknife variances (stubbed here: a distinct value per facet, one unknown) reach their own facets,
+    taken relative to the mean over the used facets; an unknown one is reported as None (JSON null)."""
+    import json
+
+    from pihim.inspection import canting
+    from pihim.inspection.uncertainty import relative_variance
+
+    field, pose, h, az, el, cam, cp, fr = ufacet
+    z = np.zeros_like(fr.s0)
+    ep = edge_points(fr.s0, z, z)
+    centres = pose.facet_centres[h]
+    unknown = 8
+
+    def stub(model, found, segments, a, e, gate):
+        fid = int(np.argmin(np.linalg.norm(centres - model.centre, axis=1))) + 1
+        return np.array([np.nan, np.nan]) if fid == unknown else np.array([1e-4 * fid, 4e-4 * fid])
+
+    monkeypatch.setattr(canting, "_jackknife_variance", stub)
+    res = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, min_dolp=None)
+    used = [f for f in res.facets if f.used]
+    assert unknown in [f.id for f in used] and len(used) >= 3
+    var = np.array([stub(type("M", (), {"centre": centres[f.id - 1]}), None, None, 0, 0, 0) for f in used])
+    want = np.sqrt(relative_variance(var))
+    for f, (sa, se) in zip(used, want, strict=True):
+        if f.id == unknown:
+            assert f.az_sigma_mrad is None and f.el_sigma_mrad is None
+        else:
+            assert f.az_sigma_mrad == pytest.approx(sa) and f.el_sigma_mrad == pytest.approx(se)
+    json.dumps(res.to_dict(), allow_nan=False)

@@ -40,7 +40,12 @@ def test_relative_variance_is_the_propagated_variance(n):
                                np.column_stack([np.diag(a @ np.diag(v) @ a.T), 2 * np.diag(a @ np.diag(v) @ a.T)]))
 
 
-def test_relative_variance_of_one_estimate_is_zero_and_nan_stays_its_own():
+def test_relative_variance_of_one_estimate_is_zero_and_an_unknown_one_stands_in_at_the_largest():
     assert relative_variance(np.array([4.0])) == pytest.approx([0.0])
-    out = relative_variance(np.array([1.0, np.nan, 1.0]))
-    assert np.isnan(out[1]) and np.all(np.isfinite(out[[0, 2]]))
+    # the unknown variance counts as the largest known one (1.0 here) in the others' sum: 1/3 + 3/9
+    out = relative_variance(np.array([1.0, np.nan, 0.5]))
+    assert np.isnan(out[1])
+    np.testing.assert_allclose(out[[0, 2]], [1.0 / 3 + 2.5 / 9, 0.5 / 3 + 2.5 / 9])
+    # two estimates are each other's negatives about their mean: they share one variance, (v1 + v2) / 4
+    np.testing.assert_allclose(relative_variance(np.array([2.0, np.nan]))[0], (2.0 + 2.0) / 4)
+    assert np.isnan(relative_variance(np.array([np.nan, np.nan]))).all()

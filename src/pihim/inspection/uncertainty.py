@@ -83,8 +83,13 @@ def relative_variance(var: ArrayLike) -> NDArray[np.float64]:
     ndarray, shape (N, ...)
         Variance of ``a_i - mean_j(a_j)``: ``v_i (1 - 2/N) + sum_j v_j / N^2``
         (0 for a single estimate, which is its own mean). An unknown (NaN)
-        variance stays NaN and is left out of the others' sum.
+        variance stays NaN; in the others' sum the largest known one stands
+        in for it (NaN everywhere when none is known).
     """
     v = np.asarray(var, float)
     n = v.shape[0]
-    return v * (1.0 - 2.0 / n) + np.nansum(v, axis=0) / n**2 if n else v.copy()
+    if not n:
+        return v.copy()
+    worst = np.fmax.reduce(v, axis=0)  # the largest known variance (NaN where none is known)
+    total = np.where(np.isnan(v), worst, v).sum(axis=0)
+    return v * (1.0 - 2.0 / n) + total / n**2
