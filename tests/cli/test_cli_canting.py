@@ -155,12 +155,38 @@ def test_combine_results_weights_and_rereferences():
     got = np.array([[f.az_mrad, f.el_mrad] for f in c.facets])
     want = true - true.mean(axis=0)
     np.testing.assert_allclose(got, want, atol=1e-6)
-    # facet 3 only in frame 1 (sigma 0.1); facets 1, 2 dominated by frame 2, whose sigma is floored at 0.05
+    # facet 3 only in frame 1 (sigma 0.1); facets 1, 2 weighted 1 : 4 (frame 2's sigma 0.01 is floored at 0.05
+    # in the weights), the frames agreeing: the weighted mean's standard error from their own sigmas
     assert c.facets[2].az_sigma_mrad == pytest.approx(0.1)
-    assert c.facets[0].az_sigma_mrad == pytest.approx(1 / np.sqrt(1 / 0.1**2 + 1 / 0.05**2))
+    w = np.array([1 / 0.1**2, 1 / 0.05**2])
+    assert c.facets[0].az_sigma_mrad == pytest.approx(np.sqrt(np.sum(w**2 * [0.1**2, 0.01**2])) / w.sum(), rel=1e-4)
     assert c.facets[0].points == 200
     with pytest.raises(Exception, match="different HUAs"):
         combine_results([a, CantingResult("9E3", "7E3", a.facets, 0.0, 0.0)])
+
+
+def test_combined_sigma_from_the_frames_sigmas_and_their_scatter():
+    rng = np.random.default_rng(3)
+    true = rng.normal(0.0, 3.0, (10, 2))
+    true -= true.mean(axis=0)
+    # two frames that agree, each with a sigma below the weights' floor: sigma / sqrt(2), not the floor's
+    a = _result([tuple(v) for v in true], 0.007)
+    c = combine_results([a, a])
+    assert all(f.az_sigma_mrad == pytest.approx(0.007 / np.sqrt(2)) for f in c.facets)
+    # one facet 1 mrad apart between the frames: its sigma widens to about half of that, the others' barely
+    b_vals = true.copy()
+    b_vals[4, 0] += 1.0
+    b_vals -= b_vals.mean(axis=0)
+    c = combine_results([a, _result([tuple(v) for v in b_vals], 0.007)])
+    sig = np.array([f.az_sigma_mrad for f in c.facets])
+    assert sig[4] > 0.4 and np.all(np.delete(sig, 4) < 0.1)
+    assert c.facets[4].el_sigma_mrad == pytest.approx(0.007 / np.sqrt(2), rel=0.05)
+    # a frame without a sigma (too few outline elements): from the scatter with two frames, unknown with one
+    none = _result([tuple(v) for v in true], None)
+    assert combine_results([none, none]).facets[0].az_sigma_mrad == pytest.approx(0.0, abs=1e-9)
+    assert combine_results([none, _result([tuple(true[0]), None, *map(tuple, true[2:])], None)]).facets[1] \
+        .az_sigma_mrad is None
+    json.dumps(combine_results([none, a]).to_dict(), allow_nan=False)
 
 
 def _meta_with(frame, tmp_path, **changes):

@@ -306,8 +306,15 @@ def combine_results(results: Iterable[InspectionResult | CantingResult]) -> Cant
     """Combine several frames' canting of the same HUA, per facet.
 
     Each facet's relative deviations (azimuth and elevation separately) are
-    averaged with inverse-variance weights ``1 / max(sigma, 0.05 mrad)^2``
-    over the frames that used it; the combined sigma is ``(sum w)^-1/2``.
+    averaged with weights ``1 / max(sigma, 0.05 mrad)^2`` over the frames that
+    used it (a frame without a sigma counts as 0.05 mrad: the floor keeps a
+    frame whose fit claims a tiny sigma from outweighing the others, as a fit
+    locked onto other features claims one too). The combined sigma is the
+    larger of the weighted mean's standard error from the frames' sigmas,
+    ``sqrt(sum w^2 sigma^2) / sum w`` (unknown if a frame had none), and, with
+    two frames or more, the one from their scatter,
+    ``sqrt(sum w r^2 / ((n - 1) sum w))`` with ``r`` the frames' residuals:
+    frames that disagree beyond their sigmas widen it.
     Every frame reports deviations relative to the mean over *its own* used
     facets, so when frames use different facet sets their references differ
     by a constant: each frame's offset to the combination is estimated (a
@@ -338,11 +345,14 @@ def combine_results(results: Iterable[InspectionResult | CantingResult]) -> Cant
     for key in ("az", "el"):
         val = np.full((n_k, n_f), np.nan)
         wgt = np.zeros((n_k, n_f))
+        given = np.full((n_k, n_f), np.nan)  # the frames' own sigmas (NaN: none)
         for k, r in enumerate(res):
             for f in r.facets:
                 if f.used and f.id <= n_f:
                     v = getattr(f, f"{key}_mrad")
                     s = getattr(f, f"{key}_sigma_mrad")
+                    if s is not None and np.isfinite(s):
+                        given[k, f.id - 1] = float(s)
                     s = SIGMA_FLOOR_MRAD if s is None or not np.isfinite(s) else max(float(s), SIGMA_FLOOR_MRAD)
                     val[k, f.id - 1] = float(v)
                     wgt[k, f.id - 1] = 1.0 / s**2
@@ -359,7 +369,14 @@ def combine_results(results: Iterable[InspectionResult | CantingResult]) -> Cant
             rw = wgt.sum(axis=1)
             d = np.where(used, val - comb[None, :], 0.0)
             offs = np.where(rw > 0, (wgt * d).sum(axis=1) / np.where(rw > 0, rw, 1.0), 0.0)
-        sig = np.where(have, 1.0 / np.sqrt(np.where(have, sw, 1.0)), np.nan)
+        n_frames = used.sum(axis=0)
+        sw1 = np.where(have, sw, 1.0)
+        # from the frames' sigmas (NaN where a frame had none) and from the frames' scatter about the combination
+        prop = np.sqrt(np.sum(np.where(used, wgt**2 * given**2, 0.0), axis=0)) / sw1
+        prop = np.where(have & ~np.any(used & np.isnan(given), axis=0), prop, np.nan)
+        resid = np.where(used, val - offs[:, None] - comb[None, :], 0.0)
+        scatter = np.sqrt(np.sum(wgt * resid**2, axis=0) / (np.maximum(n_frames - 1, 1) * sw1))
+        sig = np.fmax(prop, np.where(n_frames >= 2, scatter, np.nan))
         orient = [getattr(r, f"orientation_{key}_mrad") for r in res]
         o = [o + offs[k] for k, o in enumerate(orient) if o is not None]
         comps[key] = (comb, sig, float(np.mean(o)) if o else None)
@@ -392,7 +409,8 @@ def combine_results(results: Iterable[InspectionResult | CantingResult]) -> Cant
         sup_v = [f.support for f in use if f.support is not None]
         out.append(FacetCanting(
             fid, True, None,
-            float(comps["az"][0][i]), float(comps["el"][0][i]), float(comps["az"][1][i]), float(comps["el"][1][i]),
+            float(comps["az"][0][i]), float(comps["el"][0][i]),
+            *(float(comps[key][1][i]) if np.isfinite(comps[key][1][i]) else None for key in ("az", "el")),
             float(grid["az"][i]), float(grid["el"][i]), pts, rms_px, float(np.mean(sup_v)) if sup_v else None,
         ))
     targets = sorted({r.target for r in res})
