@@ -1,12 +1,16 @@
-"""The demo's compiling helper (pihim._warmup): it compiles the specializations the demo runs, and the demo
-waits for it only while it lives."""
+"""The demo's compiling helper (pihim._warmup): it compiles the specializations the demo runs, the demo
+waits for its reports only while it lives, and reaps it."""
 
+import io
 import json
 import os
 import subprocess
 import sys
 import time
 import types
+from pathlib import Path
+
+import pytest
 
 from pihim import _resources, _warmup
 
@@ -40,72 +44,115 @@ def test_the_helper_compiles_the_specializations_the_demo_runs():
         assert rec["after"][name] == rec["before"][name], name
 
 
-def _fake_kernel(tmp_path, name):
-    index = tmp_path / f"mod.{name}-10.py311.nbi"
-    files = types.SimpleNamespace(_index_path=str(index))
-    kernel = types.SimpleNamespace(_cache=types.SimpleNamespace(_cache_file=files, _cache_path=str(tmp_path)))
-    return index, kernel
+def _fake_kernel(tmp_path, index):
+    files = types.SimpleNamespace(_load_index=lambda: dict(index))
+    return types.SimpleNamespace(_cache=types.SimpleNamespace(_cache_file=files, _cache_path=str(tmp_path)))
 
 
-def test_cached_needs_the_index_and_a_data_file(tmp_path, monkeypatch):
-    index, kernel = _fake_kernel(tmp_path, "k")
-    monkeypatch.setitem(sys.modules, "fake_kernels", types.SimpleNamespace(k=kernel, plain=object()))
-    monkeypatch.setattr(_warmup, "KERNELS", {"k": ("fake_kernels", "k"), "plain": ("fake_kernels", "plain")})
-    assert not _warmup.cached("k")
-    index.write_bytes(b"index")
-    assert not _warmup.cached("k")  # numba writes the index first: the data may not be there yet
+def test_cached_needs_a_valid_index_entry_and_its_data_file(tmp_path, monkeypatch):
+    """numba's index is empty when the source or numba changed (a stale cache is no cache)."""
+    kernels = {"stale": _fake_kernel(tmp_path, {}), "k": _fake_kernel(tmp_path, {("sig",): "mod.k-10.py311.1.nbc"}),
+               "plain": object()}
+    monkeypatch.setitem(sys.modules, "fake_kernels", types.SimpleNamespace(**kernels))
+    monkeypatch.setattr(_warmup, "KERNELS", {k: ("fake_kernels", k) for k in kernels})
+    assert not _warmup.cached("stale")
+    assert not _warmup.cached("k")  # numba writes the index before the data file
     (tmp_path / "mod.k-10.py311.1.nbc").write_bytes(b"data")
     assert _warmup.cached("k")
-    assert not _warmup.cached("plain")  # no cache attributes (numba changed, or JIT off): uncached
+    assert not _warmup.cached("plain")  # no cache (numba changed, or JIT off): uncached
     assert _warmup.writable("k") and not _warmup.writable("plain")
-    tmp_path.chmod(0o500)
-    try:
-        if os.access(tmp_path, os.W_OK):  # root writes anywhere
-            return
-        assert not _warmup.writable("k")
-    finally:
-        tmp_path.chmod(0o700)
 
 
-def test_no_helper_when_cached_uncachable_or_jit_disabled(monkeypatch):
+class _FakeProc:
+    def __init__(self, output=""):
+        self.stdout = io.StringIO(output)
+        self.returncode = None
+
+    def poll(self):
+        return self.returncode
+
+
+def test_no_helper_when_cached_uncachable_single_cpu_short_of_memory_or_jit_disabled(monkeypatch):
     from numba.core import config
 
     spawned = []
-    monkeypatch.setattr(subprocess, "Popen", lambda *a, **k: spawned.append(a) or "proc")
+
+    def popen(args, **kw):
+        spawned.append((args, kw["env"]["PYTHONPATH"].split(os.pathsep)[0]))
+        return _FakeProc()
+
+    monkeypatch.setattr(subprocess, "Popen", popen)
     monkeypatch.setattr(_warmup, "writable", lambda what: True)
+    monkeypatch.setattr(_warmup, "_cpus", lambda: 2)
+    monkeypatch.setattr(_resources, "available_memory", lambda: None)
     monkeypatch.setattr(_warmup, "cached", lambda what: True)
     assert _warmup.start() is None
+    monkeypatch.setattr(_warmup, "cached", lambda what: what == "render")  # one of them missing: a helper
+    assert _warmup.start() is not None
     monkeypatch.setattr(_warmup, "cached", lambda what: False)
-    monkeypatch.setattr(_warmup, "writable", lambda what: what != "solve")
-    assert _warmup.start() is None  # a kernel numba cannot cache: the demo would wait for nothing
-    monkeypatch.setattr(_warmup, "writable", lambda what: True)
-    monkeypatch.setattr(_resources, "available_memory", lambda: _warmup.HELPER_BYTES - 1)
-    assert _warmup.start() is None  # no room for the helper
-    monkeypatch.setattr(_resources, "available_memory", lambda: None)
-    monkeypatch.setattr(config, "DISABLE_JIT", True)
-    assert _warmup.start() is None
-    monkeypatch.setattr(config, "DISABLE_JIT", False)
-    assert _warmup.start() == "proc"
-    assert spawned == [([sys.executable, "-m", "pihim._warmup"],)]
+    for name, value in (("writable", lambda what: what != "solve"), ("_cpus", lambda: 1)):
+        with monkeypatch.context() as m:
+            m.setattr(_warmup, name, value)
+            assert _warmup.start() is None
+    with monkeypatch.context() as m:
+        m.setattr(_resources, "available_memory", lambda: _warmup.HELPER_BYTES - 1)
+        assert _warmup.start() is None
+    with monkeypatch.context() as m:
+        m.setattr(config, "DISABLE_JIT", True)
+        assert _warmup.start() is None
+    helper = _warmup.start()
+    assert isinstance(helper, _warmup.Helper)
+    # this pihim first on the helper's path, whatever the working folder holds
+    root = str(Path(_warmup.__file__).resolve().parents[1])
+    assert spawned[-1] == ([sys.executable, "-m", "pihim._warmup", str(os.getpid())], root)
 
 
-def test_wait_for_returns_when_cached_when_the_helper_ends_or_on_timeout(monkeypatch):
-    monkeypatch.setattr(_warmup, "cached", lambda what: False)
+def _helper(code):
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    return _warmup.Helper(proc)
+
+
+def test_wait_for_returns_on_the_report_when_the_helper_ends_or_on_timeout():
     _warmup.wait_for(None, "render")  # no helper: no wait
-    quick = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(0.3)"])
-    t0 = time.monotonic()
-    _warmup.wait_for(quick, "render", timeout_s=30)
-    assert quick.poll() is not None and time.monotonic() - t0 < 10
-    slow = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    helper = _helper("import time; time.sleep(0.3); print('render', flush=True); time.sleep(60)")
     try:
         t0 = time.monotonic()
-        _warmup.wait_for(slow, "render", timeout_s=0.5)
-        assert 0.4 < time.monotonic() - t0 < 5 and slow.poll() is None
-        monkeypatch.setattr(_warmup, "cached", lambda what: what == "render")
+        _warmup.wait_for(helper, "render", timeout_s=30)
+        assert helper.reported["render"].is_set() and time.monotonic() - t0 < 10
         t0 = time.monotonic()
-        _warmup.wait_for(slow, "render", timeout_s=30)
-        assert time.monotonic() - t0 < 1
+        _warmup.wait_for(helper, "solve", timeout_s=0.5)  # not reported: the timeout
+        assert 0.4 < time.monotonic() - t0 < 5 and helper.proc.poll() is None
     finally:
-        _warmup.stop(slow)
-    assert slow.returncode is not None  # terminated and reaped
+        _warmup.stop(helper)
+    assert helper.proc.returncode is not None  # terminated and reaped
+    ended = _helper("pass")  # ends without a report: nothing more is waited for
+    t0 = time.monotonic()
+    _warmup.wait_for(ended, "solve", timeout_s=30)
+    assert time.monotonic() - t0 < 10
+    _warmup.stop(ended)
     _warmup.stop(None)  # no helper: nothing to do
+
+
+def test_the_demo_waits_for_the_helper_and_reaps_it_even_when_it_fails(tmp_path, monkeypatch):
+    import pihim.demo
+    from pihim.demo import DemoSettings, run_demo
+    from pihim.errors import PihimInputError
+
+    calls = []
+    helper = _helper("import time; time.sleep(60)")
+    monkeypatch.setattr(_warmup, "start", lambda: helper)
+    monkeypatch.setattr(_warmup, "wait_for", lambda h, what, timeout_s=60.0: calls.append((h, what)))
+    run_demo(tmp_path / "d", DemoSettings(pairs=1, width_px=612, height_px=512))
+    assert calls == [(helper, "render"), (helper, "solve")]  # before the first frame and the first inspection
+    assert helper.proc.returncode is not None  # reaped when the demo returned
+
+    failing = _helper("import time; time.sleep(60)")
+    monkeypatch.setattr(_warmup, "start", lambda: failing)
+
+    def fail(*args, **kw):
+        raise PihimInputError("planning failed")
+
+    monkeypatch.setattr(pihim.demo, "_run_demo", fail)
+    with pytest.raises(PihimInputError):
+        run_demo(tmp_path / "e", DemoSettings(pairs=1, width_px=612, height_px=512))
+    assert failing.proc.returncode is not None

@@ -7,16 +7,22 @@ pihim's kernels are compiled by numba on their first call and cached on disk
 compiles -- and so caches -- the renderer's kernel (about 15 s) while the
 demo plans on the other core, then the least-squares solver of the pose and
 canting fits (about 11 s) while the demo renders and makes its polar images,
-then the rest of the inspection and the previews on a small frame. When the
-demo reaches a kernel the helper has cached, numba loads it instead of
-compiling it. Before its first frame and its first inspection the demo waits
-for the helper's renderer and solver (:func:`wait_for`: the helper started on
+then the rest of the inspection and the previews on a small frame; it
+reports each stage on its standard output. When the demo reaches a kernel
+the helper has cached, numba loads it instead of compiling it. Before its
+first frame and its first inspection the demo waits for the helper's report
+of the renderer and of the solver (:func:`wait_for`: the helper started on
 them earlier, so its rest is shorter than the demo's own compilation); any
 other kernel the demo reaches first it compiles itself, as without the
-helper. Nothing is started when the two slowest kernels are cached already
-(every later run), when numba cannot write their cache, when its JIT is
-disabled, or when the memory available cannot hold the helper
-(:data:`HELPER_BYTES`; ``pihim demo`` asks for it beside the demo's own).
+helper. The helper ends when the demo does (:func:`stop`), or by itself
+between stages once the demo's process is gone.
+
+Nothing is started when the two slowest kernels are in numba's cache already
+(every later run: numba's own index, which it invalidates when the source or
+numba changes), when numba cannot write their cache or its JIT is disabled,
+on a single CPU (the helper's work would only add to the demo's), or when the
+memory available cannot hold the helper (:data:`HELPER_BYTES`; ``pihim
+demo`` asks for it beside the demo's own).
 """
 
 from __future__ import annotations
@@ -24,19 +30,47 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
+import threading
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["HELPER_BYTES", "KERNELS", "cached", "compile_kernels", "start", "stop", "wait_for", "writable"]
-
+__all__ = ["HELPER_BYTES", "KERNELS", "Helper", "cached", "compile_kernels", "start", "stop", "wait_for",
+           "writable"]
 
 #: Peak resident size of the helper with an empty cache: 558 MB measured (``/usr/bin/time -v python -m
 #: pihim._warmup``, 2026-11-26), with a 25 % margin.
 HELPER_BYTES = 700_000_000
 
-#: The kernels the demo waits for: the renderer's and the least-squares solver's (module, name).
+#: The kernels the demo waits for, in the helper's order: the renderer's and the least-squares solver's
+#: (module, name); the helper prints each key once that kernel is compiled (and cached).
 KERNELS = {"render": ("pihim.render.kernel", "_kernel"), "solve": ("pihim.inspection._kernels", "solve")}
+
+
+@dataclass(eq=False)
+class Helper:
+    """A running helper: its process and, per key of :data:`KERNELS`, whether it has reported it.
+
+    A thread reads the helper's output from the start (:meth:`listen`).
+    """
+
+    proc: subprocess.Popen
+    reported: dict[str, threading.Event] = field(default_factory=lambda: {k: threading.Event() for k in KERNELS})
+    listener: threading.Thread | None = None
+
+    def __post_init__(self) -> None:
+        self.listener = threading.Thread(target=self.listen, name="pihim-warmup-listener", daemon=True)
+        self.listener.start()
+
+    def listen(self) -> None:
+        """Read the helper's reports until its output ends; then nothing more is waited for."""
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            event = self.reported.get(line.strip())
+            if event is not None:
+                event.set()
+        for event in self.reported.values():  # ended (done, failed or killed)
+            event.set()
 
 
 def _cache(what: str) -> Any:
@@ -48,19 +82,22 @@ def _cache(what: str) -> Any:
 
 
 def cached(what: str) -> bool:
-    """Whether kernel ``what`` (a key of :data:`KERNELS`) is in numba's cache: its index and a data file.
+    """Whether kernel ``what`` has a valid entry in numba's cache.
 
-    numba writes the index before the data file, each whole (a temporary file renamed).
+    numba's index (which it empties when the kernel's source file or numba's
+    version changed) lists at least one entry whose data file exists.
     """
+    cache = _cache(what)
     try:
-        index = Path(_cache(what)._cache_file._index_path)
-    except AttributeError:  # no cache, or numba's cache internals moved: take it for uncached
+        index = cache._cache_file._load_index()
+        folder = Path(cache._cache_path)
+    except (AttributeError, OSError):  # no cache, or numba's cache internals moved: take it for uncached
         return False
-    return index.is_file() and any(index.parent.glob(index.stem + ".*.nbc"))
+    return any((folder / name).is_file() for name in index.values())
 
 
 def writable(what: str) -> bool:
-    """Whether numba can write kernel ``what``'s cache (its folder, chosen by numba as writable, is)."""
+    """Whether the folder numba chose for kernel ``what``'s cache is (still) writable."""
     try:
         folder = _cache(what)._cache_path
     except AttributeError:
@@ -68,42 +105,47 @@ def writable(what: str) -> bool:
     return os.path.isdir(folder) and os.access(folder, os.W_OK)
 
 
-def start() -> subprocess.Popen | None:
+def _cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def start() -> Helper | None:
     """Spawn the helper (:func:`compile_kernels` in ``python -m pihim._warmup``), or None when not needed."""
     from numba.core import config
 
     from pihim._resources import available_memory
 
     # a helper whose kernels cannot be cached would only make the demo wait for nothing
-    if config.DISABLE_JIT or all(cached(k) for k in KERNELS) or not all(writable(k) for k in KERNELS):
+    if config.DISABLE_JIT or _cpus() < 2 or all(cached(k) for k in KERNELS) or not all(writable(k) for k in KERNELS):
         return None
     avail = available_memory()
     if avail is not None and avail < HELPER_BYTES:
         return None
+    # the helper must import this very pihim (and so compile into this one's cache), whatever its working folder
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])])}
     try:
-        return subprocess.Popen([sys.executable, "-m", "pihim._warmup"], stdin=subprocess.DEVNULL,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        proc = subprocess.Popen([sys.executable, "-m", "pihim._warmup", str(os.getpid())], stdin=subprocess.DEVNULL,
+                                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
     except OSError:
         return None
+    return Helper(proc)
 
 
-def wait_for(proc: subprocess.Popen | None, what: str, timeout_s: float = 60.0) -> None:
-    """Wait until the helper has cached kernel ``what``, has ended, or ``timeout_s`` passed.
-
-    The helper started on the kernel before the demo needs it, so the rest of
-    its compilation is shorter than the demo's own would be.
-    """
-    if proc is None:
-        return
-    deadline = time.monotonic() + timeout_s
-    while proc.poll() is None and not cached(what) and time.monotonic() < deadline:
-        time.sleep(0.1)
+def wait_for(helper: Helper | None, what: str, timeout_s: float = 60.0) -> None:
+    """Wait until the helper has reported kernel ``what``, has ended, or ``timeout_s`` passed."""
+    if helper is not None:
+        helper.reported[what].wait(timeout_s)
 
 
-def stop(proc: subprocess.Popen | None) -> None:
+def stop(helper: Helper | None) -> None:
     """End the helper if it still runs (what it cached stays cached) and reap it."""
-    if proc is None:
+    if helper is None:
         return
+    proc = helper.proc
     if proc.poll() is None:
         proc.terminate()
     try:
@@ -111,14 +153,19 @@ def stop(proc: subprocess.Popen | None) -> None:
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait()
+    if helper.listener is not None:
+        helper.listener.join(timeout=5)  # its output has ended
+    if proc.stdout is not None:
+        proc.stdout.close()
 
 
-def compile_kernels(width_px: int = 612, height_px: int = 512) -> None:
+def compile_kernels(width_px: int = 612, height_px: int = 512, report: Any = None) -> None:
     """Call the demo's compiled kernels, slowest and earliest needed first, on small inputs.
 
     The arguments' types are those of the demo's calls (a small frame of the
     demo's kind), so the specializations compiled and cached are the ones the
-    demo loads.
+    demo loads. ``report(stage)`` (optional) is called after each stage:
+    the keys of :data:`KERNELS`, then ``"rest"``; it may end the process.
     """
     import tempfile
 
@@ -133,18 +180,21 @@ def compile_kernels(width_px: int = 612, height_px: int = 512) -> None:
     from pihim.inspection.pipeline import inspect_frame, sensor_settings
     from pihim.render.simulate import LookAtPose, PairPose, simulate_frame
 
+    say = report or (lambda stage: None)
     field = nsttf_like_field()
     # 1. the renderer, which the demo needs first, once it has planned: a small frame looking down on a
     #    heliostat (a pair's pose would plan, and compile the planner's kernels before the renderer's)
     centre = np.asarray(field.pivots, float)[field.index("8E3")]
     simulate_frame(field, DEMO_TIME, camera=CameraModel(width_px=64, height_px=48),
                    pose_request=LookAtPose(tuple(centre + [0.0, -8.0, 25.0]), tuple(centre)), seed=0)
+    say("render")
     # 2. the solver of the pose and canting fits (one specialization for every kind of problem)
     m = 4
     pts = np.column_stack([np.linspace(-1.0, 1.0, 3 * m), np.zeros(3 * m), np.full(3 * m, 10.0)])
     prob = _kernels.problem(_kernels.POINT_TO_LINE, np.eye(3), np.zeros(3), pts, _kernels.camera_vector(CameraModel()),
                             q=np.zeros((m, 2)), gate=3.0)
     _kernels.solve(prob, np.zeros(6), m, np.ones(6), 2, True, 1.0)
+    say("solve")
     # 3. the rest of the inspection and the demo's previews, on a frame of a demo pair
     sim = simulate_frame(field, DEMO_TIME, camera=CameraModel(width_px=width_px, height_px=height_px),
                          pose_request=PairPose("8E3", "7E3"), canting_sigma_mrad=3.0, gps_sigma_m=0.1,
@@ -158,7 +208,19 @@ def compile_kernels(width_px: int = 612, height_px: int = 512) -> None:
                       dark_level=sensor["dark_level"], bit_depth=sensor["bit_depth"])
     with tempfile.TemporaryDirectory(prefix="pihim-warmup-") as tmp:
         _previews(Path(tmp), pim, edge_maps(pim.s0, pim.dolp, pim.aop_deg, "canny"))
+    say("rest")
+
+
+def _main(argv: list[str]) -> None:  # pragma: no cover - the helper process
+    parent = int(argv[0]) if argv else None
+
+    def report(stage: str) -> None:
+        print(stage, flush=True)
+        if parent is not None and os.getppid() != parent:  # the demo is gone: its kernels can wait
+            sys.exit(0)
+
+    compile_kernels(report=report)
 
 
 if __name__ == "__main__":  # pragma: no cover - the helper process
-    compile_kernels()
+    _main(sys.argv[1:])
