@@ -1,9 +1,10 @@
 """Memory budgets: refuse a request before allocating more than the machine can give.
 
 :func:`require_memory` compares an estimate of the bytes a computation will
-allocate with what the process can still obtain -- the smaller of the
-kernel's ``MemAvailable`` and the room left under an address-space limit
-(``ulimit -v``) -- and raises :class:`~pihim.errors.PihimInputError` with
+allocate with what the process can still obtain -- the smallest of the
+kernel's ``MemAvailable``, the room left under an address-space limit
+(``ulimit -v``) and the room left under a container's cgroup memory limit --
+and raises :class:`~pihim.errors.PihimInputError` with
 both figures when it does not fit. Estimates are deliberately generous
 (temporaries included); where the available memory cannot be read, only the
 absolute cap :data:`MAX_REQUEST_BYTES` applies.
@@ -69,9 +70,44 @@ def _address_space_left() -> int | None:
     return max(0, soft - used)
 
 
+#: This process's cgroup memory files, (limit, usage, statistics, the reclaimable page cache's key in them):
+#: cgroup v2, then v1 (a container's limit, which ``MemAvailable`` does not see).
+CGROUP_MEMORY_FILES = (
+    ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current", "/sys/fs/cgroup/memory.stat", "inactive_file"),
+    ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes",
+     "/sys/fs/cgroup/memory/memory.stat", "total_inactive_file"),
+)
+
+
+def _cgroup_left() -> int | None:
+    """Room under the cgroup's memory limit (less its usage, the inactive page cache counted free), or None."""
+    for limit_file, usage_file, stat_file, inactive_key in CGROUP_MEMORY_FILES:
+        try:
+            with open(limit_file, encoding="ascii") as f:
+                limit = f.read().strip()
+            with open(usage_file, encoding="ascii") as f:
+                usage = int(f.read())
+        except (OSError, ValueError):
+            continue
+        if limit == "max" or not limit.isdigit() or int(limit) >= 1 << 60:  # no limit (v1 writes a huge one)
+            return None
+        inactive = 0
+        try:
+            with open(stat_file, encoding="ascii") as f:
+                for line in f:
+                    key, _, value = line.partition(" ")
+                    if key == inactive_key:
+                        inactive = int(value)
+                        break
+        except (OSError, ValueError):
+            inactive = 0
+        return max(0, int(limit) - usage + inactive)
+    return None
+
+
 def available_memory() -> int | None:
     """Bytes this process can still allocate (best estimate), or None where it cannot be told."""
-    known = [v for v in (_meminfo_available(), _address_space_left()) if v is not None]
+    known = [v for v in (_meminfo_available(), _address_space_left(), _cgroup_left()) if v is not None]
     return min(known) if known else None
 
 
