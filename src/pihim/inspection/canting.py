@@ -307,8 +307,6 @@ def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gat
     """
     from pihim.inspection import _kernels
 
-    aux = np.concatenate([np.ravel(model.rot), model.centre, model.normal_local])
-    jac = None
     r = np.zeros(0)
     for gate in gates_px:
         uv, nrm = model.project(az, el)
@@ -322,8 +320,8 @@ def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gat
         sub, nq = model.pts[used_pts], nrm[idx]
 
         prob = _kernels.problem(_kernels.REFLECTION, model._r, model._c, sub, model._cam,
-                                q=np.column_stack([q, nq]), aux=aux, idx=inv, gate=gate)
-        x, r, jac = _kernels.solve(prob, np.array([az, el]), len(q), _X_SCALE, 200, True, 0.5)
+                                q=np.column_stack([q, nq]), aux=model.aux, idx=inv, gate=gate)
+        x, r, _ = _kernels.solve(prob, np.array([az, el]), len(q), _X_SCALE, 200, True, 0.5)
         az, el = float(x[0]), float(x[1])
     found = (model.pts[idx], q, nq)
     inl = np.abs(r) < 1.0
@@ -351,13 +349,12 @@ def _jackknife_variance(model: _FacetModel, found: tuple, segments: NDArray, az:
     from pihim.inspection import _kernels
 
     pts_w, q, nq = found
-    aux = np.concatenate([np.ravel(model.rot), model.centre, model.normal_local])
     obs = np.column_stack([q, nq])
     x_fit = np.array([az, el])
 
     def refit(keep: NDArray[np.bool_]) -> NDArray:
         prob = _kernels.problem(_kernels.REFLECTION, model._r, model._c, pts_w[keep], model._cam, q=obs[keep],
-                                aux=aux, idx=np.arange(int(keep.sum())), gate=gate)
+                                aux=model.aux, idx=np.arange(int(keep.sum())), gate=gate)
         return _kernels.solve(prob, x_fit, int(keep.sum()), _X_SCALE, 200, True, 0.5)[0]
 
     cov, _ = jackknife_covariance(segments, refit)

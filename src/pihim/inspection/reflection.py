@@ -150,6 +150,8 @@ class _FacetModel:
         self._cam = _kernels.camera_vector(camera)
         self._r = np.array(pose.rotation, float)
         self._c = np.array(pose.position_m, float)
+        #: The facet for the ``REFLECTION`` problems (:func:`pihim.inspection._kernels.problem`'s ``aux``).
+        self.aux = np.concatenate([np.ravel(rot_hua), centre, normal_local])
 
     def _project(self, pts: NDArray) -> NDArray:
         from pihim.inspection import _kernels
