@@ -156,3 +156,40 @@ def test_the_demo_waits_for_the_helper_and_reaps_it_even_when_it_fails(tmp_path,
     with pytest.raises(PihimInputError):
         run_demo(tmp_path / "e", DemoSettings(pairs=1, width_px=612, height_px=512))
     assert failing.proc.returncode is not None
+
+
+def _gone(pid):
+    try:
+        return Path(f"/proc/{pid}/status").read_text().split("State:")[1].split()[0] in ("Z", "X")
+    except (FileNotFoundError, IndexError):
+        return True
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
+def test_the_helper_leaves_at_once_when_the_demo_is_killed(tmp_path):
+    import signal
+
+    # a stand-in for the demo: starts the helper as start() does, reports its pid, then idles
+    parent_code = ("import os, subprocess, sys, time\n"
+                   "p = subprocess.Popen([sys.executable, '-m', 'pihim._warmup', str(os.getpid())],"
+                   " stdin=subprocess.PIPE, stdout=subprocess.DEVNULL)\n"
+                   "print(p.pid, flush=True)\n"
+                   "time.sleep(120)\n")
+    root = str(Path(_warmup.__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])]),
+           "NUMBA_CACHE_DIR": str(tmp_path)}  # an empty cache: the helper's first stage compiles for 15-20 s
+    parent = subprocess.Popen([sys.executable, "-c", parent_code], stdout=subprocess.PIPE, text=True, env=env)
+    helper_pid = int(parent.stdout.readline())
+    try:
+        time.sleep(1.5)  # the helper is importing or compiling
+        assert not _gone(helper_pid)
+        parent.send_signal(signal.SIGKILL)  # no chance to stop() it
+        parent.wait()
+        deadline = time.monotonic() + 3.0
+        while not _gone(helper_pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _gone(helper_pid)  # it used to compile on until its stage ended (15-20 s)
+    finally:
+        if not _gone(helper_pid):
+            os.kill(helper_pid, signal.SIGKILL)
+        parent.stdout.close()

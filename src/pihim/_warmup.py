@@ -14,8 +14,11 @@ first frame and its first inspection the demo waits for the helper's report
 of the renderer and of the solver (:func:`wait_for`: the helper started on
 them earlier, so its rest is shorter than the demo's own compilation); any
 other kernel the demo reaches first it compiles itself, as without the
-helper. The helper ends when the demo does (:func:`stop`), or by itself
-between stages once the demo's process is gone.
+helper. The helper ends when the demo does (:func:`stop`), and at once
+when the demo's process is gone however it ended, killed included: it
+watches the pipe the demo holds open on its standard input, and leaves when
+that pipe reaches its end (numba writes each cache file whole, to a
+temporary name it then renames, so a kernel is cached or not, never half).
 
 Nothing is started when the two slowest kernels are in numba's cache already
 (every later run: numba's own index, which it invalidates when the source or
@@ -128,7 +131,8 @@ def start() -> Helper | None:
     root = str(Path(__file__).resolve().parents[1])
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])])}
     try:
-        proc = subprocess.Popen([sys.executable, "-m", "pihim._warmup", str(os.getpid())], stdin=subprocess.DEVNULL,
+        # its standard input: a pipe only this process holds open, whose end tells the helper the demo is gone
+        proc = subprocess.Popen([sys.executable, "-m", "pihim._warmup", str(os.getpid())], stdin=subprocess.PIPE,
                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
     except OSError:
         return None
@@ -146,8 +150,10 @@ def stop(helper: Helper | None) -> None:
     if helper is None:
         return
     proc = helper.proc
+    if proc.stdin is not None:
+        proc.stdin.close()  # the helper leaves at the pipe's end ...
     if proc.poll() is None:
-        proc.terminate()
+        proc.terminate()  # ... or now
     try:
         proc.wait(timeout=10)
     except subprocess.TimeoutExpired:
@@ -211,13 +217,25 @@ def compile_kernels(width_px: int = 612, height_px: int = 512, report: Any = Non
     say("rest")
 
 
+def _leave_at_end_of_input() -> None:  # pragma: no cover - the helper process
+    """Block until standard input ends (the demo closed it or is gone), then end this process at once."""
+    try:
+        while sys.stdin.buffer.read(4096):
+            pass
+    except OSError:
+        pass
+    os._exit(0)
+
+
 def _main(argv: list[str]) -> None:  # pragma: no cover - the helper process
     parent = int(argv[0]) if argv else None
+    if parent is not None:  # started by a demo (:func:`start`): its standard input is the demo's pipe
+        if os.getppid() != parent:  # gone already
+            return
+        threading.Thread(target=_leave_at_end_of_input, name="pihim-warmup-watch", daemon=True).start()
 
     def report(stage: str) -> None:
         print(stage, flush=True)
-        if parent is not None and os.getppid() != parent:  # the demo is gone: its kernels can wait
-            sys.exit(0)
 
     compile_kernels(report=report)
 
