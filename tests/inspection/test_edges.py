@@ -9,6 +9,7 @@ import pytest
 from pihim.errors import PihimInputError
 from pihim.inspection.edges import (
     IMAGE_TYPES,
+    EdgeMap,
     axial_gradient_magnitude,
     edge_maps,
     gradient_magnitude,
@@ -177,3 +178,95 @@ def test_bad_input_is_refused():
         edge_maps(a, a, a, low_ratio=0.0)
     with pytest.raises(KeyError):
         edge_maps(a, a, a)["RGB"]
+
+
+def test_float32_thresholds_and_statistics_equal_float64s():
+    rng = np.random.default_rng(2)
+    g = np.abs(rng.normal(0.0, 1.0, (300, 200))).astype(np.float32)
+    g[:3] = np.nan
+    g[5, :7] = np.inf
+    np.testing.assert_allclose(robust_thresholds(g), robust_thresholds(g.astype(np.float64)), rtol=1e-6)
+    fin = g[np.isfinite(g)].astype(np.float64)
+    st = EdgeMap(g, np.zeros(g.shape, bool), 1.0, 0.4, "u").stats()
+    want = np.percentile(fin, [50, 90, 99])
+    assert [st["gradient"][k] for k in ("p50", "p90", "p99")] == pytest.approx(want, rel=1e-12)
+    assert st["gradient"]["max"] == fin.max() and st["valid_fraction"] == fin.size / g.size
+
+
+def test_nan_pixels_take_a_nearest_valid_neighbour_so_valid_gradients_see_no_step():
+    from scipy import ndimage
+
+    from pihim.inspection.edges import _fill_nearest
+
+    rng = np.random.default_rng(3)
+    image = rng.normal(size=(40, 50))
+    bad = ndimage.binary_dilation(rng.random((40, 50)) < 0.01) | (rng.random((40, 50)) < 0.03)  # blobs, single pixels
+    image[bad] = np.nan
+    image[0, :5] = np.inf
+    filled, valid = _fill_nearest(image)
+    assert np.array_equal(valid, np.isfinite(image)) and np.array_equal(filled[valid], image[valid])
+    # every invalid pixel a valid pixel's 3x3 Sobel reads holds the value of a valid pixel at the least distance
+    read = ndimage.binary_dilation(valid, np.ones((3, 3), bool)) & ~valid
+    assert 50 < read.sum() < valid.size - valid.sum()  # some invalid pixels are read, some are not
+    dist = ndimage.distance_transform_edt(~valid)
+    for r, c in zip(*np.nonzero(read)):
+        near = [image[r + dr, c + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)
+                if 0 <= r + dr < 40 and 0 <= c + dc < 50 and valid[r + dr, c + dc]
+                and math.isclose(math.hypot(dr, dc), dist[r, c])]
+        assert filled[r, c] in near
+    # so the valid pixels' gradients are those of the image with the NaN pixels so filled
+    g = gradient_magnitude(image)
+    np.testing.assert_array_equal(g[valid], gradient_magnitude(filled)[valid])
+    assert np.isnan(g[~valid]).all()
+
+
+def test_float32_images_give_the_float64_gradients_and_edges():
+    rng = np.random.default_rng(5)
+    x, y = _grid()
+    aop = (30.0 * np.sin(x / 7.0) + 20.0 * y / H + rng.normal(0, 2.0, (H, W))) % 180.0
+    dolp = np.clip(0.3 + 0.2 * (x > 30) + rng.normal(0, 0.02, (H, W)), 0, 1)
+    s0 = 100.0 + 50.0 * (y > 20) + rng.normal(0, 1.0, (H, W))
+    for method in ("sobel", "canny"):
+        m64 = edge_maps(s0, dolp, aop, method)
+        m32 = edge_maps(s0.astype(np.float32), dolp.astype(np.float32), aop.astype(np.float32), method)
+        for name in IMAGE_TYPES:
+            g64 = m64[name].gradient
+            np.testing.assert_allclose(m32[name].gradient, g64, rtol=1e-4, atol=1e-4 * np.nanmax(g64), err_msg=name)
+            assert (m32[name].edges != m64[name].edges).mean() < 0.002, (method, name)
+
+
+def test_axial_direction_is_the_structure_tensors_principal_axis():
+    from pihim.inspection.edges import _axial_gradient
+
+    rng = np.random.default_rng(11)
+    aop = rng.uniform(0.0, 180.0, (H, W))
+    mag, dx, dy, _ = _axial_gradient(aop, None, direction=True)
+    # reference: the angle doubled, differentiated, and the tensor's axis by atan2
+    a2 = np.radians(2.0 * aop)
+    import cv2
+
+    def sobel(img, ox, oy):
+        return cv2.Sobel(img, cv2.CV_64F, ox, oy, ksize=3, scale=1 / 8, borderType=cv2.BORDER_REPLICATE)
+
+    cx, cy, sx, sy = sobel(np.cos(a2), 1, 0), sobel(np.cos(a2), 0, 1), sobel(np.sin(a2), 1, 0), sobel(np.sin(a2), 0, 1)
+    t = 0.5 * np.arctan2(2.0 * (cx * cy + sx * sy), cx**2 + sx**2 - cy**2 - sy**2)
+    np.testing.assert_allclose(mag, (90 / np.pi) * np.sqrt(cx**2 + sx**2 + cy**2 + sy**2), rtol=1e-12)
+    np.testing.assert_allclose(dx, mag * np.cos(t), atol=1e-9 * mag.max())
+    np.testing.assert_allclose(dy, mag * np.sin(t), atol=1e-9 * mag.max())
+
+
+def test_the_same_frame_gives_the_same_maps_bit_for_bit():
+    # a multi-threaded elementwise kernel (cv2.magnitude) once varied in the last bit from call to call
+    rng = np.random.default_rng(9)
+    x, y = np.meshgrid(np.arange(1536, dtype=np.float32), np.arange(1024, dtype=np.float32))
+    s0 = (1000.0 + 500.0 * (x > 700) + rng.normal(0, 20.0, x.shape)).astype(np.float32)
+    dolp = np.clip(0.3 + 0.2 * (y > 400) + rng.normal(0, 0.03, x.shape), 0, 1).astype(np.float32)
+    aop = ((40.0 * np.sin(x / 50.0) + rng.normal(0, 3.0, x.shape)) % 180.0).astype(np.float32)
+    dolp[rng.random(x.shape) < 1e-3] = np.nan
+    aop[np.isnan(dolp)] = np.nan
+    first = edge_maps(s0, dolp, aop, "canny")
+    for _ in range(3):
+        again = edge_maps(s0, dolp, aop, "canny")
+        for name in IMAGE_TYPES:
+            np.testing.assert_array_equal(again[name].gradient, first[name].gradient, err_msg=name)
+            np.testing.assert_array_equal(again[name].edges, first[name].edges, err_msg=name)
