@@ -78,6 +78,8 @@ def test_no_helper_when_cached_uncachable_single_cpu_short_of_memory_or_jit_disa
     spawned = []
 
     def popen(args, **kw):
+        # its standard input a pipe of the demo's: the helper leaves when that pipe closes (at once on DEVNULL)
+        assert kw["stdin"] is subprocess.PIPE
         spawned.append((args, kw["env"]["PYTHONPATH"].split(os.pathsep)[0]))
         return _FakeProc()
 
@@ -158,11 +160,21 @@ def test_the_demo_waits_for_the_helper_and_reaps_it_even_when_it_fails(tmp_path,
     assert failing.proc.returncode is not None
 
 
-def _gone(pid):
+def _started(pid):
+    """The start time of process ``pid`` (clock ticks after boot, /proc/PID/stat), None if there is none."""
     try:
-        return Path(f"/proc/{pid}/status").read_text().split("State:")[1].split()[0] in ("Z", "X")
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19])
+    except (FileNotFoundError, IndexError, ValueError):
+        return None
+
+
+def _gone(pid, started):
+    """Whether the process ``pid`` started at ``started`` has ended (a zombie, or its pid unused or reused)."""
+    try:
+        state = Path(f"/proc/{pid}/status").read_text().split("State:")[1].split()[0]
     except (FileNotFoundError, IndexError):
         return True
+    return state in ("Z", "X") or _started(pid) != started
 
 
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
@@ -180,16 +192,17 @@ def test_the_helper_leaves_at_once_when_the_demo_is_killed(tmp_path):
            "NUMBA_CACHE_DIR": str(tmp_path)}  # an empty cache: the helper's first stage compiles for 15-20 s
     parent = subprocess.Popen([sys.executable, "-c", parent_code], stdout=subprocess.PIPE, text=True, env=env)
     helper_pid = int(parent.stdout.readline())
+    started = _started(helper_pid)
     try:
         time.sleep(1.5)  # the helper is importing or compiling
-        assert not _gone(helper_pid)
+        assert started is not None and not _gone(helper_pid, started)
         parent.send_signal(signal.SIGKILL)  # no chance to stop() it
         parent.wait()
         deadline = time.monotonic() + 3.0
-        while not _gone(helper_pid) and time.monotonic() < deadline:
+        while not _gone(helper_pid, started) and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert _gone(helper_pid)  # it used to compile on until its stage ended (15-20 s)
+        assert _gone(helper_pid, started)  # it used to compile on until its stage ended (15-20 s)
     finally:
-        if not _gone(helper_pid):
+        if started is not None and not _gone(helper_pid, started):
             os.kill(helper_pid, signal.SIGKILL)
         parent.stdout.close()

@@ -151,9 +151,9 @@ def stop(helper: Helper | None) -> None:
         return
     proc = helper.proc
     if proc.stdin is not None:
-        proc.stdin.close()  # the helper leaves at the pipe's end ...
+        proc.stdin.close()  # the helper's watch ends it at the pipe's end; SIGTERM too, should it not be watching
     if proc.poll() is None:
-        proc.terminate()  # ... or now
+        proc.terminate()
     try:
         proc.wait(timeout=10)
     except subprocess.TimeoutExpired:
@@ -222,20 +222,32 @@ def _leave_at_end_of_input() -> None:  # pragma: no cover - the helper process
     try:
         while sys.stdin.buffer.read(4096):
             pass
-    except OSError:
+    except (OSError, ValueError):
         pass
     os._exit(0)
 
 
+def _watching_a_pipe() -> bool:
+    """Whether standard input is a pipe (as :func:`start` makes it), not a terminal, a file or closed."""
+    import stat
+
+    try:
+        return stat.S_ISFIFO(os.fstat(0).st_mode) and sys.stdin is not None
+    except OSError:
+        return False
+
+
 def _main(argv: list[str]) -> None:  # pragma: no cover - the helper process
     parent = int(argv[0]) if argv else None
-    if parent is not None:  # started by a demo (:func:`start`): its standard input is the demo's pipe
-        if os.getppid() != parent:  # gone already
-            return
+    if parent is not None and os.getppid() != parent:  # started by a demo that is gone already
+        return
+    if parent is not None and _watching_a_pipe():  # the demo's pipe (:func:`start`): leave when it closes
         threading.Thread(target=_leave_at_end_of_input, name="pihim-warmup-watch", daemon=True).start()
 
     def report(stage: str) -> None:
         print(stage, flush=True)
+        if parent is not None and os.getppid() != parent:  # the demo is gone (when not watching its pipe)
+            sys.exit(0)
 
     compile_kernels(report=report)
 

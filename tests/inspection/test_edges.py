@@ -214,9 +214,13 @@ def test_nan_pixels_take_a_nearest_valid_neighbour_so_valid_gradients_see_no_ste
                 if 0 <= r + dr < 40 and 0 <= c + dc < 50 and valid[r + dr, c + dc]
                 and math.isclose(math.hypot(dr, dc), dist[r, c])]
         assert filled[r, c] in near
-    # so the valid pixels' gradients are those of the image with the NaN pixels so filled
+    # the invalid pixels no valid pixel's Sobel reads may hold anything: the valid gradients stay
+    deep = ~valid & ~read
+    assert deep.any()
+    other = filled.copy()
+    other[deep] = 7e3
     g = gradient_magnitude(image)
-    np.testing.assert_array_equal(g[valid], gradient_magnitude(filled)[valid])
+    np.testing.assert_array_equal(g[valid], gradient_magnitude(other)[valid])
     assert np.isnan(g[~valid]).all()
 
 
@@ -226,6 +230,8 @@ def test_float32_images_give_the_float64_gradients_and_edges():
     aop = (30.0 * np.sin(x / 7.0) + 20.0 * y / H + rng.normal(0, 2.0, (H, W))) % 180.0
     dolp = np.clip(0.3 + 0.2 * (x > 30) + rng.normal(0, 0.02, (H, W)), 0, 1)
     s0 = 100.0 + 50.0 * (y > 20) + rng.normal(0, 1.0, (H, W))
+    dolp[5:9, 40:44] = np.nan  # a saturated patch
+    aop[5:9, 40:44] = np.nan
     for method in ("sobel", "canny"):
         m64 = edge_maps(s0, dolp, aop, method)
         m32 = edge_maps(s0.astype(np.float32), dolp.astype(np.float32), aop.astype(np.float32), method)
@@ -270,3 +276,31 @@ def test_the_same_frame_gives_the_same_maps_bit_for_bit():
         for name in IMAGE_TYPES:
             np.testing.assert_array_equal(again[name].gradient, first[name].gradient, err_msg=name)
             np.testing.assert_array_equal(again[name].edges, first[name].edges, err_msg=name)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_tiny_and_huge_gradients_keep_their_size(dtype):
+    x, _ = _grid()
+    ramp = (x * 3.0).astype(dtype)  # slope 3 per pixel
+    big = np.finfo(dtype).max / 16
+    for scale in (dtype(1e-30) if dtype == np.float32 else 1e-300, dtype(1.0), big / 1e3):
+        g = gradient_magnitude(ramp * scale)
+        np.testing.assert_allclose(_interior(g), 3.0 * scale, rtol=1e-5)
+    # thresholds and edges of a step scale with it (the squares of a float32 1e-30 underflow)
+    step = np.where(x >= 32, 1.0, 0.0).astype(dtype)
+    ref = edge_maps(step, step, np.zeros_like(step), "canny")["S0"]
+    tiny = edge_maps(step * dtype(1e-30), step, np.zeros_like(step), "canny")["S0"]
+    assert tiny.high == pytest.approx(ref.high * 1e-30, rel=1e-5)
+    np.testing.assert_array_equal(tiny.edges, ref.edges)
+
+
+def test_float64_gradient_statistics_are_numpys():
+    rng = np.random.default_rng(4)
+    g = np.abs(rng.normal(0.0, 1.0, (50, 40)))
+    g[0, 0] = 1e39  # beyond float32
+    g[1, :3] = np.nan
+    st = EdgeMap(g, np.zeros(g.shape, bool), 1.0, 0.4, "u").stats()
+    fin = g[np.isfinite(g)]
+    assert [st["gradient"][k] for k in ("p50", "p90", "p99")] == pytest.approx(np.percentile(fin, [50, 90, 99]),
+                                                                              rel=1e-15)
+    assert st["gradient"]["max"] == 1e39 and st["valid_fraction"] == fin.size / g.size

@@ -158,17 +158,19 @@ def _sobel_xy(image: NDArray[np.floating]) -> tuple[NDArray[np.floating], NDArra
 
 
 def _magnitude(x: NDArray[np.floating], y: NDArray[np.floating]) -> NDArray[np.floating]:
-    """``sqrt(x^2 + y^2)`` elementwise; ``np.hypot`` only where the squares overflow (it is 3x slower).
+    """``sqrt(x^2 + y^2)`` elementwise; ``np.hypot`` (3x slower) where the squares over- or underflow.
 
     Not ``cv2.magnitude``: its result varies in the last bit from call to call
     (its threads split the image differently), and outputs must repeat.
     """
-    with np.errstate(over="ignore"):
+    with np.errstate(over="ignore", under="ignore"):
         m = np.multiply(x, x)
         m += y * y
         np.sqrt(m, out=m)
-        if np.isinf(m).any():  # overflowed squares (or an infinite component)
-            m = np.hypot(x, y)
+        # below sqrt(tiny) x 2^12 a square has lost bits to underflow (or is 0); inf: overflowed; NaN too
+        redo = ~(m >= np.sqrt(np.finfo(m.dtype).tiny) * 4096.0) | np.isinf(m)
+        if redo.any():
+            m[redo] = np.hypot(x[redo], y[redo])
     return m
 
 
@@ -216,7 +218,7 @@ def _axial_gradient(aop_deg: ArrayLike, dolp: ArrayLike | None, *,
     return mag, dx, dy, valid
 
 
-def gradient_magnitude(image: ArrayLike) -> NDArray[np.float64]:
+def gradient_magnitude(image: ArrayLike) -> NDArray[np.floating]:
     """Sobel gradient magnitude, per pixel (see the module notes).
 
     Parameters
@@ -226,14 +228,14 @@ def gradient_magnitude(image: ArrayLike) -> NDArray[np.float64]:
 
     Returns
     -------
-    ndarray of float64, shape (H, W)
-        ``hypot(d/dx, d/dy)`` with the 3x3 Sobel kernel scaled by 1/8 (a ramp
+    ndarray, shape (H, W)
+        float32 for a float32 image, else float64: ``hypot(d/dx, d/dy)`` with the 3x3 Sobel kernel scaled by 1/8 (a ramp
         of slope ``s`` per pixel gives ``s``); NaN where the input is NaN.
     """
     return _scalar_gradient(image, "image")[0]
 
 
-def axial_gradient_magnitude(aop_deg: ArrayLike, dolp: ArrayLike | None = None) -> NDArray[np.float64]:
+def axial_gradient_magnitude(aop_deg: ArrayLike, dolp: ArrayLike | None = None) -> NDArray[np.floating]:
     """Gradient magnitude of an axial AoP image, in deg per pixel (optionally DoLP-weighted).
 
     The gradient of ``(cos 2a, sin 2a)``, never of the raw angle, so the
@@ -249,8 +251,9 @@ def axial_gradient_magnitude(aop_deg: ArrayLike, dolp: ArrayLike | None = None) 
 
     Returns
     -------
-    ndarray of float64, shape (H, W)
-        NaN where the AoP (or the DoLP, if given) is NaN.
+    ndarray, shape (H, W)
+        float32 for a float32 AoP image, else float64; NaN where the AoP (or
+        the DoLP, if given) is NaN.
     """
     return _axial_gradient(aop_deg, dolp)[0]
 
@@ -309,6 +312,7 @@ def _canny(mag: NDArray, dx: NDArray, dy: NDArray, valid: NDArray[np.bool_], hig
         v = d * factor
         if not np.isfinite(v).all():  # an overflowing gradient times 0
             v = np.nan_to_num(v, copy=False)
+        np.clip(v, -_CANNY_CLIP, _CANNY_CLIP, out=v)
         return np.rint(v, out=v).astype(np.int16)
 
     out = cv2.Canny(units(dx), units(dy), low * scale, _CANNY_HIGH_UNITS, L2gradient=True)
@@ -348,8 +352,15 @@ class EdgeMap:
         from pihim._quantiles import percentiles
 
         n = self.gradient.size
-        n_valid = int(np.isfinite(self.gradient).sum())
-        stats = percentiles(self.gradient, (50.0, 90.0, 99.0, 100.0)) if n_valid else None
+        finite = np.isfinite(self.gradient)
+        n_valid = int(finite.sum())
+        q = (50.0, 90.0, 99.0, 100.0)
+        if not n_valid:
+            stats = None
+        elif self.gradient.dtype == np.float32:  # exact selection without a float64 copy
+            stats = percentiles(self.gradient, q)
+        else:
+            stats = [float(v) for v in np.percentile(self.gradient[finite].astype(np.float64), q)]
         if stats is not None:
             p50, p90, p99, top = stats
             grad = {"p50": p50, "p90": p90, "p99": p99, "max": top}
