@@ -15,6 +15,9 @@ Rows, each ``repeat`` timed calls after ``warmup`` untimed ones, one process:
 ``edge_maps canny`` / ``edge_maps sobel``
     pihim's maps: NaN-aware gradients, the axial AoP gradient weighted by
     DoLP, robust thresholds per map, the combined map.
+``edge_maps canny, noise-weighted``
+    The same with each gradient divided by its pixel's noise (the demo's and
+    ``pihim edges``' default), the noise model's maps included.
 ``edge_maps canny, float64 images``
     The same on float64 copies of the images (computed in float64).
 ``EdgeMaps.summary()``
@@ -40,11 +43,12 @@ COUNTS = harness.Counts(repeat=10, warmup=2, quick_repeat=3, quick_warmup=1)
 RESULTS_PATH = Path(__file__).resolve().parent / "results" / "edges.json"
 
 
-def demo_frame() -> Any:
-    """The full-resolution polar images of the demo's first pair (its seed)."""
+def demo_frame() -> tuple[Any, dict[str, Any]]:
+    """The full-resolution polar images of the demo's first pair (its seed), and its log's noise model."""
     from pihim.camera import polar_image
     from pihim.demo import DEMO_TIME, DemoSettings
     from pihim.field import nsttf_like_field
+    from pihim.inspection.edges import sensor_noise
     from pihim.inspection.pipeline import sensor_settings
     from pihim.planning.pipeline import build_plan
     from pihim.render.simulate import PairPose, simulate_frame
@@ -57,8 +61,9 @@ def demo_frame() -> Any:
                          canting_sigma_mrad=s.canting_sigma_mrad, gps_sigma_m=s.gps_sigma_m,
                          attitude_sigma_deg=s.attitude_sigma_deg, seed=s.seed)
     sensor = sensor_settings(sim.log)
-    return polar_image(sim.raw, layout=sensor["layout"], analyser=sensor["analyser"], demosaic="full",
-                       dark_level=sensor["dark_level"], bit_depth=sensor["bit_depth"])
+    pim = polar_image(sim.raw, layout=sensor["layout"], analyser=sensor["analyser"], demosaic="full",
+                      dark_level=sensor["dark_level"], bit_depth=sensor["bit_depth"])
+    return pim, sensor_noise(sim.log)
 
 
 def opencv_canny(s0: np.ndarray, dolp: np.ndarray, aop_deg: np.ndarray) -> list[np.ndarray]:
@@ -73,9 +78,9 @@ def opencv_canny(s0: np.ndarray, dolp: np.ndarray, aop_deg: np.ndarray) -> list[
 
 def run_benchmark(repeat: int, warmup: int) -> dict[str, Any]:
     """Timings of the rows, JSON-ready."""
-    from pihim.inspection.edges import edge_maps
+    from pihim.inspection.edges import edge_maps, noise_sigmas
 
-    pim = demo_frame()
+    pim, noise_model = demo_frame()
     s0, dolp, aop = pim.s0, pim.dolp, pim.aop_deg
     s0_64, dolp_64, aop_64 = (np.asarray(a, np.float64) for a in (s0, dolp, aop))
     maps = edge_maps(s0, dolp, aop, "canny")
@@ -88,6 +93,8 @@ def run_benchmark(repeat: int, warmup: int) -> dict[str, Any]:
 
     anchor = add("anchor: OpenCV Canny, three 8-bit images", lambda: opencv_canny(s0, dolp, aop))
     add("pihim edge_maps canny (float32 images)", lambda: edge_maps(s0, dolp, aop, "canny"))
+    add("pihim edge_maps canny, noise-weighted (noise_sigmas included)",
+        lambda: edge_maps(s0, dolp, aop, "canny", noise=noise_sigmas(s0, **noise_model)))
     add("pihim edge_maps sobel (float32 images)", lambda: edge_maps(s0, dolp, aop, "sobel"))
     add("pihim edge_maps canny, float64 images", lambda: edge_maps(s0_64, dolp_64, aop_64, "canny"))
     add("pihim EdgeMaps.summary()", maps.summary)

@@ -85,7 +85,7 @@ CANDIDATE_SEED = 4
 K_PX = 3.0  # sensor pixels
 MIN_COVERAGE = 0.9
 TYPES = ("S0", "DoLP", "AoP", "combined")
-ROUTES = ("superpixel", "full")
+ROUTES = ("superpixel", "full", "full_noise")
 TARGET_RATE = 0.95
 PAPER = {"sky_vs_sky_rate": 108 / 118, "ground_rate": 29 / 30, "contrast_ratio": 5.93}
 COUNTS = harness.Counts(repeat=1, warmup=0, quick_repeat=1, quick_warmup=0)
@@ -160,7 +160,7 @@ def score_frame(sim: Any, view: Any, front: str, background: str = "sky") -> dic
     from pihim.camera.model import CameraModel
     from pihim.camera.pose import project_points
     from pihim.inspection.contrast import PAPER_ROI_SIZE, contrast_ratio, roi_pair_contrast
-    from pihim.inspection.edges import edge_maps
+    from pihim.inspection.edges import edge_maps, noise_sigmas, sensor_noise
     from pihim.inspection.success import edge_success, outlines_from_simulation, scenario_mask
     from pihim.render.paths import GROUND, MIRROR, SKY
     from pihim.render.views import sky_overlap
@@ -172,8 +172,9 @@ def score_frame(sim: Any, view: Any, front: str, background: str = "sky") -> dic
     res: dict[str, Any] = {"routes": {}}
     for route in ROUTES:
         t0 = time.perf_counter()
-        pim = polar_image(sim.raw, demosaic=route, bit_depth=12)
-        maps = edge_maps(pim.s0, pim.dolp, pim.aop_deg, "canny")
+        pim = polar_image(sim.raw, demosaic="superpixel" if route == "superpixel" else "full", bit_depth=12)
+        noise = noise_sigmas(pim.s0, **sensor_noise(sim.log)) if route == "full_noise" else None
+        maps = edge_maps(pim.s0, pim.dolp, pim.aop_deg, "canny", noise=noise)
         seconds = time.perf_counter() - t0
         f = 2 if route == "superpixel" else 1
         per = {}

@@ -245,7 +245,7 @@ def _edge_success(sim: Any, maps: Any, hua: str, k_px: float) -> dict[str, Any]:
 
 
 def _previews(pair_dir: Path, pim: Any, maps: Any) -> dict[str, str]:
-    """Half-size PNG previews of S0, DoLP, AoP and the three Canny edge maps."""
+    """Half-size PNG previews of S0, DoLP, AoP and the three (noise-weighted) Canny edge maps."""
     import cv2
 
     from pihim.visualize import aop_to_rgb, dolp_to_rgb, s0_to_gray, write_png
@@ -314,7 +314,7 @@ def _run_demo(out: Path, settings: DemoSettings, steps: Callable[[list[Any], str
     from pihim.camera import CameraModel, polar_image
     from pihim.field import nsttf_like_field
     from pihim.inspection.canting_output import canting_png_writer, canting_record
-    from pihim.inspection.edges import edge_maps
+    from pihim.inspection.edges import edge_maps, noise_sigmas, sensor_noise
     from pihim.inspection.pipeline import inspect_frame, sensor_settings
     from pihim.inspection.report import write_report
     from pihim.planning.export import export_all
@@ -369,7 +369,7 @@ def _run_demo(out: Path, settings: DemoSettings, steps: Callable[[list[Any], str
         sensor = sensor_settings(sim.log)
         pim = polar_image(sim.raw, layout=sensor["layout"], analyser=sensor["analyser"], demosaic="full",
                           dark_level=sensor["dark_level"], bit_depth=sensor["bit_depth"])
-        maps = edge_maps(pim.s0, pim.dolp, pim.aop_deg, "canny")
+        maps = edge_maps(pim.s0, pim.dolp, pim.aop_deg, "canny", noise=noise_sigmas(pim.s0, **sensor_noise(sim.log)))
         maps_s = _time.perf_counter() - t2
         _warmup.wait_for(helper, "solve")
         try:

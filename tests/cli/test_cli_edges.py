@@ -190,3 +190,34 @@ def test_a_lucid_raw_buffer_is_sized_by_the_log(frame, tmp_path, capsys):
     for t in TYPES:
         np.testing.assert_array_equal(tifffile.imread(tmp_path / "raw" / f"FRAME.gradient.{t}.tiff"),
                                       tifffile.imread(tmp_path / "tiff" / f"FRAME.gradient.{t}.tiff"))
+
+
+def test_noise_weighting_by_the_logs_sensor_and_without_it(frame, tmp_path, capsys):
+    from pihim.camera import polar_image
+    from pihim.inspection.edges import edge_maps, noise_sigmas
+
+    doc = json.loads(frame.with_suffix(".json").read_text())
+    model = doc["log"]["sensor"]["model"]
+    pim = polar_image(tifffile.imread(frame), demosaic="superpixel", bit_depth=12)
+    records = {}
+    for flag, noise in (("--noise-weighted", noise_sigmas(pim.s0, electrons_per_dn=model["electrons_per_dn"],
+                                                          read_noise_dn=model["read_noise_dn"])),
+                        ("--no-noise-weighted", None)):
+        out = tmp_path / flag
+        rc, cap = _run([frame, "--out", out, flag, "--json"], capsys)
+        assert rc == 0, cap.err
+        records[flag] = json.loads(cap.out)
+        want = edge_maps(pim.s0, pim.dolp, pim.aop_deg, "sobel", noise=noise)
+        for t in TYPES:
+            np.testing.assert_array_equal(tifffile.imread(out / f"FRAME.gradient.{t}.tiff"), want[t].gradient)
+    assert records["--noise-weighted"]["parameters"]["noise_weighted"] is True
+    assert records["--no-noise-weighted"]["parameters"]["noise_weighted"] is False
+    # the default is noise-weighted
+    rc, cap = _run([frame, "--out", tmp_path / "default", "--json"], capsys)
+    assert rc == 0 and json.loads(cap.out)["parameters"] == records["--noise-weighted"]["parameters"]
+    # a malformed noise model in the log: one line, exit 2
+    doc["log"]["sensor"]["model"]["electrons_per_dn"] = -1.0
+    meta = tmp_path / "bad.json"
+    meta.write_text(json.dumps(doc))
+    rc, cap = _run([frame, "--meta", meta, "--out", tmp_path / "bad"], capsys)
+    assert rc == 2 and cap.err.count("\n") == 1 and "electrons_per_dn" in cap.err

@@ -304,3 +304,69 @@ def test_float64_gradient_statistics_are_numpys():
     assert [st["gradient"][k] for k in ("p50", "p90", "p99")] == pytest.approx(np.percentile(fin, [50, 90, 99]),
                                                                               rel=1e-15)
     assert st["gradient"]["max"] == 1e39 and st["valid_fraction"] == fin.size / g.size
+
+
+def test_noise_sigmas_follow_the_quad_noise_model():
+    from pihim.inspection.edges import noise_sigmas
+
+    s0 = np.full((6, 7), 800.0)
+    s0[:, 4:] = 50.0
+    s0[0, 0] = np.nan  # counts as 0 in its 3x3 mean
+    g, r = 2.0, 1.5
+    sig_s0, sig_p = noise_sigmas(s0, electrons_per_dn=g, read_noise_dn=r)
+    var_i = 800.0 / 2 / g + r * r + 1 / 12
+    assert sig_s0[3, 1] == pytest.approx(math.sqrt(var_i), rel=1e-6)
+    assert sig_p[3, 1] == pytest.approx(math.sqrt(2 * var_i) / 800.0, rel=1e-6)
+    var_dark = 50.0 / 2 / g + r * r + 1 / 12
+    assert sig_p[3, 6] == pytest.approx(math.sqrt(2 * var_dark) / 50.0, rel=1e-6)
+    # a shot-noise-limited sensor of unknown gain: sigma_DoLP ~ 1 / sqrt(S0)
+    _, p1 = noise_sigmas(np.full((3, 3), 400.0))
+    _, p4 = noise_sigmas(np.full((3, 3), 1600.0))
+    assert p1[1, 1] / p4[1, 1] == pytest.approx(2.0, rel=1e-3)
+    assert np.isinf(noise_sigmas(np.zeros((3, 3)))[1]).all()  # no light: no polarization to measure
+    for bad in ({"electrons_per_dn": 0.0}, {"electrons_per_dn": math.nan}, {"read_noise_dn": -1.0}):
+        with pytest.raises(PihimInputError):
+            noise_sigmas(s0, **bad)
+
+
+def test_sensor_noise_reads_the_log():
+    from pihim.inspection.edges import sensor_noise
+
+    assert sensor_noise({}) == {"electrons_per_dn": None, "read_noise_dn": 0.0}
+    log = {"sensor": {"model": {"electrons_per_dn": 1.94, "read_noise_dn": 1.15}}}
+    assert sensor_noise(log) == {"electrons_per_dn": 1.94, "read_noise_dn": 1.15}
+    for bad in ({"sensor": [1]}, {"sensor": {"model": 3}}, {"sensor": {"model": {"electrons_per_dn": -1}}},
+                {"sensor": {"model": {"read_noise_dn": "x"}}}, {"sensor": {"model": {"electrons_per_dn": True}}}):
+        with pytest.raises(PihimInputError):
+            sensor_noise(bad)
+
+
+def test_noise_weighting_keeps_a_dark_regions_noise_out_of_the_maps():
+    """A DoFP frame, bright on the left with a DoLP step, dark on the right: shot noise makes the dark half's DoLP
+    and AoP noise; with one threshold per map it floods them, divided by each pixel's noise it does not."""
+    from pihim.camera import polar_image
+    from pihim.inspection.edges import noise_sigmas
+    from pihim.render.mosaic import mosaic_from_stokes
+
+    h, w = 128, 256
+    x, _ = np.meshgrid(np.arange(w), np.arange(h))
+    s0 = np.where(x < 128, 3000.0, 60.0)
+    dolp = np.where(x < 64, 0.1, 0.5)  # the step at column 64, in the bright half
+    s1, s2 = s0 * dolp, np.zeros_like(s0)
+    raw = mosaic_from_stokes(s0, s1, s2, electrons_per_dn=2.0, read_noise_dn=1.2, rng=1)
+    pim = polar_image(raw, demosaic="full", bit_depth=12)
+    plain = edge_maps(pim.s0, pim.dolp, pim.aop_deg, "canny")
+    weighted = edge_maps(pim.s0, pim.dolp, pim.aop_deg, "canny",
+                         noise=noise_sigmas(pim.s0, electrons_per_dn=2.0, read_noise_dn=1.2))
+    dark = x >= 136
+    assert plain["DoLP"].edges[dark].mean() > 0.05  # the noise of the dark half, as edges
+    assert weighted["DoLP"].edges[dark].mean() < 0.005
+    assert weighted["AoP"].edges[dark].mean() < 0.005
+    step = weighted["DoLP"].edges[8:-8, 60:69]
+    assert step.any(axis=1).mean() > 0.95  # the DoLP step is found along its length
+    assert weighted.parameters["noise_weighted"] and not plain.parameters["noise_weighted"]
+    assert "multiples of the pixel noise" in weighted["DoLP"].units
+    with pytest.raises(PihimInputError):
+        edge_maps(pim.s0, pim.dolp, pim.aop_deg, noise=(pim.s0, pim.s0[:, :10]))
+    with pytest.raises(PihimInputError):
+        edge_maps(pim.s0, pim.dolp, pim.aop_deg, noise=noise_sigmas(pim.s0), aop_dolp_weighted=False)

@@ -26,7 +26,7 @@ from pihim.camera.model import CameraModel
 from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
 from pihim.cli._common import check_out_dir, emit_json, make_out_dir, report_error, stderr_console
 from pihim.errors import PihimInputError
-from pihim.inspection.edges import EDGE_METHODS, IMAGE_TYPES, EdgeMaps, edge_maps
+from pihim.inspection.edges import EDGE_METHODS, IMAGE_TYPES, EdgeMaps, edge_maps, noise_sigmas, sensor_noise
 from pihim.polarimetry.analyser import AnalyserMatrix
 
 SCHEMA_ID = "pihim.edges/1"
@@ -153,6 +153,7 @@ def edges(
     meta: Annotated[Path | None, typer.Option("--meta", help="Metadata JSON (its 'log' only); default FRAME.json beside the frame.")] = None,
     method: Annotated[str, typer.Option(help="sobel (thresholded magnitude) or canny.")] = "sobel",
     demosaic: Annotated[str, typer.Option(help="superpixel (half resolution) or full.")] = "superpixel",
+    noise_weighted: Annotated[bool, typer.Option("--noise-weighted/--no-noise-weighted", help="Divide each gradient by its pixel's noise (S0 and the log's sensor gain and read noise) before the thresholds.")] = True,
     json_out: Annotated[bool, typer.Option("--json", help="Print the JSON summary on stdout.")] = False,
 ) -> int:
     """Edge maps of the S0, DoLP and AoP images of a raw frame (PNG edges, float32 TIFF gradients, JSON summary).
@@ -178,6 +179,10 @@ def edges(
     except PihimInputError as exc:
         raise PihimInputError(f"{meta}: {exc}") from None
     settings = sensor_settings(log, meta)
+    try:
+        noise_model = sensor_noise(log)
+    except PihimInputError as exc:
+        raise PihimInputError(f"{meta}: {exc}") from None
     if frame.suffix.lower() in RAW_SUFFIXES:  # a headerless Lucid buffer: its size comes from the log
         raw = read_frame(frame, width=camera.width_px, height=camera.height_px)
     else:
@@ -190,7 +195,8 @@ def edges(
     pol = polar_image(raw.data, layout=settings["layout"], analyser=settings["analyser"],
                       demosaic=demosaic, dark_level=settings["dark_level"],  # type: ignore[arg-type]
                       bit_depth=settings["bit_depth"] if settings["bit_depth"] is not None else raw.bit_depth)
-    maps = edge_maps(pol.s0, pol.dolp, pol.aop_deg, method)  # type: ignore[arg-type]
+    noise = noise_sigmas(pol.s0, **noise_model) if noise_weighted else None  # type: ignore[arg-type]
+    maps = edge_maps(pol.s0, pol.dolp, pol.aop_deg, method, noise=noise)  # type: ignore[arg-type]
     paths = output_paths(out, frame.stem)
     writers: dict[Path, Callable[[Path], None]] = {}
     for t, m in maps.items():

@@ -35,6 +35,31 @@ float64): the gradients agree to about 1e-4 of the map's largest value, and
 float32 is about four times faster on a 5-megapixel frame (0.7 against 2.8
 s for the Canny maps here, ``benchmarks/bench_edges.py``).
 
+Noise weighting
+---------------
+One threshold per map suits a frame whose noise is alike everywhere; it is
+not: a DoFP pixel's shot noise grows as the square root of its signal, so
+the DoLP and AoP of a dark region (the dark back of the target that a
+UFACET pair's facets reflect) are mostly noise, and their gradients there
+pass a threshold set by the bright majority (14-15 % of the pixels of the
+demo's frames became DoLP or AoP edges). Given per-pixel noise standard
+deviations (``noise=`` of :func:`edge_maps`, from :func:`noise_sigmas`),
+each gradient map is divided by its image's noise before the thresholds:
+S0 by ``sigma_S0``, DoLP by ``sigma_DoLP`` and the DoLP-weighted AoP by
+``(90 / pi) sigma_DoLP`` (an AoP's noise is ``sigma_DoLP / (2 DoLP)``
+radians, so the weighted map's is that times DoLP). The maps are then in
+multiples of the pixel noise per pixel, and an edge is a step that stands
+out of its own region's noise (3 % of those pixels).
+
+:func:`noise_sigmas` takes the four analyser channels of a quad at
+``S0 / 2`` each (the ideal DoFP), each with shot noise (``electrons_per_dn``
+electrons per DN), read noise and the ADC's quantisation noise: ``var(I) =
+(S0 / 2) / g + r^2 + 1/12`` DN^2, ``sigma_S0 = sqrt(var(I))`` (S0 is half
+the sum of four channels), ``sigma_DoLP = sqrt(2 var(I)) / S0`` (S1 and S2
+are differences of two channels; first order in the noise, as for a weakly
+polarized pixel), with S0 the 3x3 mean. Demosaicing scales every pixel's
+noise alike, which the relative thresholds do not see.
+
 Edge pixels and thresholds
 --------------------------
 Each gradient map gets one threshold from robust statistics of its finite
@@ -65,6 +90,7 @@ its edge pixels are the union of the three binary maps.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -81,7 +107,9 @@ __all__ = [
     "axial_gradient_magnitude",
     "edge_maps",
     "gradient_magnitude",
+    "noise_sigmas",
     "robust_thresholds",
+    "sensor_noise",
 ]
 
 #: Edge detectors of :func:`edge_maps`.
@@ -258,6 +286,80 @@ def axial_gradient_magnitude(aop_deg: ArrayLike, dolp: ArrayLike | None = None) 
     return _axial_gradient(aop_deg, dolp)[0]
 
 
+def noise_sigmas(
+    s0: ArrayLike,
+    *,
+    electrons_per_dn: float | None = None,
+    read_noise_dn: float = 0.0,
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Per-pixel noise standard deviations of S0 (DN) and DoLP of a DoFP sensor (see the module notes).
+
+    Parameters
+    ----------
+    s0 : array_like, shape (H, W)
+        S0 in DN above the dark level (:class:`pihim.camera.PolarImage` ``.s0``);
+        NaN allowed.
+    electrons_per_dn : float, optional
+        Conversion gain, electrons per DN (the frame log's
+        ``sensor.model.electrons_per_dn``); default 1: a shot-noise-limited
+        sensor of unknown gain (the noise then scales as ``sqrt(S0)``, which is
+        all :func:`edge_maps`' relative thresholds need).
+    read_noise_dn : float
+        Read noise per pixel, DN.
+
+    Returns
+    -------
+    sigma_s0, sigma_dolp : ndarray of float32, shape (H, W)
+        ``sigma_DoLP`` is infinite where the local S0 is not positive (no
+        polarization can be measured there).
+
+    References
+    ----------
+    .. [1] J. S. Tyo, D. L. Goldstein, D. B. Chenault, J. A. Shaw, "Review of
+       passive imaging polarimetry for remote sensing applications", Appl.
+       Opt. 45(22), 5453-5469 (2006), doi:10.1364/AO.45.005453 (noise of
+       Stokes estimates from analyser channels).
+    """
+    import cv2  # imported where used: the command line's --help need not load OpenCV
+
+    a = _image("S0", s0)
+    g = 1.0 if electrons_per_dn is None else float(electrons_per_dn)
+    r = float(read_noise_dn)
+    if not (math.isfinite(g) and g > 0):
+        raise PihimInputError(f"electrons_per_dn must be a finite number > 0, got {electrons_per_dn!r}")
+    if not (math.isfinite(r) and r >= 0):
+        raise PihimInputError(f"read_noise_dn must be a finite number >= 0, got {read_noise_dn!r}")
+    local = cv2.blur(np.nan_to_num(a, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32), (3, 3),
+                     borderType=cv2.BORDER_REPLICATE)
+    var_i = np.maximum(local, 0.0) * np.float32(0.5 / g) + np.float32(r * r + 1.0 / 12.0)
+    sigma_s0 = np.sqrt(var_i)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sigma_dolp = np.where(local > 0, np.sqrt(2.0 * var_i) / local, np.float32(np.inf)).astype(np.float32)
+    return sigma_s0, sigma_dolp
+
+
+def sensor_noise(log: Mapping[str, Any]) -> dict[str, float | None]:
+    """The noise model a frame's ``log["sensor"]["model"]`` records, for :func:`noise_sigmas`.
+
+    Returns ``{"electrons_per_dn", "read_noise_dn"}``: None (unknown gain: a
+    shot-noise-limited sensor) and 0 DN where the log is silent; a malformed
+    entry is a :class:`PihimInputError`.
+    """
+    sensor = log.get("sensor") or {}
+    if not isinstance(sensor, Mapping):
+        raise PihimInputError("log 'sensor' must be an object")
+    model = sensor.get("model") or {}
+    if not isinstance(model, Mapping):
+        raise PihimInputError("log 'sensor.model' must be an object")
+    gain, read = model.get("electrons_per_dn"), model.get("read_noise_dn", 0.0)
+    for name, v, ok in (("electrons_per_dn", gain, lambda x: x > 0), ("read_noise_dn", read, lambda x: x >= 0)):
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
+                              or not ok(v)):
+            raise PihimInputError(f"log sensor {name} must be a finite number {'> 0' if name[0] == 'e' else '>= 0'}, "
+                                  f"got {v!r}")
+    return {"electrons_per_dn": None if gain is None else float(gain), "read_noise_dn": float(read or 0.0)}
+
+
 def robust_thresholds(
     gradient: ArrayLike,
     *,
@@ -425,6 +527,7 @@ def edge_maps(
     floor_fraction: float = 0.1,
     low_ratio: float = 0.4,
     aop_dolp_weighted: bool = True,
+    noise: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> EdgeMaps:
     """Edge maps of the S0, DoLP and AoP images of one frame, and their combination.
 
@@ -440,6 +543,11 @@ def edge_maps(
         Threshold rule of :func:`robust_thresholds`, applied per image type.
     aop_dolp_weighted : bool
         Weight the AoP gradient by the local DoLP (default).
+    noise : (sigma_s0, sigma_dolp), optional
+        Per-pixel noise standard deviations of S0 and DoLP, shape (H, W)
+        (:func:`noise_sigmas`): each gradient map is divided by its image's
+        noise before the thresholds (see the module notes), and is then in
+        multiples of the pixel noise. Needs ``aop_dolp_weighted``.
 
     Returns
     -------
@@ -457,6 +565,17 @@ def edge_maps(
         raise PihimInputError(
             f"S0, DoLP and AoP must have the same shape, got {s0_a.shape}, {dolp_a.shape}, {aop_a.shape}"
         )
+    sigmas: dict[str, NDArray] = {}
+    if noise is not None:
+        if not aop_dolp_weighted:
+            raise PihimInputError("noise weighting needs the DoLP-weighted AoP gradient (aop_dolp_weighted)")
+        if not (isinstance(noise, (tuple, list)) and len(noise) == 2):
+            raise PihimInputError("noise must be a pair (sigma_s0, sigma_dolp) of images")
+        sig_s0, sig_dolp = _image("sigma_s0", noise[0]), _image("sigma_dolp", noise[1])
+        if not (sig_s0.shape == sig_dolp.shape == s0_a.shape):
+            raise PihimInputError(f"the noise images must have the images' shape {s0_a.shape}, got "
+                                  f"{sig_s0.shape} and {sig_dolp.shape}")
+        sigmas = {"S0": sig_s0, "DoLP": sig_dolp, "AoP": sig_dolp * sig_dolp.dtype.type(_AXIAL_DEG)}
     grads = {
         "S0": (*_scalar_gradient(s0_a, "S0"), "S0 per pixel"),
         "DoLP": (*_scalar_gradient(dolp_a, "DoLP"), "DoLP per pixel"),
@@ -465,6 +584,10 @@ def edge_maps(
     }
     maps: dict[str, EdgeMap] = {}
     for name, (mag, dx, dy, valid, units) in grads.items():
+        if sigmas:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                mag, dx, dy = (None if d is None else d / sigmas[name] for d in (mag, dx, dy))
+            units = f"{units}, in multiples of the pixel noise"
         high, low = robust_thresholds(mag, n_sigma=n_sigma, floor_fraction=floor_fraction, low_ratio=low_ratio)
         if method == "sobel":
             with np.errstate(invalid="ignore"):
@@ -484,6 +607,6 @@ def edge_maps(
     combined = EdgeMap(combined_grad, combined_edges, 1.0, float(low_ratio),
                        "multiples of each image type's high threshold")
     params = {"n_sigma": float(n_sigma), "floor_fraction": float(floor_fraction), "low_ratio": float(low_ratio),
-              "aop_dolp_weighted": bool(aop_dolp_weighted)}
+              "aop_dolp_weighted": bool(aop_dolp_weighted), "noise_weighted": bool(sigmas)}
     return EdgeMaps(maps["S0"], maps["DoLP"], maps["AoP"], combined, str(method), params)
 

@@ -77,8 +77,8 @@ def _pair_section(p: dict[str, Any]) -> str:
                  "</div>")
     pv = p["previews"]
     figs = [("S0", "S0 (intensity)"), ("DoLP", "DoLP (0..1, viridis)"), ("AoP", "AoP (hue; brightness DoLP)"),
-            ("edges_S0", "Canny edges of S0"), ("edges_DoLP", "Canny edges of DoLP"),
-            ("edges_AoP", "Canny edges of axial AoP")]
+            ("edges_S0", "Canny edges of S0 (noise-weighted)"), ("edges_DoLP", "Canny edges of DoLP (noise-weighted)"),
+            ("edges_AoP", "Canny edges of axial AoP (noise-weighted)")]
     parts.append('<div class="grid">' + "".join(
         f"<figure>{_img(f'{d}/{pv[k]}', cap)}<figcaption>{e(cap)}</figcaption></figure>" for k, cap in figs)
         + "</div>")
