@@ -49,7 +49,8 @@ S0 by ``sigma_S0``, DoLP by ``sigma_DoLP`` and the DoLP-weighted AoP by
 ``(90 / pi) sigma_DoLP`` (an AoP's noise is ``sigma_DoLP / (2 DoLP)``
 radians, so the weighted map's is that times DoLP). The maps are then in
 multiples of the pixel noise per pixel, and an edge is a step that stands
-out of its own region's noise (3 % of those pixels).
+out of its own region's noise (the demo frames' DoLP and AoP maps: about
+3 % of the pixels).
 
 :func:`noise_sigmas` takes the four analyser channels of a quad at
 ``S0 / 2`` each (the ideal DoFP), each with shot noise (``electrons_per_dn``
