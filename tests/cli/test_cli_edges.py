@@ -211,7 +211,12 @@ def test_noise_weighting_by_the_logs_sensor_and_without_it(frame, tmp_path, caps
         for t in TYPES:
             np.testing.assert_array_equal(tifffile.imread(out / f"FRAME.gradient.{t}.tiff"), want[t].gradient)
     assert records["--noise-weighted"]["parameters"]["noise_weighted"] is True
+    assert records["--noise-weighted"]["noise_model"] == {"electrons_per_dn": model["electrons_per_dn"],
+                                                          "read_noise_dn": model["read_noise_dn"]}
     assert records["--no-noise-weighted"]["parameters"]["noise_weighted"] is False
+    assert records["--no-noise-weighted"]["noise_model"] is None
+    for rec in records.values():
+        jsonschema.validate(rec, SCHEMA, cls=jsonschema.Draft202012Validator)
     # the default is noise-weighted
     rc, cap = _run([frame, "--out", tmp_path / "default", "--json"], capsys)
     assert rc == 0 and json.loads(cap.out)["parameters"] == records["--noise-weighted"]["parameters"]

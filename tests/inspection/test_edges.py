@@ -314,6 +314,7 @@ def test_noise_sigmas_follow_the_quad_noise_model():
     s0[0, 0] = np.nan  # counts as 0 in its 3x3 mean
     g, r = 2.0, 1.5
     sig_s0, sig_p = noise_sigmas(s0, electrons_per_dn=g, read_noise_dn=r)
+    assert sig_s0[1, 1] == pytest.approx(math.sqrt(800.0 * 8 / 9 / 2 / g + r * r + 1 / 12), rel=1e-6)
     var_i = 800.0 / 2 / g + r * r + 1 / 12
     assert sig_s0[3, 1] == pytest.approx(math.sqrt(var_i), rel=1e-6)
     assert sig_p[3, 1] == pytest.approx(math.sqrt(2 * var_i) / 800.0, rel=1e-6)
@@ -324,7 +325,8 @@ def test_noise_sigmas_follow_the_quad_noise_model():
     _, p4 = noise_sigmas(np.full((3, 3), 1600.0))
     assert p1[1, 1] / p4[1, 1] == pytest.approx(2.0, rel=1e-3)
     assert np.isinf(noise_sigmas(np.zeros((3, 3)))[1]).all()  # no light: no polarization to measure
-    for bad in ({"electrons_per_dn": 0.0}, {"electrons_per_dn": math.nan}, {"read_noise_dn": -1.0}):
+    for bad in ({"electrons_per_dn": 0.0}, {"electrons_per_dn": math.nan}, {"electrons_per_dn": 1e300},
+                {"read_noise_dn": -1.0}, {"read_noise_dn": 1e200}):
         with pytest.raises(PihimInputError):
             noise_sigmas(s0, **bad)
 
@@ -336,7 +338,9 @@ def test_sensor_noise_reads_the_log():
     log = {"sensor": {"model": {"electrons_per_dn": 1.94, "read_noise_dn": 1.15}}}
     assert sensor_noise(log) == {"electrons_per_dn": 1.94, "read_noise_dn": 1.15}
     for bad in ({"sensor": [1]}, {"sensor": {"model": 3}}, {"sensor": {"model": {"electrons_per_dn": -1}}},
-                {"sensor": {"model": {"read_noise_dn": "x"}}}, {"sensor": {"model": {"electrons_per_dn": True}}}):
+                {"sensor": {"model": {"read_noise_dn": "x"}}}, {"sensor": {"model": {"electrons_per_dn": True}}},
+                {"sensor": {"model": {"read_noise_dn": None}}}, {"sensor": {"model": {"read_noise_dn": 1e200}}},
+                {"sensor": {"model": {"electrons_per_dn": 10**400}}}):
         with pytest.raises(PihimInputError):
             sensor_noise(bad)
 
@@ -364,9 +368,18 @@ def test_noise_weighting_keeps_a_dark_regions_noise_out_of_the_maps():
     assert weighted["AoP"].edges[dark].mean() < 0.005
     step = weighted["DoLP"].edges[8:-8, 60:69]
     assert step.any(axis=1).mean() > 0.95  # the DoLP step is found along its length
+    sig_s0, sig_dolp = noise_sigmas(pim.s0, electrons_per_dn=2.0, read_noise_dn=1.2)
+    np.testing.assert_allclose(weighted["S0"].gradient, plain["S0"].gradient / sig_s0, rtol=1e-6)
+    np.testing.assert_allclose(weighted["DoLP"].gradient, plain["DoLP"].gradient / sig_dolp, rtol=1e-6)
+    np.testing.assert_allclose(weighted["AoP"].gradient, plain["AoP"].gradient / (sig_dolp * (90 / np.pi)), rtol=1e-5)
     assert weighted.parameters["noise_weighted"] and not plain.parameters["noise_weighted"]
     assert "multiples of the pixel noise" in weighted["DoLP"].units
     with pytest.raises(PihimInputError):
         edge_maps(pim.s0, pim.dolp, pim.aop_deg, noise=(pim.s0, pim.s0[:, :10]))
     with pytest.raises(PihimInputError):
         edge_maps(pim.s0, pim.dolp, pim.aop_deg, noise=noise_sigmas(pim.s0), aop_dolp_weighted=False)
+    for bad in (0.0, -1.0, np.nan):
+        sig = np.ones_like(pim.s0)
+        sig[3, 3] = bad
+        with pytest.raises(PihimInputError):
+            edge_maps(pim.s0, pim.dolp, pim.aop_deg, noise=(sig, np.ones_like(sig)))

@@ -119,7 +119,7 @@ def _tiff_writer(image: np.ndarray) -> Callable[[Path], None]:
 
 def summary_record(frame: Path, meta: Path, maps: EdgeMaps, *, demosaic: str, camera: CameraModel,
                    settings: dict[str, Any], fraction_saturated: float, outputs: dict[str, Path],
-                   seconds: float) -> dict[str, Any]:
+                   seconds: float, noise_model: dict[str, Any] | None = None) -> dict[str, Any]:
     """The ``pihim.edges/1`` JSON summary."""
     rows, cols = maps.shape
     return {
@@ -141,6 +141,7 @@ def summary_record(frame: Path, meta: Path, maps: EdgeMaps, *, demosaic: str, ca
         "height": int(rows),
         "fraction_saturated": float(fraction_saturated),
         "parameters": dict(maps.parameters),
+        "noise_model": noise_model,
         "images": maps.summary(),
         "outputs": {k: str(v) for k, v in outputs.items()},
         "seconds": round(float(seconds), 4),
@@ -204,7 +205,8 @@ def edges(
         writers[paths[f"{t}_tiff"]] = _tiff_writer(m.gradient)
     sat = float(pol.saturated.mean()) if pol.saturated.size else 0.0
     record = summary_record(frame, meta, maps, demosaic=demosaic, camera=camera, settings=settings,
-                            fraction_saturated=sat, outputs=paths, seconds=_time.perf_counter() - t0)
+                            fraction_saturated=sat, outputs=paths, seconds=_time.perf_counter() - t0,
+                            noise_model=noise_model if noise_weighted else None)
     text = json.dumps(record, indent=2, allow_nan=False) + "\n"
     writers[paths["summary"]] = lambda p: p.write_text(text, encoding="utf-8")
     try:

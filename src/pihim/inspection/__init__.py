@@ -40,7 +40,7 @@ _EXPORTS: dict[str, list[str]] = {
     "contrast": ["PAPER_ROI_SIZE", "RoiPairContrast", "contrast_ratio", "michelson_contrast", "roi_pair_contrast"],
     "edges": [
         "EDGE_METHODS", "EdgeMap", "EdgeMaps", "IMAGE_TYPES", "axial_gradient_magnitude", "edge_maps",
-        "gradient_magnitude", "robust_thresholds",
+        "gradient_magnitude", "noise_sigmas", "robust_thresholds", "sensor_noise",
     ],
     "success": [
         "EDGE_NAMES", "EdgeSuccess", "FacetOutlines", "FrameScore", "SuccessRate", "edge_success",
@@ -57,7 +57,7 @@ if TYPE_CHECKING:  # static checkers see the names where they are defined
     )
     from pihim.inspection.edges import (  # noqa: F401
         EDGE_METHODS, EdgeMap, EdgeMaps, IMAGE_TYPES, axial_gradient_magnitude, edge_maps, gradient_magnitude,
-        robust_thresholds,
+        noise_sigmas, robust_thresholds, sensor_noise,
     )
     from pihim.inspection.success import (  # noqa: F401
         EDGE_NAMES, EdgeSuccess, FacetOutlines, FrameScore, SuccessRate, edge_success, facet_outlines_px,

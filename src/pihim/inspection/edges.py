@@ -57,9 +57,16 @@ out of its own region's noise (the demo frames' DoLP and AoP maps: about
 electrons per DN), read noise and the ADC's quantisation noise: ``var(I) =
 (S0 / 2) / g + r^2 + 1/12`` DN^2, ``sigma_S0 = sqrt(var(I))`` (S0 is half
 the sum of four channels), ``sigma_DoLP = sqrt(2 var(I)) / S0`` (S1 and S2
-are differences of two channels; first order in the noise, as for a weakly
-polarized pixel), with S0 the 3x3 mean. Demosaicing scales every pixel's
-noise alike, which the relative thresholds do not see.
+are differences of two channels), with S0 the 3x3 mean. ``sigma_S0`` and
+the AoP's scaling are exact for this model at any polarization;
+``sigma_DoLP`` is first order and leaves out the covariance of S0 and S1,
+so it is about right for a moderately polarized pixel (0.96-0.98 of the
+true spread at DoLP 0.3) but about 1.2x too large at DoLP 0.8 and 1.5x at
+DoLP 0 (where the DoLP's noise is not Gaussian): a residual, pixel-dependent
+error of tens of per cent against the several-fold one of the plain maps.
+Demosaicing scales every pixel's noise about alike, which the relative
+thresholds do not see. The log's ``sensor.model`` is taken to describe the
+frame as it was taken (its gain).
 
 Edge pixels and thresholds
 --------------------------
@@ -142,6 +149,9 @@ def _image(name: str, image: ArrayLike) -> NDArray[np.floating]:
         raise PihimInputError(f"{name} must be numeric, got dtype {a.dtype}")
     return a if a.dtype in (np.float32, np.float64) else a.astype(np.float64)
 
+
+#: Largest read noise :func:`sensor_noise` accepts, DN (a 16-bit raw range).
+_MAX_READ_NOISE_DN = 65535.0
 
 #: Neighbour offsets (row, column) in the order :func:`_fill_nearest` takes them: sides, then corners.
 _NEIGHBOURS = ((0, -1), (0, 1), (-1, 0), (1, 0), (-1, -1), (-1, 1), (1, -1), (1, 1))
@@ -326,10 +336,10 @@ def noise_sigmas(
     a = _image("S0", s0)
     g = 1.0 if electrons_per_dn is None else float(electrons_per_dn)
     r = float(read_noise_dn)
-    if not (math.isfinite(g) and g > 0):
-        raise PihimInputError(f"electrons_per_dn must be a finite number > 0, got {electrons_per_dn!r}")
-    if not (math.isfinite(r) and r >= 0):
-        raise PihimInputError(f"read_noise_dn must be a finite number >= 0, got {read_noise_dn!r}")
+    if not (1e-6 <= g <= 1e6):
+        raise PihimInputError(f"electrons_per_dn must be in [1e-06, 1e+06], got {electrons_per_dn!r}")
+    if not (0.0 <= r <= _MAX_READ_NOISE_DN):
+        raise PihimInputError(f"read_noise_dn must be in [0, {_MAX_READ_NOISE_DN:g}], got {read_noise_dn!r}")
     local = cv2.blur(np.nan_to_num(a, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32), (3, 3),
                      borderType=cv2.BORDER_REPLICATE)
     var_i = np.maximum(local, 0.0) * np.float32(0.5 / g) + np.float32(r * r + 1.0 / 12.0)
@@ -352,13 +362,15 @@ def sensor_noise(log: Mapping[str, Any]) -> dict[str, float | None]:
     model = sensor.get("model") or {}
     if not isinstance(model, Mapping):
         raise PihimInputError("log 'sensor.model' must be an object")
-    gain, read = model.get("electrons_per_dn"), model.get("read_noise_dn", 0.0)
-    for name, v, ok in (("electrons_per_dn", gain, lambda x: x > 0), ("read_noise_dn", read, lambda x: x >= 0)):
-        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
-                              or not ok(v)):
-            raise PihimInputError(f"log sensor {name} must be a finite number {'> 0' if name[0] == 'e' else '>= 0'}, "
-                                  f"got {v!r}")
-    return {"electrons_per_dn": None if gain is None else float(gain), "read_noise_dn": float(read or 0.0)}
+    out: dict[str, float | None] = {"electrons_per_dn": None, "read_noise_dn": 0.0}
+    for name, lo, hi in (("electrons_per_dn", 1e-6, 1e6), ("read_noise_dn", 0.0, _MAX_READ_NOISE_DN)):
+        if name not in model:
+            continue
+        v = model[name]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (lo <= v <= hi):
+            raise PihimInputError(f"log sensor {name} must be a number in [{lo:g}, {hi:g}], got {v!r}")
+        out[name] = float(v)
+    return out
 
 
 def robust_thresholds(
@@ -576,6 +588,8 @@ def edge_maps(
         if not (sig_s0.shape == sig_dolp.shape == s0_a.shape):
             raise PihimInputError(f"the noise images must have the images' shape {s0_a.shape}, got "
                                   f"{sig_s0.shape} and {sig_dolp.shape}")
+        if not ((sig_s0 > 0).all() and (sig_dolp > 0).all()):  # NaN fails too; inf (no signal) is allowed
+            raise PihimInputError("the noise standard deviations must be > 0 (inf where nothing is measured)")
         sigmas = {"S0": sig_s0, "DoLP": sig_dolp, "AoP": sig_dolp * sig_dolp.dtype.type(_AXIAL_DEG)}
     grads = {
         "S0": (*_scalar_gradient(s0_a, "S0"), "S0 per pixel"),
