@@ -26,6 +26,7 @@ from pihim.camera.model import CameraModel
 from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
 from pihim.cli._common import check_out_dir, emit_json, make_out_dir, report_error, stderr_console
 from pihim.errors import PihimInputError
+from pihim.inspection._log import sensor_entries
 from pihim.inspection.edges import EDGE_METHODS, IMAGE_TYPES, EdgeMaps, edge_maps, noise_sigmas, sensor_noise
 from pihim.polarimetry.analyser import AnalyserMatrix
 
@@ -64,12 +65,10 @@ def read_log(meta: Path) -> dict[str, Any]:
 
 def sensor_settings(log: Mapping[str, Any], meta: Path) -> dict[str, Any]:
     """Layout, analyser, dark level and bit depth from ``log["sensor"]`` (defaults if absent)."""
-    sensor = log.get("sensor") or {}
-    if not isinstance(sensor, Mapping):
-        raise PihimInputError(f"{meta}: log 'sensor' must be an object")
-    model = sensor.get("model") or {}
-    if not isinstance(model, Mapping):
-        raise PihimInputError(f"{meta}: log 'sensor.model' must be an object")
+    try:
+        sensor, model = sensor_entries(log)
+    except PihimInputError as exc:
+        raise PihimInputError(f"{meta}: {exc}") from None
     layout_text = sensor.get("layout", model.get("layout"))
     try:
         layout = IMX250MZR if layout_text is None else MosaicLayout.parse(str(layout_text))

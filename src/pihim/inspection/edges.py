@@ -106,6 +106,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from pihim.errors import PihimInputError
+from pihim.inspection._log import sensor_entries
 
 __all__ = [
     "EDGE_METHODS",
@@ -356,12 +357,7 @@ def sensor_noise(log: Mapping[str, Any]) -> dict[str, float | None]:
     shot-noise-limited sensor) and 0 DN where the log is silent; a malformed
     entry is a :class:`PihimInputError`.
     """
-    sensor = log.get("sensor") or {}
-    if not isinstance(sensor, Mapping):
-        raise PihimInputError("log 'sensor' must be an object")
-    model = sensor.get("model") or {}
-    if not isinstance(model, Mapping):
-        raise PihimInputError("log 'sensor.model' must be an object")
+    _, model = sensor_entries(log)
     out: dict[str, float | None] = {"electrons_per_dn": None, "read_noise_dn": 0.0}
     for name, lo, hi in (("electrons_per_dn", 1e-6, 1e6), ("read_noise_dn", 0.0, _MAX_READ_NOISE_DN)):
         if name not in model:

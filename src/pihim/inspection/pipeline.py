@@ -47,6 +47,7 @@ from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
 from pihim.camera.pose import CameraPose, project_points
 from pihim.errors import PihimInputError
 from pihim.field.kinematics import FieldPose, drive_angles, track_field
+from pihim.inspection._log import sensor_entries
 from pihim.inspection.canting import CantingResult, FacetCanting, estimate_canting
 from pihim.inspection.features import edge_points
 from pihim.inspection.pose import facet_outline_segments, refine_pose
@@ -168,12 +169,7 @@ def sensor_settings(log: Mapping[str, Any]) -> dict[str, Any]:
     ideal analyser, 0 DN and the frame's own range where the log is silent);
     a malformed entry is a :class:`PihimInputError`.
     """
-    sensor = log.get("sensor") or {}
-    if not isinstance(sensor, Mapping):
-        raise PihimInputError("log 'sensor' must be an object")
-    model = sensor.get("model") or {}
-    if not isinstance(model, Mapping):
-        raise PihimInputError("log 'sensor.model' must be an object")
+    sensor, model = sensor_entries(log)
     layout_text = sensor.get("layout", model.get("layout"))
     layout = IMX250MZR if layout_text is None else MosaicLayout.parse(str(layout_text))
     analyser = AnalyserMatrix.from_dict(dict(model["analyser"])) if "analyser" in model else None

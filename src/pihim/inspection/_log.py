@@ -1,0 +1,25 @@
+"""Reading the sensor entries of a frame's ``log`` (shared by the estimators and the commands)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from pihim.errors import PihimInputError
+
+
+def sensor_entries(log: Mapping[str, Any]) -> tuple[Mapping[str, Any], Mapping[str, Any]]:
+    """``(log["sensor"], log["sensor"]["model"])``, each ``{}`` when absent.
+
+    Raises
+    ------
+    PihimInputError
+        Either is present but not an object.
+    """
+    sensor = log.get("sensor") or {}
+    if not isinstance(sensor, Mapping):
+        raise PihimInputError("log 'sensor' must be an object")
+    model = sensor.get("model") or {}
+    if not isinstance(model, Mapping):
+        raise PihimInputError("log 'sensor.model' must be an object")
+    return sensor, model
