@@ -67,7 +67,12 @@ the same frames; a median 1.8 s per frame for the whole chain (1.1 s of it
 this step's CPU). With every heliostat's logged drive angles off by
 N(0, 5 mrad), ``target_orientation=True`` measures 40 facets on 10 frames
 (44 without the error) to 0.33 / 0.54 mrad at about 2 s more CPU; without
-it, 7 (BENCHMARKS.md). Not yet: polarimetric edge weighting.
+it, 7 (BENCHMARKS.md). Not yet: polarimetric edge points. Edge points from
+a gradient of S0, DoLP and AoP each divided by its pixel's noise
+(:func:`pihim.inspection.edges.noise_sigmas`) were tried on 8 of those
+frames: 2 facets measured instead of 33, one pose failure, 10.8 s instead of
+2.2 s per frame (the target's reflection in DoLP adds points that break the
+fits' sub-pixel consistency); the chain stays on S0.
 
 References
 ----------
