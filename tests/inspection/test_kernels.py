@@ -264,6 +264,11 @@ def test_reflection_solve_recovers_known_canting():
     # the held normals are those at zero deviation: the answer is exact only to the outline's turn
     assert x == pytest.approx([true_az, true_el], abs=0.02)
     assert jac.shape == (len(idx), 2)
+    # a start a rounding error off zero (a grid node -span + 10 steps) finds the same answer: the first
+    # trust radius is at least one scaled unit, not |x0| (1e-14 ended the solve where it began)
+    x_tiny = K.solve(prob, np.array([-3.552713678800501e-15, -3.552713678800501e-15]), len(idx),
+                     np.array([0.1, 0.1]), 200, True, 0.5)[0]
+    assert x_tiny == pytest.approx(x, abs=1e-6)
 
 
 # ------------------------------------------------------------------------------------- edges

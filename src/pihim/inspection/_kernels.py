@@ -737,7 +737,7 @@ def solve(prob: tuple, x0: NDArray, m: int, x_scale: NDArray, max_nfev: int, sof
 
     Trust-region least squares in the variables scaled by ``x_scale`` -- the algorithm of
     ``scipy.optimize.least_squares(method="trf", tr_solver="exact")`` without bounds: Moré's
-    exact step, the radius set from ``|x0 / x_scale|`` (1 if zero), quartered or doubled on
+    exact step, the radius set from ``|x0 / x_scale|`` (at least 1), quartered or doubled on
     the ratio of actual to predicted reduction, ``ftol = xtol = gtol = 1e-8``, at most
     ``max_nfev`` residual evaluations -- with the analytic Jacobian of :func:`_evaluate`.
     ``m`` is the number of residuals.
@@ -764,9 +764,9 @@ def solve(prob: tuple, x0: NDArray, m: int, x_scale: NDArray, max_nfev: int, sof
     delta = 0.0
     for i in range(n):
         delta += (x0[i] / x_scale[i]) ** 2
-    delta = math.sqrt(delta)
-    if delta == 0.0:
-        delta = 1.0
+    # at least one scaled unit: a start a rounding error off zero would otherwise begin with a radius
+    # of 1e-14, whose first step already meets ``ftol`` (scipy's "1 if zero" has that trap)
+    delta = max(math.sqrt(delta), 1.0)
     alpha = 0.0
     tol = 1e-8
     done = False

@@ -72,7 +72,13 @@ a gradient of S0, DoLP and AoP each divided by its pixel's noise
 (:func:`pihim.inspection.edges.noise_sigmas`) were tried on 8 of those
 frames: 2 facets measured instead of 33, one pose failure, 10.8 s instead of
 2.2 s per frame (the target's reflection in DoLP adds points that break the
-fits' sub-pixel consistency); the chain stays on S0.
+fits' sub-pixel consistency); the chain stays on S0. Also tried (the 20
+frames of ``benchmarks/canting_quality.py``, 2026-11-26): refinements seeded
+from the peaks of a grid four times finer than the paper's (tolerance 3 px),
+the fit with the most matched points kept: 148 facets measured instead of
+87, 3 of them locked 1.7-2.4 mrad off instead of 5 at 0.8-1.3 mrad, but
+about 3.8 s of CPU per frame for this step, over the 3 s budget of the whole
+chain; not kept.
 
 References
 ----------
@@ -246,7 +252,8 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     # 1. the paper's grid search: every node of the grid, scored by the share of the reflected
     #    outline (inside the facet) within ``grid_tol_px`` of an image edge; the peak is narrow
     #    (a few px per mrad), so no coarser pre-search
-    grid = np.arange(-span_mrad, span_mrad + 1e-9, step_mrad)
+    n_half = int(np.floor(span_mrad / step_mrad + 1e-6))
+    grid = step_mrad * np.arange(-n_half, n_half + 1)  # symmetric, zero (the design or centre) a node
     gaz, gel = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
     coarse_model = model.subsampled(6)  # every 6 cm of outline: the score is a share, not a sum
     # every grid node at once, from the quadratic through the nodes {-s, 0, s}^2
@@ -565,8 +572,11 @@ def estimate_canting(
         for f, m in candidates}
     logged_matches: list = []
     logged = fit_facets(prefer, logged_matches)
-    if world is not None and (n_used(fits), len(matches), -mean_rms(fits)) > \
-            (n_used(logged), len(logged_matches), -mean_rms(logged)):
+    # (without the target's correction to follow, a tie keeps the logged angles: the log is the prior, and a
+    # turn that measures no more facets has not shown it is better)
+    if world is not None and ((n_used(fits), len(matches), -mean_rms(fits)) > (n_used(logged), len(logged_matches),
+                                                                              -mean_rms(logged))
+                              if target_orientation else n_used(fits) > n_used(logged)):
         notes.append(f"HUA {hua}'s logged drive angles corrected by the orientation search: az {turn_deg[0]:+.2f}, "
                      f"el {turn_deg[1]:+.2f} deg ({n_used(fits)} facets measured, {n_used(logged)} at the logged "
                      "angles)")
