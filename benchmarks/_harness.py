@@ -473,6 +473,36 @@ def write_json(report: dict[str, Any], path: Path | None, *, announce: bool = Fa
         print(f"\nJSON written to {path}")
 
 
+def publish(report: dict[str, Any], markdown: Callable[[dict[str, Any]], str], path: Path | None, *,
+            echo: bool = True) -> dict[str, Any]:
+    """A benchmark's last step: write its JSON report, then print its markdown table and where the JSON went.
+
+    The JSON goes first, so that a long run is never lost to a table that fails to render.
+
+    Parameters
+    ----------
+    report : dict
+        JSON-ready report.
+    markdown : callable
+        ``markdown(report)`` -> the report as markdown.
+    path : pathlib.Path or None
+        JSON output file; ``None`` writes nothing.
+    echo : bool
+        Print the table (and the JSON's path).
+
+    Returns
+    -------
+    dict
+        ``report``.
+    """
+    write_json(report, path)
+    if echo:
+        print(markdown(report))
+        if path is not None:
+            print(f"\nJSON written to {path}")
+    return report
+
+
 # ---------------------------------------------------------------------------
 # CPU time, load average and memory bandwidth (issue 12: figures as users see them)
 # ---------------------------------------------------------------------------

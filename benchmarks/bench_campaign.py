@@ -282,10 +282,7 @@ def main(argv: Sequence[str] | None = None, *, quick: bool = False, frames: int 
     a = p.parse_args(list(argv or []))
     n = frames or a.frames or (60 if (quick or a.quick) else 300)
     report = run_benchmark(n)
-    if echo:
-        print(markdown_report(report))
-    harness.write_json(report, a.json, announce=echo)
-    return report
+    return harness.publish(report, markdown_report, a.json, echo=echo)
 
 
 if __name__ == "__main__":

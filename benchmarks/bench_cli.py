@@ -441,10 +441,7 @@ def main(argv: Sequence[str] | None = None, *, quick: bool = False, json_path: P
     report = run_benchmark(quick, startup_only)
     report["quick"] = quick
     report["startup_only"] = startup_only
-    if echo:
-        print(markdown_report(report))
-    harness.write_json(report, json_path, announce=echo)
-    return report
+    return harness.publish(report, markdown_report, json_path, echo=echo)
 
 
 if __name__ == "__main__":

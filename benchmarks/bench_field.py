@@ -173,10 +173,7 @@ def main(
     o = harness.options(argv, description="Speed of pihim's heliostat field tracking and canting.", counts=COUNTS,
                         repeat=repeat, warmup=warmup, quick=quick, json_path=json_path)
     report = run_benchmark(o.repeat, o.warmup, tuple(radial_sizes))
-    if echo:
-        print(markdown_report(report))
-    harness.write_json(report, o.json_path)
-    return report
+    return harness.publish(report, markdown_report, o.json_path, echo=echo)
 
 
 if __name__ == "__main__":

@@ -141,10 +141,7 @@ def main(argv: Sequence[str] | None = None, *, quick: bool = False, json_path: P
         report["cold"] = run_demo(cache, Path(tmp) / "cold", demo_args)
         report["warm"] = run_demo(cache, Path(tmp) / "warm", demo_args)
     report["machine"] = harness.machine_info()
-    if echo:
-        print(markdown_report(report))
-    harness.write_json(report, o.json_path)
-    return report
+    return harness.publish(report, markdown_report, o.json_path, echo=echo)
 
 
 if __name__ == "__main__":

@@ -507,10 +507,7 @@ def main(
     o = harness.options(argv, description=__doc__.split("\n\n")[0], counts=COUNTS, repeat=repeat, warmup=warmup,
                         quick=quick, json_path=json_path)
     report = run_benchmark(o.repeat, o.warmup, o.quick)
-    if echo:
-        print(markdown_report(report))
-    harness.write_json(report, o.json_path, announce=echo)
-    return report
+    return harness.publish(report, markdown_report, o.json_path, echo=echo)
 
 
 if __name__ == "__main__":

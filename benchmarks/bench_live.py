@@ -259,10 +259,7 @@ def main(argv: list[str] | None = None, *, quick: bool = False, json_path: Path 
         wait_quiet = a.wait_quiet
         nice = a.nice
     report = run_benchmark(seconds, wait_quiet_s=wait_quiet, nice=nice)
-    if echo:
-        print(markdown_report(report))
-    harness.write_json(report, json_path, announce=echo)
-    return report
+    return harness.publish(report, markdown_report, json_path, echo=echo)
 
 
 if __name__ == "__main__":

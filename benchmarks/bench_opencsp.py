@@ -168,10 +168,7 @@ def main(argv: Sequence[str] | None = None, *, quick: bool = False, json_path: P
         hours = tuple(o.args.hours) if o.args.hours else hours
         configs = tuple(o.args.configs) if o.args.configs else configs
     report = run_benchmark(hours, configs)
-    if echo:
-        print(markdown_report(report))
-    harness.write_json(report, o.json_path)
-    return report
+    return harness.publish(report, markdown_report, o.json_path, echo=echo)
 
 
 if __name__ == "__main__":

@@ -772,10 +772,7 @@ def main(
         wait_quiet = o.args.wait_quiet if o.args.wait_quiet is not None else wait_quiet
     report = run_benchmark(o.repeat, o.warmup, seed=seed, cold=not o.quick, wait_quiet_s=wait_quiet)
     report["settings"]["quick"] = o.quick
-    if echo:
-        print(markdown_report(report))
-    harness.write_json(report, o.json_path, announce=echo)
-    return report
+    return harness.publish(report, markdown_report, o.json_path, echo=echo)
 
 
 if __name__ == "__main__":

@@ -686,10 +686,7 @@ def main(
         if o.args.wait_quiet is not None:
             wait_quiet = o.args.wait_quiet
     report = run_benchmark(o.repeat, o.warmup, o.quick, mitsuba=mitsuba, mitsuba_spp=spp, wait_quiet_s=wait_quiet)
-    if echo:
-        print(markdown_report(report))
-    harness.write_json(report, o.json_path, announce=echo)
-    return report
+    return harness.publish(report, markdown_report, o.json_path, echo=echo)
 
 
 if __name__ == "__main__":

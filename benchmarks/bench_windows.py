@@ -167,10 +167,7 @@ def main(
                         repeat=repeat, warmup=warmup, quick=quick, json_path=json_path)
     sweep_repeat = 1 if o.quick else min(o.repeat, SWEEP_REPEAT)
     report = run_benchmark(o.repeat, o.warmup, sweep_repeat)
-    if echo:
-        print(markdown_report(report))
-    harness.write_json(report, o.json_path)
-    return report
+    return harness.publish(report, markdown_report, o.json_path, echo=echo)
 
 
 if __name__ == "__main__":

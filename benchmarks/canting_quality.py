@@ -596,12 +596,7 @@ def main(
                            a.tracking_sigma_mrad if a is not None else 0.0,
                            not a.no_orientation_search if a is not None else True,
                            a.correct_target if a is not None else False)
-    harness.write_json(report, o.json_path)  # before the report, so a long run is never lost
-    if echo:
-        print(markdown_report(report))
-        if o.json_path is not None:
-            print(f"\nJSON written to {o.json_path}")
-    return report
+    return harness.publish(report, markdown_report, o.json_path, echo=echo)
 
 
 if __name__ == "__main__":

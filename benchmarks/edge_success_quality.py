@@ -408,12 +408,7 @@ def main(argv: Sequence[str] | None = None, *, quick: bool = False, frames: int 
         raise ValueError("--frames must be >= 1")
     which = o.args.scenario if o.args is not None else "both"
     report = run_benchmark(n, ("sky", "ground") if which == "both" else (which,))
-    harness.write_json(report, o.json_path)
-    if echo:
-        print(markdown_report(report))
-        if o.json_path is not None:
-            print(f"\nJSON written to {o.json_path}")
-    return report
+    return harness.publish(report, markdown_report, o.json_path, echo=echo)
 
 
 if __name__ == "__main__":
