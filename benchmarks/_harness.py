@@ -453,7 +453,7 @@ def busy_warning(loads: Iterable[float | None]) -> list[str]:
 
 
 def write_json(report: dict[str, Any], path: Path | None, *, announce: bool = False) -> None:
-    """Write ``report`` as indented JSON and record the path in ``report["json_path"]``.
+    """Write ``report`` as indented JSON (atomically) and record the path in ``report["json_path"]``.
 
     Parameters
     ----------
@@ -466,8 +466,10 @@ def write_json(report: dict[str, Any], path: Path | None, *, announce: bool = Fa
     """
     if path is None:
         return
+    from pihim._atomic import write_text_atomic
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    write_text_atomic(path, json.dumps(report, indent=2) + "\n")  # never a half-written report
     report["json_path"] = str(path)
     if announce:
         print(f"\nJSON written to {path}")
