@@ -59,12 +59,14 @@ Status (measured on 20 rendered NSTTF UFACET frames, ``benchmarks/canting_qualit
 -----------------------------------------------------------------------------------
 From the issue's GPS 1.5 m / attitude 1 deg priors (pose refined to 0.27 px
 median at the HUA's corners) and S0 edge points (the DoLP of the dark target
-back is too noisy at 39 dB to add its edges unweighted), 0-10 facets per
-frame pass the quality gates and their deviations are recovered to 0.18 /
-0.30 mrad RMS (azimuth / elevation; the HUA's drive-angle correction to
-0.17 / 0.13 mrad) against 1.48 / 2.07 mrad for the paper's grid search on
-the same frames; a median 1.8 s per frame for the whole chain (1.1 s of it
-this step's CPU). With every heliostat's logged drive angles off by
+back is too noisy at 39 dB to add its edges unweighted), 0-11 facets per
+frame pass the quality gates (87 on 20 frames) and their deviations are
+recovered to 0.15 / 0.16 mrad RMS (azimuth / elevation; the HUA's drive-angle
+correction to 0.13 / 0.18 mrad) against 0.64 / 0.46 mrad for the paper's grid
+search on the same frames; a median 2.6 s per frame for the whole chain
+(1.8 s of it this step's CPU; 2026-11-26). Five of the 87 facets lock 0.8-1.3
+mrad off onto a repeat of the target's edges, which also moves the other
+facets of their frame (every value is relative to the mean). With every heliostat's logged drive angles off by
 N(0, 5 mrad), ``target_orientation=True`` measures 40 facets on 10 frames
 (44 without the error) to 0.33 / 0.54 mrad at about 2 s more CPU; without
 it, 7 (BENCHMARKS.md). Not yet: polarimetric edge points. Edge points from
