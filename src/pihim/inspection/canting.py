@@ -66,10 +66,11 @@ correction to 0.13 / 0.18 mrad) against 0.64 / 0.46 mrad for the paper's grid
 search on the same frames; a median 2.6 s per frame for the whole chain
 (1.8 s of it this step's CPU; 2026-11-26). Five of the 87 facets lock 0.8-1.3
 mrad off onto a repeat of the target's edges, which also moves the other
-facets of their frame (every value is relative to the mean). With every heliostat's logged drive angles off by
-N(0, 5 mrad), ``target_orientation=True`` measures 40 facets on 10 frames
-(44 without the error) to 0.33 / 0.54 mrad at about 2 s more CPU; without
-it, 7 (BENCHMARKS.md). Not yet: polarimetric edge points. Edge points from
+facets of their frame (every value is relative to the mean). With every
+heliostat's logged drive angles off by N(0, 5 mrad),
+``target_orientation=True`` measures 40 facets on 10 frames (44 without the
+error) to 0.33 / 0.54 mrad at about 2 s more CPU; without it, 7
+(BENCHMARKS.md). Not yet: polarimetric edge points. Edge points from
 a gradient of S0, DoLP and AoP each divided by its pixel's noise
 (:func:`pihim.inspection.edges.noise_sigmas`) were tried on 8 of those
 frames: 2 facets measured instead of 33, one pose failure, 10.8 s instead of
@@ -438,9 +439,14 @@ def estimate_canting(
     orientation_span_mrad : float or None
         Half-range of the orientation search (:func:`search_orientation`,
         step ``step_mrad``) run over the facets that pass the view, saturation
-        and DoLP tests before any facet is fitted; each facet's grid then
-        spans ``span_mrad`` around its result. Default the paper's +-5 deg;
-        None skips it (the facets' grids centred on the design).
+        and DoLP tests before any facet is fitted. A node more than 2.5 steps
+        from the logged angles turns the target's outline as the HUA's turn
+        would (:func:`hua_turn_transform`) and every facet is fitted on it and
+        on the logged outline; the turn is kept only if it measures more
+        facets. With ``target_orientation`` a tie is broken by the number of
+        facets that found the target's outline, then by the smaller mean
+        residual; without it a tie keeps the logged angles (the log is the
+        prior). Default the paper's +-5 deg; None skips the search.
     target_orientation : bool
         Correct the target's logged drive angles and the HUA's turn
         together (:func:`refine_orientations`) and fit the facets again on
@@ -574,11 +580,15 @@ def estimate_canting(
         for f, m in candidates}
     logged_matches: list = []
     logged = fit_facets(prefer, logged_matches)
-    # (without the target's correction to follow, a tie keeps the logged angles: the log is the prior, and a
-    # turn that measures no more facets has not shown it is better)
-    if world is not None and ((n_used(fits), len(matches), -mean_rms(fits)) > (n_used(logged), len(logged_matches),
-                                                                              -mean_rms(logged))
-                              if target_orientation else n_used(fits) > n_used(logged)):
+    # Which outline wins (``orientation_span_mrad``'s docstring): the facets measured first; with the target's
+    # correction to follow, ties go to the outline more facets found (what that correction starts from), then to
+    # the smaller residual; without it, a turn that measures no more facets has not shown it is better than the log.
+    if target_orientation:
+        turned_key = (n_used(fits), len(matches), -mean_rms(fits))
+        logged_key = (n_used(logged), len(logged_matches), -mean_rms(logged))
+    else:
+        turned_key, logged_key = (n_used(fits),), (n_used(logged),)
+    if world is not None and turned_key > logged_key:
         notes.append(f"HUA {hua}'s logged drive angles corrected by the orientation search: az {turn_deg[0]:+.2f}, "
                      f"el {turn_deg[1]:+.2f} deg ({n_used(fits)} facets measured, {n_used(logged)} at the logged "
                      "angles)")
