@@ -22,8 +22,17 @@ stated):
     issue's target, <= 1 s.
 ``day sweep``
     :func:`pihim.planning.windows.sweep_day` for 2021-05-13 every 10 min with
-    the sun above 10 deg (73 instants): target <= 10 s. Timed
-    ``min(repeat, 3)`` times (1 with ``quick``).
+    the sun above 10 deg (73 instants), in this process: target <= 10 s.
+    Timed ``min(repeat, 3)`` times (1 with ``quick``).
+``day sweep, forked workers``
+    The same with ``workers=2`` (the times shared among two forked copies
+    of this process); its CPU time includes the workers'.
+``pihim windows`` as a process
+    ``python -m pihim windows --date 2021-05-13 --out DIR --json``, with
+    ``--workers 1`` and with the default (one worker per CPU): what a user
+    runs, imports, first calls and figure included; wall and CPU time
+    (``getrusage`` of the finished process and its workers), as often as
+    the sweep.
 
 Figures: median, p10 and p90 wall time; the tracemalloc peak of one call;
 the share of CPU other processes used during the timing (``/proc/stat``).
@@ -52,9 +61,15 @@ SWEEP_REPEAT = 3
 RESULTS_PATH = Path(__file__).resolve().parent / "results" / "windows.json"
 TIME = "2021-05-13T10:30:00-06:00"
 DATE = "2021-05-13"
+WORKERS = 2
 TARGETS = (
     ("NSTTF full plan incl. tracking, canting and scoring, one instant", "full_plan", 1000.0, "ms"),
     ("NSTTF day sweep, 10-min steps", "day_sweep", 10000.0, "ms"),
+)
+#: Wall-time targets of the parallel rows (their CPU time is the one-process figure's and more).
+WALL_TARGETS = (
+    (f"NSTTF day sweep, 10-min steps, {WORKERS} forked workers", "day_sweep_forked", 10000.0, "ms"),
+    ("`pihim windows` for that day as a process, default workers", "process_default", 10000.0, "ms"),
 )
 
 
@@ -87,12 +102,17 @@ def run_benchmark(repeat: int, warmup: int, sweep_repeat: int) -> dict[str, Any]
         ("score_shift", f"score + shift search ({len(search.candidates())} candidates/pass)", lambda: score(search),
          repeat, True),
         ("full_plan", "full plan: tracking, canting, planning, scoring, shifts", full, repeat, True),
-        ("day_sweep", f"day sweep {DATE}, 10-min steps, sun > 10 deg", lambda: sweep_day(DATE), sweep_repeat, False),
+        ("day_sweep", f"day sweep {DATE}, 10-min steps, sun > 10 deg, one process", lambda: sweep_day(DATE),
+         sweep_repeat, False),
+        ("day_sweep_forked", f"the same sweep in {WORKERS} forked worker processes (`workers={WORKERS}`)",
+         lambda: sweep_day(DATE, workers=WORKERS), sweep_repeat, False),
     ]
     results = {
-        key: {"label": label, **harness.measure(fn, reps, min(warmup, reps) if key != "day_sweep" else 0, trace=trace)}
+        key: {"label": label,
+              **harness.measure(fn, reps, min(warmup, reps) if not key.startswith("day_sweep") else 0, trace=trace)}
         for key, label, fn, reps, trace in rows
     }
+    results.update(_process_rows(sweep_repeat))
     n_times = len(sweep_day(DATE, step_min=10.0, search=None, planner=lambda *a, **k: ()))
     results["day_sweep"]["instants"] = n_times
     return {
@@ -103,9 +123,39 @@ def run_benchmark(repeat: int, warmup: int, sweep_repeat: int) -> dict[str, Any]
         "results": results,
         "targets": [harness.target(name, results[key]["median_ms"], lim, unit) for name, key, lim, unit in TARGETS]
         + [harness.target(f"{name}, CPU time (all threads)", results[key]["cpu_ms"], lim, unit)
-           for name, key, lim, unit in TARGETS],
+           for name, key, lim, unit in TARGETS]
+        + [harness.target(f"{name}, wall time", results[key]["median_ms"], lim, unit)
+           for name, key, lim, unit in WALL_TARGETS],
         "machine": harness.machine_info(),
     }
+
+
+def _process_rows(repeat: int) -> dict[str, dict[str, Any]]:
+    """``pihim windows`` for the day as whole processes, one worker and the default: rows like ``measure``'s."""
+    import os
+    import statistics
+    import tempfile
+
+    rows = {}
+    for key, extra, label in (("process_one", ["--workers", "1"], "`pihim windows` as a process, `--workers 1`"),
+                              ("process_default", [], "`pihim windows` as a process, default (one worker per CPU)")):
+        runs = []
+        with tempfile.TemporaryDirectory() as tmp:
+            for k in range(repeat):
+                argv = [sys.executable, "-m", "pihim", "windows", "--date", DATE, "--out", f"{tmp}/w{k}", "--json",
+                        *extra]
+                env = {k_: v for k_, v in os.environ.items() if k_ != "PYTHONDONTWRITEBYTECODE"}
+                run = harness.process_run(argv, env=env)
+                if run["returncode"] != 0:
+                    raise RuntimeError(f"pihim windows failed: {run['stderr'].strip()[-300:]}")
+                runs.append(run)
+        walls = [1e3 * r["wall_s"] for r in runs]
+        others = [r["other_cpu"] for r in runs if r["other_cpu"] is not None]
+        rows[key] = {"label": label, "median_ms": statistics.median(walls), "p10_ms": min(walls),
+                     "p90_ms": max(walls), "cpu_ms": statistics.median(1e3 * r["cpu_s"] for r in runs),
+                     "peak_mb": None, "other_cpu": max(others) if others else None,
+                     "load_avg": harness.load_average(), "repeat": repeat}
+    return rows
 
 
 def markdown_report(report: dict[str, Any]) -> str:

@@ -187,6 +187,58 @@ def test_planner_refusals_are_recorded():
     assert sw.summary()["planner_errors"][0][0] == sw.times[0].isoformat()
 
 
+def _arrays(sw: DaySweep) -> dict:
+    keys = ("fraction_planned", "fraction_sky", "fraction_ground", "fraction_either", "n_images", "shifted_passes")
+    return {k: getattr(sw, k) for k in keys}
+
+
+def test_forked_workers_give_the_one_process_result(recwarn):
+    """Times shared among forked workers: the same sweep to the bit, planner closures and refusals included."""
+    from pihim.planning.ufacet import plan_passes
+
+    def planner(field, pose, **kwargs):  # a closure: not picklable, inherited by the fork
+        if pose.normals[0, 0] > 0.0:  # the first heliostat faces East: in the morning
+            raise PihimInputError("refused here")
+        return plan_passes(field, pose, **kwargs)
+
+    one = sweep_day("2021-05-13", step_min=180.0, planner=planner, workers=1)
+    two = sweep_day("2021-05-13", step_min=180.0, planner=planner, workers=2)
+    assert len(one) >= 4 and one.times == two.times
+    for k, v in _arrays(one).items():
+        np.testing.assert_array_equal(getattr(two, k), v, err_msg=k)
+    assert np.any(one.fraction_either > 0.1)
+    assert two.planner_errors == one.planner_errors and len(one.planner_errors) >= 1
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]  # no worker died
+
+
+def test_a_killed_worker_loses_no_time():
+    """A worker killed mid-sweep: the times it had not returned are planned in this process, the sweep complete."""
+    import os
+    import signal
+
+    from pihim.planning.ufacet import plan_passes
+
+    parent = os.getpid()
+
+    def planner(field, pose, **kwargs):
+        if os.getpid() != parent:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return plan_passes(field, pose, **kwargs)
+
+    with pytest.warns(RuntimeWarning, match="worker process died"):
+        two = sweep_day("2021-05-13", step_min=240.0, planner=planner, workers=2)
+    one = sweep_day("2021-05-13", step_min=240.0, workers=1)
+    assert len(two) == len(one) >= 3
+    for k, v in _arrays(one).items():
+        np.testing.assert_array_equal(getattr(two, k), v, err_msg=k)
+
+
+@pytest.mark.parametrize("workers", [0, -1, 1.5, True, "2"])
+def test_sweep_refuses_bad_worker_counts(workers):
+    with pytest.raises(PihimInputError, match="workers"):
+        sweep_day("2021-05-13", workers=workers)
+
+
 def test_field_without_tower_needs_an_aim_point():
     from pihim.field import nsttf_like_field
 
@@ -288,6 +340,8 @@ def test_cli_says_what_it_found_without_json(tmp_path, capsys):
     (["--date", "2021-05-13", "--facets", "f.csv"], "facets"),
     (["--date", "2021-05-13", "--threshold", "2"], "threshold"),
     (["--date", "2021-05-13", "--max-altitude", "-5"], "altitude"),
+    (["--date", "2021-05-13", "--workers", "0"], "workers"),
+    (["--date", "2021-05-13", "--workers", "65"], "workers"),
 ])
 def test_cli_bad_input_one_line_exit_2(tmp_path, capsys, args, needle):
     out = tmp_path / "w"

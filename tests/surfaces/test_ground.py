@@ -385,6 +385,29 @@ def test_numba_kernel_equals_numpy_integrand_on_the_same_table():
     np.testing.assert_allclose(out, ref, rtol=1e-9, atol=1e-9 * np.max(ref[:, 0]))
 
 
+def test_the_threadless_kernel_twin_gives_the_threaded_kernels_values():
+    """``use_serial_kernels`` (forked sweep workers) changes where the views are computed, not their values."""
+    from pihim.surfaces import ground
+
+    m = GroundModel(sigma_deg=12.0)
+    sky = RayleighSky()
+    v = hemisphere_grid(5.0).directions.reshape(-1, 3)
+    a, ea = m.stokes(v, SUN, sky, sky_table_size=65)
+    ground.use_serial_kernels(True)
+    try:
+        b, eb = m.stokes(v, SUN, sky, sky_table_size=65)
+        assert ground._sky_kernel_serial.signatures  # the twin ran
+    finally:
+        ground.use_serial_kernels(False)
+    # ... from machine code of its own: numba's disk cache, keyed by name and line, would otherwise hand it the
+    # threaded kernel's (which kills a forked worker; tests/planning/test_windows.py)
+    assert not ground._sky_kernel_serial.targetoptions.get("parallel")
+    names = {k._cache._cache_file._index_name for k in (ground._sky_kernel, ground._sky_kernel_serial)}
+    assert len(names) == 2
+    np.testing.assert_array_equal(b, a)
+    np.testing.assert_array_equal(eb, ea)
+
+
 def test_a_sky_table_built_once_gives_the_values_of_a_table_per_call():
     m = GroundModel(sigma_deg=12.0)
     sky = RayleighSky()

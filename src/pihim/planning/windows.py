@@ -131,7 +131,8 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import math
-from collections.abc import Callable, Sequence
+import os
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -471,6 +472,113 @@ def _day_times(date: _dt.date, tz: Any, step_min: float) -> tuple[_dt.datetime, 
     return tuple((start + _dt.timedelta(minutes=step_min * k)).astimezone(zone) for k in range(n))
 
 
+@dataclasses.dataclass(frozen=True)
+class _SweepJob:
+    """What every time of a day sweep shares (sun vectors by time index)."""
+
+    field: Any
+    sun_vectors: NDArray[np.float64]
+    aim: NDArray[np.float64]
+    site: Site
+    camera: CameraModel
+    model: ScoringModel
+    search: ShiftSearch | None
+    planner: Callable[..., Sequence[Any]]
+    planner_kwargs: dict[str, Any]
+    max_altitude_m: float
+
+
+@dataclasses.dataclass(frozen=True)
+class _InstantResult:
+    fractions: dict[str, float]
+    n_images: int
+    shifted: int
+    planner_error: str | None
+
+
+def _score_instant(job: _SweepJob, i: int) -> _InstantResult:
+    """Track the field at time ``i``, plan its passes, score them (with shifts) and count the coverage."""
+    from pihim.field import track_field
+
+    sun = job.sun_vectors[i]
+    pose = track_field(job.field, sun, job.aim)
+    error = None
+    try:
+        passes = job.planner(job.field, pose, aim_point=job.aim, origin=job.site, camera=job.camera,
+                             max_altitude_m=job.max_altitude_m, **job.planner_kwargs)
+    except PihimInputError as exc:  # e.g. no safe altitude below the limit at this sun: nothing coverable
+        passes, error = (), str(exc)
+    scene = build_scene(pose, sun, job.model)
+    scored = score_passes(passes, pose, sun, scene=scene, search=job.search, camera=job.camera, aim_point=job.aim,
+                          origin=job.site)
+    cov = coverage(scored, len(job.field))
+    return _InstantResult({k: float(cov[k]) for k in FRACTION_KINDS}, sum(len(p.predictions) for p in scored),
+                          sum(p.shift is not None for p in scored), error)
+
+
+#: The job of the sweep whose forked workers are running (set before the fork, read by the children).
+_FORKED_JOB: _SweepJob | None = None
+
+
+def _forked_worker_setup() -> None:
+    """In a forked sweep worker: compiled kernels without threads (GNU OpenMP does not survive ``fork``)."""
+    from pihim.surfaces import ground
+
+    ground.use_serial_kernels(True)
+
+
+def _score_forked_instant(i: int) -> tuple[int, _InstantResult]:
+    assert _FORKED_JOB is not None, "a sweep worker forked without its job"
+    return i, _score_instant(_FORKED_JOB, i)
+
+
+def _run_instants(job: _SweepJob, n: int, workers: int | None) -> Iterator[tuple[int, _InstantResult]]:
+    """``(i, result)`` for every time index, in order of completion.
+
+    With more than one worker (and ``fork`` available), the times go to a
+    pool of forked processes one at a time (their costs differ by 2-3x over
+    the day); the children inherit ``job`` (planner closures included) and
+    the compiled kernels, and return only small results.
+    """
+    import multiprocessing
+
+    if workers is None:
+        workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    workers = min(workers, n)
+    if workers <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+        for i in range(n):
+            yield i, _score_instant(job, i)
+        return
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    global _FORKED_JOB
+    _FORKED_JOB = job
+    done: set[int] = set()
+    try:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                                 initializer=_forked_worker_setup) as pool:
+            futures = [pool.submit(_score_forked_instant, i) for i in range(n)]
+            try:
+                for fut in as_completed(futures):
+                    i, result = fut.result()
+                    done.add(i)
+                    yield i, result
+            finally:
+                for fut in futures:
+                    fut.cancel()
+    except BrokenProcessPool:  # a worker was killed (out of memory, a signal): the rest here, nothing lost
+        import warnings
+
+        warnings.warn(f"a day-sweep worker process died; the {n - len(done)} remaining times run in this process",
+                      RuntimeWarning, stacklevel=3)
+    finally:
+        _FORKED_JOB = None
+    for i in range(n):
+        if i not in done:
+            yield i, _score_instant(job, i)
+
+
 def sweep_day(
     date: str | _dt.date,
     *,
@@ -486,6 +594,7 @@ def sweep_day(
     planner: Callable[..., Sequence[Any]] | None = None,
     planner_kwargs: dict[str, Any] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    workers: int | None = 1,
 ) -> DaySweep:
     """Plan and score the field every ``step_min`` minutes of a day.
 
@@ -525,7 +634,16 @@ def sweep_day(
     planner_kwargs : dict, optional
         Extra keyword arguments for the planner.
     progress : callable, optional
-        Called as ``progress(done, total)`` after each time.
+        Called as ``progress(done, total)`` after each time (in this
+        process, also with ``workers`` > 1).
+    workers : int or None
+        Processes that plan and score the times side by side (each time is
+        independent); None, one per CPU this process may run on. With more
+        than one, the times are shared among forked copies of this process
+        (so ``planner`` and its arguments need not be picklable) and the
+        result is identical to one process's; where processes cannot be
+        forked (Windows, macOS' default) the sweep runs in this process.
+        Parallel runs cut the wall time, not the CPU time.
 
     Returns
     -------
@@ -535,10 +653,13 @@ def sweep_day(
     ------
     PihimInputError
         Malformed date or site, out-of-range step or elevation limit, no
-        aim point for a field without a tower.
+        aim point for a field without a tower, ``workers`` not None or an
+        integer >= 1.
     """
     day = parse_date(date)
     site = parse_site(site)
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise PihimInputError(f"workers must be None or an integer >= 1, got {workers!r}")
     if not (isinstance(step_min, (int, float)) and math.isfinite(step_min) and 0.5 <= step_min <= 240.0):
         raise PihimInputError(f"step must be between 0.5 and 240 minutes, got {step_min!r}")
     if not (isinstance(min_elevation_deg, (int, float)) and 0.0 <= min_elevation_deg < 89.0):
@@ -548,7 +669,7 @@ def sweep_day(
     if not (isinstance(max_altitude_m, (int, float)) and math.isfinite(max_altitude_m)
             and 0 < max_altitude_m <= MAX_ALTITUDE_LIMIT_M):
         raise PihimInputError(f"maximum altitude must be in (0, {MAX_ALTITUDE_LIMIT_M:g}] m, got {max_altitude_m!r}")
-    from pihim.field import nsttf_like_field, track_field
+    from pihim.field import nsttf_like_field
 
     fld = nsttf_like_field() if field is None else field
     if aim_point is None and getattr(fld, "tower", None) is None:
@@ -578,26 +699,19 @@ def sweep_day(
     fr = {k: np.zeros(n) for k in FRACTION_KINDS}
     n_images = np.zeros(n, dtype=np.int64)
     shifted = np.zeros(n, dtype=np.int64)
-    kwargs = dict(planner_kwargs or {})
-    errors: list[tuple[str, str]] = []
-    for i in range(n):
-        pose = track_field(fld, vecs[i], aim)
-        try:
-            passes = planner(fld, pose, aim_point=aim, origin=site, camera=camera, max_altitude_m=float(max_altitude_m),
-                             **kwargs)
-        except PihimInputError as exc:  # e.g. no safe altitude below the limit at this sun: nothing coverable
-            passes = ()
-            errors.append((times[i].isoformat(), str(exc)))
-        scene = build_scene(pose, vecs[i], model)
-        scored = score_passes(passes, pose, vecs[i], scene=scene, search=search, camera=camera, aim_point=aim,
-                              origin=site)
-        cov = coverage(scored, len(fld))
+    job = _SweepJob(fld, vecs, aim, site, camera, model, search, planner, dict(planner_kwargs or {}),
+                    float(max_altitude_m))
+    failed: list[tuple[int, str]] = []
+    for done, (i, result) in enumerate(_run_instants(job, n, workers), start=1):
         for k in FRACTION_KINDS:
-            fr[k][i] = cov[k]
-        n_images[i] = sum(len(p.predictions) for p in scored)
-        shifted[i] = sum(p.shift is not None for p in scored)
+            fr[k][i] = result.fractions[k]
+        n_images[i] = result.n_images
+        shifted[i] = result.shifted
+        if result.planner_error is not None:
+            failed.append((i, result.planner_error))
         if progress is not None:
-            progress(i + 1, n)
+            progress(done, n)
+    errors = [(times[i].isoformat(), message) for i, message in sorted(failed)]
     settings = {
         "aim_point_m": aim.tolist(),
         "max_altitude_m": float(max_altitude_m),

@@ -121,6 +121,7 @@ References
 from __future__ import annotations
 
 import math
+import types
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache, partial
@@ -377,6 +378,13 @@ class MonteCarloResult:
 # ---------------------------------------------------------------------------
 # Numba kernel of the sky integral (tabulated sky)
 # ---------------------------------------------------------------------------
+def _renamed(fn: types.FunctionType, name: str) -> types.FunctionType:
+    """A copy of the plain function ``fn`` (same code, globals and defaults) named ``name``."""
+    copy = types.FunctionType(fn.__code__, fn.__globals__, name, fn.__defaults__, fn.__closure__)
+    copy.__qualname__ = name
+    return copy
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def _sky_kernel(views, e_out, nodes, weights, table, radius, step, n, shadowing, out):  # pragma: no cover - compiled
     """Sky term of :meth:`GroundModel.stokes` for unit views ``(V, 3)``, written into ``out (V, 4)``.
@@ -465,9 +473,25 @@ def _sky_kernel(views, e_out, nodes, weights, table, radius, step, n, shadowing,
         out[i, 3] = a3
 
 
+#: The same kernel compiled without threads (``prange`` runs as ``range``; every view is computed by the same
+#: arithmetic, so the results are identical): used where a process must not start OpenMP threads, in the
+#: workers that :func:`pihim.planning.windows.sweep_day` forks (GNU OpenMP does not survive ``fork``).
+#: (A copy of the Python function under its own name: numba's on-disk cache is keyed by the function's name and
+#: line, not by ``parallel``, and would hand this twin the threaded machine code.)
+_sky_kernel_serial = njit(fastmath=True, cache=True)(_renamed(_sky_kernel.py_func, "_sky_kernel_serial"))
+_serial_kernels = False
+
+
+def use_serial_kernels(serial: bool = True) -> None:
+    """Run this module's compiled kernels without threads in this process (for forked workers)."""
+    global _serial_kernels
+    _serial_kernels = bool(serial)
+
+
 # ---------------------------------------------------------------------------
 # Sky sampling: direct calls or a Lambert azimuthal table (pihim.sky.table)
 # ---------------------------------------------------------------------------
+
 def _stokes4(s: ArrayLike) -> NDArray[np.float64]:
     s = np.asarray(s, float)
     if s.shape[-1] == 3:
@@ -860,7 +884,7 @@ class GroundModel:
             table = _SkyTable(sky, sun, sky_table_size)
         out = np.zeros((v.shape[0], 4))
         # writable C arrays always: a read-only view (a broadcast reference axis) would compile a second specialization
-        _sky_kernel(
+        (_sky_kernel_serial if _serial_kernels else _sky_kernel)(
             np.require(v, np.float64, ["C", "W"]),
             np.require(ee, np.float64, ["C", "W"]),
             nodes,
