@@ -132,6 +132,7 @@ import dataclasses
 import datetime as _dt
 import math
 import os
+import sys
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -516,48 +517,48 @@ def _score_instant(job: _SweepJob, i: int) -> _InstantResult:
                           sum(p.shift is not None for p in scored), error)
 
 
-#: The job of the sweep whose forked workers are running (set before the fork, read by the children).
-_FORKED_JOB: _SweepJob | None = None
+#: In a forked sweep worker, the sweep it serves (handed over by the fork itself: nothing is pickled).
+_WORKER_JOB: _SweepJob | None = None
 
 
-def _forked_worker_setup() -> None:
-    """In a forked sweep worker: compiled kernels without threads (GNU OpenMP does not survive ``fork``)."""
+def _forked_worker_setup(job: _SweepJob) -> None:
+    """Start a forked sweep worker: its job, and compiled kernels without threads (GNU OpenMP does not survive
+    ``fork``)."""
     from pihim.surfaces import ground
 
+    global _WORKER_JOB
+    _WORKER_JOB = job
     ground.use_serial_kernels(True)
 
 
 def _score_forked_instant(i: int) -> tuple[int, _InstantResult]:
-    assert _FORKED_JOB is not None, "a sweep worker forked without its job"
-    return i, _score_instant(_FORKED_JOB, i)
+    assert _WORKER_JOB is not None, "a sweep worker started without its job"
+    return i, _score_instant(_WORKER_JOB, i)
 
 
 def _run_instants(job: _SweepJob, n: int, workers: int | None) -> Iterator[tuple[int, _InstantResult]]:
     """``(i, result)`` for every time index, in order of completion.
 
-    With more than one worker (and ``fork`` available), the times go to a
-    pool of forked processes one at a time (their costs differ by 2-3x over
-    the day); the children inherit ``job`` (planner closures included) and
-    the compiled kernels, and return only small results.
+    With more than one worker (on Linux), the times go to a pool of forked
+    processes one at a time (their costs differ by 2-3x over the day); the
+    children inherit ``job`` (planner closures included) and the compiled
+    kernels, and return only small results.
     """
-    import multiprocessing
-
     if workers is None:
         workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     workers = min(workers, n)
-    if workers <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+    if workers <= 1 or not sys.platform.startswith("linux"):  # fork is unsafe on macOS, absent on Windows
         for i in range(n):
             yield i, _score_instant(job, i)
         return
+    import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from concurrent.futures.process import BrokenProcessPool
 
-    global _FORKED_JOB
-    _FORKED_JOB = job
     done: set[int] = set()
     try:
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
-                                 initializer=_forked_worker_setup) as pool:
+                                 initializer=_forked_worker_setup, initargs=(job,)) as pool:
             futures = [pool.submit(_score_forked_instant, i) for i in range(n)]
             try:
                 for fut in as_completed(futures):
@@ -572,8 +573,6 @@ def _run_instants(job: _SweepJob, n: int, workers: int | None) -> Iterator[tuple
 
         warnings.warn(f"a day-sweep worker process died; the {n - len(done)} remaining times run in this process",
                       RuntimeWarning, stacklevel=3)
-    finally:
-        _FORKED_JOB = None
     for i in range(n):
         if i not in done:
             yield i, _score_instant(job, i)
@@ -639,11 +638,12 @@ def sweep_day(
     workers : int or None
         Processes that plan and score the times side by side (each time is
         independent); None, one per CPU this process may run on. With more
-        than one, the times are shared among forked copies of this process
-        (so ``planner`` and its arguments need not be picklable) and the
-        result is identical to one process's; where processes cannot be
-        forked (Windows, macOS' default) the sweep runs in this process.
-        Parallel runs cut the wall time, not the CPU time.
+        than one, on Linux, the times are shared among forked copies of this
+        process (so ``planner`` and its arguments need not be picklable) and
+        the result is identical to one process's; elsewhere (no safe
+        ``fork``) the sweep runs in this process. Parallel runs cut the wall
+        time, not the CPU time. A worker that dies leaves its unfinished
+        times to this process (a ``RuntimeWarning``).
 
     Returns
     -------
