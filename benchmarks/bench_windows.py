@@ -47,6 +47,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from pihim.field import nsttf_like_field, track_field
 from pihim.planning.scoring import ShiftSearch, build_scene, score_passes
 from pihim.planning.ufacet import plan_passes
@@ -151,8 +153,9 @@ def _process_rows(repeat: int) -> dict[str, dict[str, Any]]:
                 runs.append(run)
         walls = [1e3 * r["wall_s"] for r in runs]
         others = [r["other_cpu"] for r in runs if r["other_cpu"] is not None]
-        rows[key] = {"label": label, "median_ms": statistics.median(walls), "p10_ms": min(walls),
-                     "p90_ms": max(walls), "cpu_ms": statistics.median(1e3 * r["cpu_s"] for r in runs),
+        p10, p90 = (float(v) for v in np.percentile(walls, [10, 90]))
+        rows[key] = {"label": label, "median_ms": statistics.median(walls), "p10_ms": p10,
+                     "p90_ms": p90, "cpu_ms": statistics.median(1e3 * r["cpu_s"] for r in runs),
                      "peak_mb": None, "other_cpu": max(others) if others else None,
                      "load_avg": harness.load_average(), "repeat": repeat}
     return rows

@@ -192,27 +192,40 @@ def _arrays(sw: DaySweep) -> dict:
     return {k: getattr(sw, k) for k in keys}
 
 
-def test_forked_workers_give_the_one_process_result(recwarn):
+def test_forked_workers_give_the_one_process_result(tmp_path, recwarn):
     """Times shared among forked workers: the same sweep to the bit, planner closures and refusals included."""
+    import os
+
     from pihim.planning.ufacet import plan_passes
 
+    pids = tmp_path / "pids"
+
     def planner(field, pose, **kwargs):  # a closure: not picklable, inherited by the fork
+        with pids.open("a") as fh:
+            fh.write(f"{os.getpid()}\n")
         if pose.normals[0, 0] > 0.0:  # the first heliostat faces East: in the morning
             raise PihimInputError("refused here")
         return plan_passes(field, pose, **kwargs)
 
+    # one process first: its ground kernel starts OpenMP here, which the forked workers must not touch
     one = sweep_day("2021-05-13", step_min=180.0, planner=planner, workers=1)
-    two = sweep_day("2021-05-13", step_min=180.0, planner=planner, workers=2)
+    pids.unlink()
+    ticks = []
+    two = sweep_day("2021-05-13", step_min=180.0, planner=planner, workers=2,
+                    progress=lambda done, total: ticks.append((done, total)))
     assert len(one) >= 4 and one.times == two.times
     for k, v in _arrays(one).items():
         np.testing.assert_array_equal(getattr(two, k), v, err_msg=k)
     assert np.any(one.fraction_either > 0.1)
     assert two.planner_errors == one.planner_errors and len(one.planner_errors) >= 1
-    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]  # no worker died
+    assert ticks == [(k, len(two)) for k in range(1, len(two) + 1)]
+    workers = {int(v) for v in pids.read_text().split()}
+    assert os.getpid() not in workers and 1 <= len(workers) <= 2  # planned in other processes
+    assert not [w for w in recwarn if "worker process died" in str(w.message)]
 
 
 def test_a_killed_worker_loses_no_time():
-    """A worker killed mid-sweep: the times it had not returned are planned in this process, the sweep complete."""
+    """Workers killed mid-sweep: the times they had not returned are planned here, each once, none lost."""
     import os
     import signal
 
@@ -221,19 +234,25 @@ def test_a_killed_worker_loses_no_time():
     parent = os.getpid()
 
     def planner(field, pose, **kwargs):
-        if os.getpid() != parent:
+        if os.getpid() != parent and pose.normals[0, 0] < 0.0:  # a worker meets an afternoon time: killed
             os.kill(os.getpid(), signal.SIGKILL)
+        if pose.normals[0, 0] > 0.1:  # the first time (7:00-ish) only
+            raise PihimInputError("refused here")
         return plan_passes(field, pose, **kwargs)
 
+    ticks = []
     with pytest.warns(RuntimeWarning, match="worker process died"):
-        two = sweep_day("2021-05-13", step_min=240.0, planner=planner, workers=2)
-    one = sweep_day("2021-05-13", step_min=240.0, workers=1)
-    assert len(two) == len(one) >= 3
+        two = sweep_day("2021-05-13", step_min=120.0, planner=planner, workers=2,
+                        progress=lambda done, total: ticks.append((done, total)))
+    one = sweep_day("2021-05-13", step_min=120.0, planner=planner, workers=1)
+    assert len(two) == len(one) >= 5
     for k, v in _arrays(one).items():
         np.testing.assert_array_equal(getattr(two, k), v, err_msg=k)
+    assert two.planner_errors == one.planner_errors and len(one.planner_errors) >= 1
+    assert ticks == [(k, len(two)) for k in range(1, len(two) + 1)]
 
 
-@pytest.mark.parametrize("workers", [0, -1, 1.5, True, "2"])
+@pytest.mark.parametrize("workers", [0, -1, 65, 1.5, True, "2"])
 def test_sweep_refuses_bad_worker_counts(workers):
     with pytest.raises(PihimInputError, match="workers"):
         sweep_day("2021-05-13", workers=workers)

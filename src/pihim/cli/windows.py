@@ -24,9 +24,9 @@ windows. Without it, a progress bar on stderr follows the sweep and two
 lines on stderr give the windows, the best time and the files written.
 
 The times are planned and scored side by side in ``--workers`` forked
-processes (default one per CPU; the result is identical to one process's):
-the NSTTF day at 10-minute steps takes about 7-8 s on two cores
-(BENCHMARKS.md).
+processes (default one per CPU, at most 8; the result is identical to one
+process's): the NSTTF day at 10-minute steps took 8.4 s on this project's
+2-core machine as a process, 12.7 s with ``--workers 1`` (BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ from pihim.cli._common import check_out_dir, emit_json, load_field_option, make_
 from pihim.errors import PihimInputError
 
 SCHEMA_ID = "pihim.windows/1"
-#: Most ``--workers`` accepted (each is a forked copy of this process: a few hundred MB).
+#: Most ``--workers`` accepted (pihim.planning.windows.MAX_WORKERS, not imported here: the CLI starts light).
 MAX_WORKERS = 64
 
 
@@ -61,7 +61,7 @@ def windows(
     threshold: Annotated[float, typer.Option(help="Favourable when this fraction of heliostats is usable, [0, 1].")] = 0.5,
     relative: Annotated[bool, typer.Option("--relative", help="--threshold is a fraction of the day's best instead.")] = False,
     no_shift: Annotated[bool, typer.Option("--no-shift", help="Score the plans without contrast-raising shifts.")] = False,
-    workers: Annotated[int | None, typer.Option("--workers", help="Processes planning and scoring times side by side (default: one per CPU; 1: this process only).")] = None,
+    workers: Annotated[int | None, typer.Option("--workers", help="Processes planning and scoring times side by side (default: one per CPU, at most 8; 1: this process only).")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
 ) -> int:
     """Favourable times of day for polarimetric inspection (paper sec. 4.1 windows)."""
@@ -117,12 +117,14 @@ def _progress_bar(description: str) -> Iterator[Callable[[int, int], None]]:
     """A progress bar on stderr fed by ``sweep_day``'s ``progress(done, total)`` callback."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+    # no refresh thread and no stdout / stderr proxies: the sweep forks its workers while the bar is up
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                  console=stderr_console, transient=True, disable=not stderr_console.is_terminal) as bar:
+                  console=stderr_console, transient=True, disable=not stderr_console.is_terminal,
+                  auto_refresh=False, redirect_stdout=False, redirect_stderr=False) as bar:
         task = bar.add_task(description, total=None)
 
         def tick(done: int, total: int) -> None:
-            bar.update(task, completed=done, total=total)
+            bar.update(task, completed=done, total=total, refresh=True)
 
         yield tick
 

@@ -442,11 +442,11 @@ def estimate_canting(
         and DoLP tests before any facet is fitted. A node more than 2.5 steps
         from the logged angles turns the target's outline as the HUA's turn
         would (:func:`hua_turn_transform`) and every facet is fitted on it and
-        on the logged outline; the turn is kept only if it measures more
-        facets. With ``target_orientation`` a tie is broken by the number of
-        facets that found the target's outline, then by the smaller mean
-        residual; without it a tie keeps the logged angles (the log is the
-        prior). Default the paper's +-5 deg; None skips the search.
+        on the logged outline; the turn is kept if it measures more facets.
+        On a tie, with ``target_orientation``, the outline more facets found
+        wins, then the smaller mean residual; without it, the logged angles
+        are kept (the log is the prior). Default the paper's +-5 deg; None
+        skips the search.
     target_orientation : bool
         Correct the target's logged drive angles and the HUA's turn
         together (:func:`refine_orientations`) and fit the facets again on
@@ -552,12 +552,11 @@ def estimate_canting(
             search = search_orientation(turn_models, dt, span_mrad=float(orientation_span_mrad))
         except PihimInputError as exc:
             notes.append(f"orientation search: {exc}")
-    # The search's node is the HUA's drive-angle error: beyond two steps, the target's outline is turned as a
+    # The search's node is the HUA's drive-angle error: beyond 2.5 steps, the target's outline is turned as a
     # camera pose fitted on the HUA sees it (hua_turn_transform) and every facet is fitted around its design on
     # that outline. The search proposes, the facet fits decide: the facets are fitted on the logged outline too,
-    # and the turn is kept if it measures more facets (or as many, with more facets finding the target's outline
-    # -- what the target's correction below starts from -- or as many, closer): clutter -- other heliostats'
-    # backs, the ground -- can raise a false peak of the search.
+    # and the turn is kept by the rule of ``orientation_span_mrad``'s docstring (below): clutter -- other
+    # heliostats' backs, the ground -- can raise a false peak of the search.
     plain = {"pts": pts, "seg": seg}
     turn_deg = (0.0, 0.0)
     fits: dict[int, object] = {}

@@ -115,9 +115,11 @@ The numbers come from :func:`sweep_day` with the defaults (``pihim windows
 --date 2021-05-13`` and ``--date 2021-03-20``); they depend on the planner's
 geometry, which may still change.
 
-Speed: per time, tracking ~1 ms, planning ~55 ms, ground table ~17 ms,
-scoring and shift search ~30 ms; a 10-minute NSTTF sweep (73 times in May)
-takes about 7 s on two cores (``benchmarks/bench_windows.py``).
+Speed: a 10-minute NSTTF sweep (73 times in May; per time about 70 ms of
+tracking and planning and 80 ms of scoring with the shift search) takes
+6.8-10.8 s in one process on this project's 2-core machine, depending on the
+hour of its shared host, and 5.3 s in two forked workers
+(``sweep_day(workers=2)``; ``benchmarks/bench_windows.py``, BENCHMARKS.md).
 
 References
 ----------
@@ -133,6 +135,7 @@ import datetime as _dt
 import math
 import os
 import sys
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -491,6 +494,8 @@ class _SweepJob:
 
 @dataclasses.dataclass(frozen=True)
 class _InstantResult:
+    """What one time of the sweep adds to :class:`DaySweep` (fractions by kind, counts, the planner's refusal)."""
+
     fractions: dict[str, float]
     n_images: int
     shifted: int
@@ -519,21 +524,53 @@ def _score_instant(job: _SweepJob, i: int) -> _InstantResult:
 
 #: In a forked sweep worker, the sweep it serves (handed over by the fork itself: nothing is pickled).
 _WORKER_JOB: _SweepJob | None = None
+#: Most worker processes ``workers=None`` starts (each is a forked copy of the caller: a few hundred MB).
+DEFAULT_MAX_WORKERS = 8
+#: Most worker processes accepted at all.
+MAX_WORKERS = 64
 
 
-def _forked_worker_setup(job: _SweepJob) -> None:
-    """Start a forked sweep worker: its job, and compiled kernels without threads (GNU OpenMP does not survive
-    ``fork``)."""
+def _forked_worker_setup(job: _SweepJob, parent_pid: int) -> None:
+    """Start a forked sweep worker.
+
+    It keeps ``job``; runs compiled kernels without threads (GNU OpenMP does
+    not survive ``fork``); leaves Ctrl-C to the parent, which stops the pool,
+    and dies outright on SIGTERM (the parent then takes over its times); dies
+    with the parent (Linux ``PR_SET_PDEATHSIG``), so that a killed sweep leaves
+    no orphan; and writes to the real stdout and stderr, not to a progress
+    display's proxies copied by the fork.
+    """
+    import signal
+
     from pihim.surfaces import ground
 
     global _WORKER_JOB
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        pass
+    if os.getppid() != parent_pid:  # the parent died before the line above took effect
+        os._exit(1)
+    sys.stdout, sys.stderr = sys.__stdout__, sys.__stderr__
     _WORKER_JOB = job
     ground.use_serial_kernels(True)
 
 
 def _score_forked_instant(i: int) -> tuple[int, _InstantResult]:
-    assert _WORKER_JOB is not None, "a sweep worker started without its job"
+    """Time ``i`` of the worker's sweep, with its index (results arrive in order of completion)."""
+    if _WORKER_JOB is None:
+        raise RuntimeError("a day-sweep worker started without its job")
     return i, _score_instant(_WORKER_JOB, i)
+
+
+def _default_workers() -> int:
+    """One worker per CPU this process may run on, at most :data:`DEFAULT_MAX_WORKERS`."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(cpus, DEFAULT_MAX_WORKERS))
 
 
 def _run_instants(job: _SweepJob, n: int, workers: int | None) -> Iterator[tuple[int, _InstantResult]]:
@@ -544,9 +581,7 @@ def _run_instants(job: _SweepJob, n: int, workers: int | None) -> Iterator[tuple
     children inherit ``job`` (planner closures included) and the compiled
     kernels, and return only small results.
     """
-    if workers is None:
-        workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    workers = min(workers, n)
+    workers = min(_default_workers() if workers is None else workers, n)
     if workers <= 1 or not sys.platform.startswith("linux"):  # fork is unsafe on macOS, absent on Windows
         for i in range(n):
             yield i, _score_instant(job, i)
@@ -558,7 +593,7 @@ def _run_instants(job: _SweepJob, n: int, workers: int | None) -> Iterator[tuple
     done: set[int] = set()
     try:
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
-                                 initializer=_forked_worker_setup, initargs=(job,)) as pool:
+                                 initializer=_forked_worker_setup, initargs=(job, os.getpid())) as pool:
             futures = [pool.submit(_score_forked_instant, i) for i in range(n)]
             try:
                 for fut in as_completed(futures):
@@ -569,8 +604,6 @@ def _run_instants(job: _SweepJob, n: int, workers: int | None) -> Iterator[tuple
                 for fut in futures:
                     fut.cancel()
     except BrokenProcessPool:  # a worker was killed (out of memory, a signal): the rest here, nothing lost
-        import warnings
-
         warnings.warn(f"a day-sweep worker process died; the {n - len(done)} remaining times run in this process",
                       RuntimeWarning, stacklevel=3)
     for i in range(n):
@@ -637,13 +670,16 @@ def sweep_day(
         process, also with ``workers`` > 1).
     workers : int or None
         Processes that plan and score the times side by side (each time is
-        independent); None, one per CPU this process may run on. With more
+        independent), 1 to :data:`MAX_WORKERS`; default 1 (this process
+        only); None, one per CPU this process may run on, at most
+        :data:`DEFAULT_MAX_WORKERS`. With more
         than one, on Linux, the times are shared among forked copies of this
         process (so ``planner`` and its arguments need not be picklable) and
         the result is identical to one process's; elsewhere (no safe
         ``fork``) the sweep runs in this process. Parallel runs cut the wall
         time, not the CPU time. A worker that dies leaves its unfinished
-        times to this process (a ``RuntimeWarning``).
+        times to this process (a ``RuntimeWarning``). ``planner`` must not
+        rely on side effects: in a worker they stay in the worker.
 
     Returns
     -------
@@ -658,8 +694,9 @@ def sweep_day(
     """
     day = parse_date(date)
     site = parse_site(site)
-    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
-        raise PihimInputError(f"workers must be None or an integer >= 1, got {workers!r}")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)
+                                or not 1 <= workers <= MAX_WORKERS):
+        raise PihimInputError(f"workers must be None or an integer in [1, {MAX_WORKERS}], got {workers!r}")
     if not (isinstance(step_min, (int, float)) and math.isfinite(step_min) and 0.5 <= step_min <= 240.0):
         raise PihimInputError(f"step must be between 0.5 and 240 minutes, got {step_min!r}")
     if not (isinstance(min_elevation_deg, (int, float)) and 0.0 <= min_elevation_deg < 89.0):

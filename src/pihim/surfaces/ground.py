@@ -156,6 +156,7 @@ __all__ = [
     "MonteCarloResult",
     "SkyRadiance",
     "hemisphere_grid",
+    "use_serial_kernels",
 ]
 
 #: Refractive index of the ground used in the paper (sec. 3, its ref. [28]).
@@ -473,17 +474,30 @@ def _sky_kernel(views, e_out, nodes, weights, table, radius, step, n, shadowing,
         out[i, 3] = a3
 
 
-#: The same kernel compiled without threads (``prange`` runs as ``range``; every view is computed by the same
-#: arithmetic, so the results are identical): used where a process must not start OpenMP threads, in the
-#: workers that :func:`pihim.planning.windows.sweep_day` forks (GNU OpenMP does not survive ``fork``).
-#: (A copy of the Python function under its own name: numba's on-disk cache is keyed by the function's name and
-#: line, not by ``parallel``, and would hand this twin the threaded machine code.)
-_sky_kernel_serial = njit(fastmath=True, cache=True)(_renamed(_sky_kernel.py_func, "_sky_kernel_serial"))
+#: The same kernel compiled without threads (``prange`` runs as ``range``; each view's sum is the same loop, and
+#: the values are identical on this machine, tested; ``fastmath`` lets LLVM reorder sums, so another CPU could in
+#: principle differ in the last bits): used where a process must not start OpenMP threads, in the workers that
+#: :func:`pihim.planning.windows.sweep_day` forks (GNU OpenMP does not survive ``fork``). A copy of the Python
+#: function under its own name: numba's on-disk cache is keyed by the function's name and line, not by
+#: ``parallel``, and would hand this twin the threaded machine code. (With ``NUMBA_DISABLE_JIT=1`` both are
+#: the plain function.)
+_sky_kernel_serial = njit(fastmath=True, cache=True)(
+    _renamed(getattr(_sky_kernel, "py_func", _sky_kernel), "_sky_kernel_serial"))
 _serial_kernels = False
 
 
 def use_serial_kernels(serial: bool = True) -> None:
-    """Run this module's compiled kernels without threads in this process (for forked workers)."""
+    """Run this module's compiled kernels without threads in this process, or with them again.
+
+    For processes that must not start OpenMP threads: workers forked from a
+    process whose OpenMP runtime has started (GNU OpenMP does not survive
+    ``fork``; numba then terminates the child).
+
+    Parameters
+    ----------
+    serial : bool
+        True: the threadless twins from now on; False: the threaded kernels.
+    """
     global _serial_kernels
     _serial_kernels = bool(serial)
 
@@ -491,7 +505,6 @@ def use_serial_kernels(serial: bool = True) -> None:
 # ---------------------------------------------------------------------------
 # Sky sampling: direct calls or a Lambert azimuthal table (pihim.sky.table)
 # ---------------------------------------------------------------------------
-
 def _stokes4(s: ArrayLike) -> NDArray[np.float64]:
     s = np.asarray(s, float)
     if s.shape[-1] == 3:
