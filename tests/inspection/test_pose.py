@@ -89,6 +89,25 @@ def test_refine_pose_converges_from_a_nearby_prior_on_a_rendered_frame():
     assert fit.rms_px < 0.5
 
 
+def test_threaded_alignments_give_the_one_thread_pose(monkeypatch):
+    """The search's alignments of a start run on threads; the pose is the one a single thread finds, bit for bit."""
+    import numba
+
+    field, pose, i, cam, true = _view()
+    fr = render_frame(field_scene(pose), cam, true, Environment.clear_sky(SUN), RenderSettings(supersample=2))
+    ep = edge_points(fr.s0)
+    segs = facet_outline_segments(pose.facet_corners()[i])
+    prior = CameraPose(true.position_m + [0.9, -0.6, 0.7], true.rotation)  # a few starts before one is accepted
+    monkeypatch.setattr(numba.config, "NUMBA_NUM_THREADS", 2)
+    two = refine_pose(cam, prior, segs, ep)
+    monkeypatch.setattr(numba.config, "NUMBA_NUM_THREADS", 1)
+    one = refine_pose(cam, prior, segs, ep)
+    assert two.starts == one.starts >= 2
+    np.testing.assert_array_equal(two.pose.rotation, one.pose.rotation)
+    np.testing.assert_array_equal(two.pose.position_m, one.pose.position_m)
+    assert two.rms_px == one.rms_px
+
+
 def test_search_does_not_stop_at_a_neighbours_outline():
     """Frame 15 of benchmarks/canting_quality.py (12E10 seen showing 11E11 at 10:00, GPS prior 4.3 m off): the
     first start that fits aligns the model onto a neighbouring heliostat at support 0.85. The search must go on

@@ -730,7 +730,7 @@ def _normal_equations(jac, f, x_scale, a, g):  # pragma: no cover - compiled
             a[d, c] = a[c, d]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def solve(prob: tuple, x0: NDArray, m: int, x_scale: NDArray, max_nfev: int, soft_l1: bool,
           f_scale: float) -> tuple[NDArray, NDArray, NDArray]:  # pragma: no cover - compiled
     """Parameters minimising the (robust) sum of squared residuals of ``prob`` from ``x0``.

@@ -53,6 +53,8 @@ References
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -323,6 +325,27 @@ class _EdgeMaps:
         return float(np.mean(self.dt[q[:, 1], q[:, 0]] <= tol_px)) if len(q) >= 30 else 0.0
 
 
+@contextlib.contextmanager
+def _aligner(camera: CameraModel, pts: NDArray, maps: _EdgeMaps) -> Iterator[Callable[[list], list]]:
+    """``align(poses) -> [_chamfer_align(pose) ...]``, in order, on threads.
+
+    As many threads as numba may use (``NUMBA_NUM_THREADS``: one per CPU, or
+    what the caller set, e.g. 1 in a campaign's workers), at most four (a
+    start has at most ``2 n_peaks`` alignments); the compiled fits release the
+    GIL, and each alignment is computed as on one thread (identical poses).
+    """
+    import numba
+
+    threads = max(1, min(4, int(numba.config.NUMBA_NUM_THREADS)))
+    if threads < 2:
+        yield lambda poses: [_chamfer_align(camera, p, pts, maps) for p in poses]
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(threads) as pool:
+        yield lambda poses: list(pool.map(lambda p: _chamfer_align(camera, p, pts, maps), poses))
+
+
 def _chamfer_align(camera: CameraModel, pose: CameraPose, pts: NDArray, maps: _EdgeMaps) -> CameraPose:
     """Pull the projected points onto the edges through ever sharper proximity maps (coarse to fine).
 
@@ -445,16 +468,18 @@ def refine_pose(
     best: tuple[float, CameraPose] | None = None
     tried = 0
     search = _CoarseSearch(camera, edges, max_shift_px, scale=16)
-    for off in _start_offsets(search_m, search_rings):
-        start = CameraPose(prior.position_m + prior.rotation.T @ off, prior.rotation)
-        for dx, dy, _ in _coarse_peaks(camera, start, pts, search, n_peaks):
-            tried += 1
-            aligned = _chamfer_align(camera, _pan_tilt(camera, start, dx, dy), sparse, maps)
-            support = maps.support(_kernels.project_pose(camera, aligned, pts))
-            if best is None or support > best[0]:
-                best = (support, aligned)
-        if best is not None and best[0] >= accept_support:
-            break
+    with _aligner(camera, sparse, maps) as align:
+        for off in _start_offsets(search_m, search_rings):
+            start = CameraPose(prior.position_m + prior.rotation.T @ off, prior.rotation)
+            peaks = _coarse_peaks(camera, start, pts, search, n_peaks)
+            # a start's alignments side by side (the compiled fits release the GIL); compared in order
+            for aligned in align([_pan_tilt(camera, start, dx, dy) for dx, dy, _ in peaks]):
+                tried += 1
+                support = maps.support(_kernels.project_pose(camera, aligned, pts))
+                if best is None or support > best[0]:
+                    best = (support, aligned)
+            if best is not None and best[0] >= accept_support:
+                break
     if best is None:
         raise PihimInputError("the heliostat's outline matches no edges: pose prior too far off?")
     pose, rms, n_used = _icp(camera, best[1], pts, seg, edges.xy, gates_px)
