@@ -447,7 +447,9 @@ def refine_pose(
     the edges (support 0.1-0.6, and 0.85 once, against 0.87-0.98 for the
     right pose on the rendered UFACET frames of
     ``benchmarks/canting_quality.py``, which measures the whole search from
-    the issue's priors).
+    the issue's priors). The alignments of one start run on threads (as
+    many as ``NUMBA_NUM_THREADS``, at most four) and are compared in order,
+    so the result is the one-thread result.
 
     Returns
     -------
