@@ -524,7 +524,7 @@ def _score_instant(job: _SweepJob, i: int) -> _InstantResult:
 
 #: In a forked sweep worker, the sweep it serves (handed over by the fork itself: nothing is pickled).
 _WORKER_JOB: _SweepJob | None = None
-#: Most worker processes ``workers=None`` starts (each is a forked copy of the caller: a few hundred MB).
+#: Most worker processes ``workers=None`` starts (each a forked copy of the caller; ~170 MB resident each for NSTTF).
 DEFAULT_MAX_WORKERS = 8
 #: Most worker processes accepted at all.
 MAX_WORKERS = 64
