@@ -679,7 +679,11 @@ def sweep_day(
         ``fork``) the sweep runs in this process. Parallel runs cut the wall
         time, not the CPU time. A worker that dies leaves its unfinished
         times to this process (a ``RuntimeWarning``). ``planner`` must not
-        rely on side effects: in a worker they stay in the worker.
+        rely on side effects: in a worker they stay in the worker. As with
+        any ``fork``, only the calling thread is copied: call it with
+        ``workers`` > 1 from a process whose other threads hold no locks
+        the workers need (numba compiling, logging), e.g. not while another
+        thread compiles kernels.
 
     Returns
     -------
