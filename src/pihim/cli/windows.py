@@ -44,8 +44,6 @@ from pihim.cli._common import check_out_dir, emit_json, load_field_option, make_
 from pihim.errors import PihimInputError
 
 SCHEMA_ID = "pihim.windows/1"
-#: Most ``--workers`` accepted (pihim.planning.windows.MAX_WORKERS, not imported here: the CLI starts light).
-MAX_WORKERS = 64
 
 
 def windows(
@@ -68,6 +66,7 @@ def windows(
     from pihim._malloc import keep_freed_memory
     from pihim.planning.scoring import ShiftSearch
     from pihim.planning.windows import (
+        MAX_WORKERS,
         is_nsttf,
         parse_date,
         sweep_day,
