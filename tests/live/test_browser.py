@@ -89,7 +89,9 @@ def test_page_shows_frames_and_captures_a_raw_frame(server, tmp_path):
         assert driver.find_element(By.ID, "conn").text == "live"
         assert driver.find_element(By.ID, "exposure").text.endswith("µs")
         assert "%" in driver.find_element(By.ID, "saturated").text
-        assert re.match(r"^\d\.\d\d", driver.find_element(By.ID, "dolp").text)
+        # a DoLP figure; "- (saturated)" for the two frames after each 10x brightness step of the synthetic source
+        # (the simulated camera's actuation latency), so wait for a frame that is not one of them
+        _wait(lambda: re.match(r"^\d\.\d\d", driver.find_element(By.ID, "dolp").text), 20, "a DoLP figure")
         # frames keep coming
         n0 = int(driver.execute_script("return document.body.dataset.frames"))
         _wait(lambda: int(driver.execute_script("return document.body.dataset.frames")) >= n0 + 5, 20,

@@ -238,6 +238,25 @@ def test_websocket_packets(engine):
     assert engine.status()["latency_ms"]["n"] >= 1
 
 
+def test_saturated_mirrors_have_no_dolp(tmp_path):
+    """All mirror pixels clipped (100x too bright, no exposure control): no DoLP figure, not a number from clipped pixels."""
+    src = SyntheticSource((64, 80), fps=60.0, scenes=1, drift_px=4, brightness=(100.0,))
+    eng = LiveEngine(src, LiveConfig(exposure=None, capture_dir=tmp_path / "captures", preview_max_side=64))
+    eng.start()
+    try:
+        deadline = time.monotonic() + 20
+        while eng.latest()[1] is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        packet = eng.latest()[1]
+    finally:
+        eng.stop()
+    assert packet is not None
+    header, _ = unpack_packet(packet)
+    jsonschema.validate(header, SCHEMAS["live-frame"])
+    assert header["region"] == "source" and header["region_stats"]["fraction_saturated"] == 1.0
+    assert header["dolp_mirrors"] is None and header["dolp_usable"] is None
+
+
 def test_cli_session_json(tmp_path, capsys):
     rc = main(["live", "--source", "synthetic", "--size", "64x48", "--port", "0", "--duration", "2",
                "--captures", str(tmp_path / "c"), "--record", str(tmp_path / "rec"), "--json"])

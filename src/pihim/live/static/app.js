@@ -92,7 +92,9 @@
     satEl.textContent = fmt(100 * rs.fraction_saturated, 2, " %") + " (" + where + ")";
     setClass(satEl, rs.fraction_saturated > 0.001 ? "bad" : "good");
     const dEl = $("dolp");
-    dEl.textContent = fmt(header.dolp_mirrors, 2) + (header.region === "frame" ? " (whole frame)" : "");
+    // no finite DoLP in the region: every pixel saturated (a brightness step the exposure has not caught up with yet)
+    const dolpWhy = header.dolp_mirrors === null && rs.fraction_saturated > 0 ? " (saturated)" : "";
+    dEl.textContent = fmt(header.dolp_mirrors, 2) + dolpWhy + (header.region === "frame" ? " (whole frame)" : "");
     setClass(dEl, header.dolp_usable === null ? null : header.dolp_usable ? "good" : "warn");
     showError(header);
     $("capture").disabled = false;
