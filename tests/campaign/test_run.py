@@ -19,12 +19,15 @@ import pytest
 
 pytest.importorskip("distributed")
 
+import pihim  # noqa: E402
 from pihim.campaign.logs import FrameRecord, format_utc, read_frames_csv, write_frames_csv  # noqa: E402
 from pihim.campaign.run import RunParameters, run_campaign  # noqa: E402
 from pihim.cli import main  # noqa: E402
 from pihim.errors import PihimInputError  # noqa: E402
 
-SRC = str(Path(__file__).resolve().parents[2] / "src")
+#: The folder holding the pihim these tests import (the installed copy or src/): the commands they start run the same
+#: code, and use the numba cache that copy's earlier runs filled.
+PIHIM_ROOT = str(Path(pihim.__file__).resolve().parents[1])
 
 
 class TruthInspector:
@@ -96,7 +99,7 @@ def _many_frames(flight: Path, n: int) -> None:
 
 
 def _cli(*args: str, **kw) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONPATH": SRC}
+    env = {**os.environ, "PYTHONPATH": PIHIM_ROOT}
     return subprocess.Popen([sys.executable, "-m", "pihim", *args], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, start_new_session=True, **kw)
 

@@ -25,6 +25,7 @@ from selenium import webdriver  # noqa: E402
 from selenium.webdriver.chrome.service import Service  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 
+import pihim  # noqa: E402
 from pihim.camera.frames import read_frame  # noqa: E402
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -44,7 +45,7 @@ def _wait(cond, timeout, what):
 
 def _start(source: str, captures: Path) -> tuple[str, subprocess.Popen]:
     """``pihim live --source SOURCE`` on a free port, in its own process; returns its URL and process."""
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2] / "src")}
+    env = {**os.environ, "PYTHONPATH": str(Path(pihim.__file__).resolve().parents[1])}  # the pihim imported here
     cmd = [sys.executable, "-m", "pihim", "live", "--source", source, "--size", "640x512", "--port", "0",
            "--captures", str(captures), "--duration", "120", "--json", "--fps", "15"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+import pihim
 from pihim.cli import main
 
 BASE = ["live", "--source", "synthetic", "--size", "64x48", "--duration", "2", "--port", "0"]
@@ -78,7 +79,7 @@ def test_a_folder_replay_takes_any_first_exposure(tmp_path, frame_folder, monkey
 
 def test_sigterm_says_terminated(tmp_path):
     """SIGTERM while serving: the --json summary, ``pihim: terminated`` on stderr, status 143 (docs/cli.md)."""
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2] / "src")}
+    env = {**os.environ, "PYTHONPATH": str(Path(pihim.__file__).resolve().parents[1])}  # the pihim imported here
     cmd = [sys.executable, "-m", "pihim", *BASE[:-4], "--port", "0", "--duration", "60", "--json",
            "--captures", str(tmp_path / "c")]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)
