@@ -26,6 +26,7 @@ from pihim.camera.frames import read_frame  # noqa: E402
 from pihim.cli import main  # noqa: E402
 from pihim.errors import PihimInputError  # noqa: E402
 from pihim.live.engine import LiveConfig, LiveEngine, unpack_packet  # noqa: E402
+from pihim.live.exposure import ExposureSettings  # noqa: E402
 from pihim.live.server import bind_socket, build_app, check_bind  # noqa: E402
 from pihim.live.sources import SyntheticSource  # noqa: E402
 
@@ -238,10 +239,7 @@ def test_websocket_packets(engine):
     assert engine.status()["latency_ms"]["n"] >= 1
 
 
-def test_saturated_mirrors_have_no_dolp(tmp_path):
-    """All mirror pixels clipped (100x too bright, no exposure control): no DoLP figure, not a number from clipped pixels."""
-    src = SyntheticSource((64, 80), fps=60.0, scenes=1, drift_px=4, brightness=(100.0,))
-    eng = LiveEngine(src, LiveConfig(exposure=None, capture_dir=tmp_path / "captures", preview_max_side=64))
+def _first_header(eng: LiveEngine) -> dict:
     eng.start()
     try:
         deadline = time.monotonic() + 20
@@ -253,6 +251,35 @@ def test_saturated_mirrors_have_no_dolp(tmp_path):
     assert packet is not None
     header, _ = unpack_packet(packet)
     jsonschema.validate(header, SCHEMAS["live-frame"])
+    return header
+
+
+def test_a_fixed_exposure_is_set_without_the_controller(tmp_path):
+    """``--no-auto-exposure --exposure-us 5000``: after the camera's actuation latency (2 frames) every frame is
+    taken at 5000 us, not at the camera's own 1000 us."""
+    src = SyntheticSource((64, 80), fps=60.0, scenes=1, drift_px=4, latency_frames=2)
+    assert src.describe()["controllable"]
+    headers = []
+    eng = LiveEngine(src, LiveConfig(exposure=None, initial_settings=ExposureSettings(5000.0),
+                                     capture_dir=tmp_path / "captures", preview_max_side=64),
+                     on_packet=lambda: (p := eng.latest()[1]) is not None and headers.append(unpack_packet(p)[0]))
+    eng.start()
+    try:
+        deadline = time.monotonic() + 20
+        while len(headers) < 12 and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        eng.stop()
+    seen = [h["exposure"]["exposure_us"] for h in headers[:12]]
+    assert len(seen) == 12 and all(h["controller"] is None for h in headers)
+    assert seen[3:] == [5000.0] * 9 and set(seen[:3]) <= {1000.0, 5000.0}
+
+
+def test_saturated_mirrors_have_no_dolp(tmp_path):
+    """All mirror pixels clipped (100x too bright, no exposure control): no DoLP figure, not a number from clipped pixels."""
+    src = SyntheticSource((64, 80), fps=60.0, scenes=1, drift_px=4, brightness=(100.0,))
+    header = _first_header(LiveEngine(src, LiveConfig(exposure=None, capture_dir=tmp_path / "captures",
+                                                      preview_max_side=64)))
     assert header["region"] == "source" and header["region_stats"]["fraction_saturated"] == 1.0
     assert header["dolp_mirrors"] is None and header["dolp_usable"] is None
 

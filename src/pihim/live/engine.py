@@ -168,7 +168,9 @@ class LiveConfig:
     exposure_cap_us : float or None
         Motion-blur cap on the exposure (:func:`~pihim.live.exposure.motion_blur_exposure_cap_us`).
     initial_settings : ExposureSettings
-        First command sent to a controllable source.
+        First command sent to a controllable source; with the controller off
+        (``exposure=None``), the settings it keeps. Default 1000 us with the
+        controller, the source's own without.
     preview_max_side, jpeg_quality : int
         Preview size and quality.
     layout, analyser, dark_level :
@@ -260,8 +262,8 @@ class LiveEngine:
 
     def start(self) -> None:
         """Start the processing thread (and the recording thread with ``record_dir``)."""
-        if self.config.exposure is not None and self.source.controllable:
-            first = self.config.initial_settings or ExposureSettings(1000.0)
+        if self.source.controllable and (self.config.exposure is not None or self.config.initial_settings is not None):
+            first = self.config.initial_settings or ExposureSettings(1000.0)  # also a fixed exposure, no controller
             self.source.set_exposure(first)
             self._commanded = first
         if self.config.record_dir is not None:
