@@ -159,3 +159,13 @@ def test_rendered_flight_source(frontal, tmp_path):
     assert g.settings == ExposureSettings(500.0)
     assert np.median(g.raw[np.kron(sp, np.ones((2, 2), bool))].astype(float)) == pytest.approx(
         0.5 * np.median(mosaic_ideal[np.kron(sp, np.ones((2, 2), bool))]), rel=0.05)
+
+
+@pytest.mark.parametrize(("level", "grey"), [(8190.0, 255), (0.0, 0)])
+def test_a_flat_frame_shows_its_level(level, grey):
+    """A frame clipped everywhere has nothing to stretch: S0 shows white (its level against 0), not black; an
+    all-zero frame stays black."""
+    s0 = np.full((48, 64), level, np.float32)
+    nan = np.full_like(s0, np.nan)  # DoLP and AoP of clipped pixels
+    imgs = PreviewRenderer(max_side=64).render(s0, nan, nan)
+    assert (cv2.imdecode(np.frombuffer(imgs.s0, np.uint8), cv2.IMREAD_GRAYSCALE) == grey).all()

@@ -114,6 +114,8 @@ class PreviewRenderer:
         sub = s0[:: max(1, s0.shape[0] // 200), :: max(1, s0.shape[1] // 200)]
         finite = sub[np.isfinite(sub)]
         lo, hi = np.percentile(finite, (0.5, 99.5)) if finite.size else (0.0, 0.0)
+        if not hi > lo:  # nothing to stretch (a frame clipped everywhere): its level against 0, white unless 0
+            lo, hi = 0.0, max(float(hi), 0.0)
         scale = 255.0 / (hi - lo) if hi > lo else 0.0
         g = np.empty((oh, ow), np.uint8)
         d = np.empty((oh, ow, 3), np.uint8)
