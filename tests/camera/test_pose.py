@@ -325,8 +325,10 @@ def test_from_waypoint_mapping():
     assert pose == CameraPose.from_attitude((1, 2, 30), 90, -30, 4)
     with pytest.raises(PihimInputError, match="gimbal_pitch_deg"):
         CameraPose.from_waypoint({k: v for k, v in w.items() if k != "gimbal_pitch_deg"})
-    with pytest.raises(PihimInputError, match="x_m"):
+    with pytest.raises(PihimInputError, match="waypoint x_m must be a number of metres, got None"):
         CameraPose.from_waypoint({**w, "x_m": None})
+    with pytest.raises(PihimInputError, match="waypoint heading_deg must be a number of degrees, got 'east'"):
+        CameraPose.from_waypoint({**w, "heading_deg": "east"})
 
 
 # ------------------------------------------------------------------------------ bad input

@@ -61,11 +61,12 @@ def _vector3(value: ArrayLike, what: str) -> NDArray[np.float64]:
     return a
 
 
-def _angle(value: Any, what: str) -> float:
+def _number(value: Any, what: str, unit: str = "degrees") -> float:
+    """``value`` as a finite float, or a one-line error naming ``what`` and its ``unit``."""
     try:
         x = float(value)
     except (TypeError, ValueError):
-        raise PihimInputError(f"{what} must be a number of degrees, got {value!r}") from None
+        raise PihimInputError(f"{what} must be a number of {unit}, got {value!r}") from None
     if not math.isfinite(x):
         raise PihimInputError(f"{what} must be finite, got {x!r}")
     return x
@@ -186,9 +187,9 @@ class CameraPose:
             At pitch +-90 the heading still sets the right axis, so looking
             straight down with heading 0 the image top points North.
         """
-        h = _angle(heading_deg, "heading")
-        p = _angle(pitch_deg, "pitch")
-        r = _angle(roll_deg, "roll")
+        h = _number(heading_deg, "heading")
+        p = _number(pitch_deg, "pitch")
+        r = _number(roll_deg, "roll")
         right, down, forward = _zero_roll_frame(h, p)
         right, down = _rolled(right, down, r)
         return cls.from_axes(position_m, right, down, forward)
@@ -228,7 +229,7 @@ class CameraPose:
         else:
             right = np.array([forward[1] / horiz, -forward[0] / horiz, 0.0])  # unit(forward x Up)
         down = np.cross(forward, right)
-        right, down = _rolled(right, down, _angle(roll_deg, "roll"))
+        right, down = _rolled(right, down, _number(roll_deg, "roll"))
         return cls.from_axes(pos, right, down, forward)
 
     @classmethod
@@ -262,8 +263,9 @@ class CameraPose:
             def get(k: str, default: Any = None) -> Any:
                 return getattr(waypoint, k, default)
 
-        x, y, z, heading, pitch = (_angle(get(k), f"waypoint {k}") for k in keys)
-        roll = _angle(get("roll_deg", 0.0), "waypoint roll_deg")
+        x, y, z, heading, pitch = (_number(get(k), f"waypoint {k}", "metres" if k.endswith("_m") else "degrees")
+                                   for k in keys)
+        roll = _number(get("roll_deg", 0.0), "waypoint roll_deg")
         return cls.from_attitude((x, y, z), heading, pitch, roll)
 
     @classmethod
@@ -422,8 +424,8 @@ class CameraPose:
         CameraPose
             A new pose; this one is unchanged.
         """
-        sp = _angle(position_sigma_m, "position sigma")
-        sa = _angle(attitude_sigma_deg, "attitude sigma")
+        sp = _number(position_sigma_m, "position sigma", "metres")
+        sa = _number(attitude_sigma_deg, "attitude sigma")
         if sp < 0 or sa < 0:
             raise PihimInputError(f"noise sigmas must be >= 0, got {sp:g} m and {sa:g} deg")
         gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
