@@ -283,6 +283,15 @@ def test_waypoint_pose_reads_a_plan_json(field, pair, tmp_path):
     np.testing.assert_allclose(sim.camera_pose.position_m, pair.camera_pose.position_m, atol=1e-12)
     with pytest.raises(PihimInputError, match="out of range"):
         simulate_frame(field, TIME, camera=small_camera(64, 54), pose_request=WaypointPose(path, 2))
+    for key, name in (("hua", "99E99"), ("target", "8W99")):  # a plan for another field: refused, not logged
+        other = json.loads(json.dumps(plan))
+        if key == "hua":
+            other["passes"][1]["waypoints"][1]["hua"] = other["passes"][1]["predictions"][0]["hua"] = name
+        else:
+            other["passes"][1]["predictions"][0]["target"] = name
+        path.write_text(json.dumps(other))
+        with pytest.raises(PihimInputError, match=f"waypoint 1 of .*plan.json: unknown heliostat '{name}'"):
+            simulate_frame(field, TIME, camera=small_camera(64, 54), pose_request=WaypointPose(path, 1))
 
 
 def test_pair_pose_falls_back_to_the_whole_field_plan(field):

@@ -606,6 +606,13 @@ def simulate_frame(
     elif isinstance(req, WaypointPose):
         cam_pose = CameraPose.from_plan_json(req.plan_path, int(req.index))
         hua, target = _waypoint_pair(Path(req.plan_path), int(req.index))
+        for name in (hua, target):  # a plan made for another field would log heliostats this frame does not show
+            if name is not None:
+                try:
+                    field.index(name)
+                except PihimInputError as exc:
+                    raise PihimInputError(f"waypoint {req.index} of {req.plan_path}: {exc} (a plan for another "
+                                          f"field?)") from None
     else:
         cam_pose = CameraPose.look_at(req.camera_m, req.look_at_m, float(req.roll_deg))
     _check_camera_position(np.asarray(cam_pose.position_m, float), truth_field, scene)
