@@ -359,6 +359,8 @@ def test_camera_inside_a_heliostat_is_refused(field, inside_points, where):
     "kwargs, needle",
     [
         ({"pose_request": LookAtPose((24, 75, -3), (24, 94, 4))}, "below the ground"),
+        ({"pose_request": LookAtPose((24, 75, 1e300), (24, 94, 4))}, "(24, 75, 1e+300) is more than 10 km"),
+        ({"pose_request": LookAtPose((10_001, 0, 20), (24, 94, 4))}, "more than 10 km from the field origin"),
         ({"pose_request": LookAtPose((0, 0, 30), (0, 20, 30))}, "inside the tower"),
         ({"pose_request": LookAtPose((24, 75, 20), (24, 75, 20))}, "equals the camera position"),
         ({"pose_request": PairPose("8E3", "99W1")}, "unknown heliostat"),

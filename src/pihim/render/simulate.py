@@ -95,6 +95,9 @@ SCHEMA_ID = "pihim.simulated-frame/1"
 _MIRROR_CENTRE_CLEARANCE_M = 0.5
 #: Margin around the mirror's bounding box (facet canting, structure members), metres.
 _MIRROR_BOX_MARGIN_M = 0.15
+#: Farthest camera from the field origin, metres: the flat-ground local ENU frame and float precision hold well
+#: within it (the widest fields are a few kilometres across).
+MAX_CAMERA_DISTANCE_M = 10_000.0
 
 
 # --------------------------------------------------------------------------- pose requests
@@ -272,11 +275,20 @@ def _check_request(req: Any) -> None:
 # --------------------------------------------------------------------------- geometry
 
 
+def _check_camera_distance(position: Any) -> None:
+    """Refuse a camera more than :data:`MAX_CAMERA_DISTANCE_M` from the field origin (one line)."""
+    x, y, z = (float(v) for v in position)
+    if not math.hypot(x, y, z) <= MAX_CAMERA_DISTANCE_M:
+        raise PihimInputError(f"the camera at ({x:.6g}, {y:.6g}, {z:.6g}) is more than "
+                              f"{MAX_CAMERA_DISTANCE_M / 1000:g} km from the field origin")
+
+
 def _check_camera_position(position: NDArray, pose: FieldPose, scene: Scene) -> None:
-    """Refuse a camera below the ground, inside a heliostat or inside the tower (one-line errors)."""
+    """Refuse a camera below the ground, inside a heliostat or the tower, or kilometres away (one-line errors)."""
     fld = pose.field
     names = fld.names  # type: ignore[attr-defined]
     spec = fld.spec  # type: ignore[attr-defined]
+    _check_camera_distance(position)
     x, y, z = (float(v) for v in position)
     where = f"({x:.2f}, {y:.2f}, {z:.2f})"
     if scene.ground is not None:
@@ -614,6 +626,7 @@ def simulate_frame(
                     raise PihimInputError(f"waypoint {req.index} of {req.plan_path}: {exc} (a plan for another "
                                           f"field?)") from None
     else:
+        _check_camera_distance(req.camera_m)  # before the pose's arithmetic overflows
         cam_pose = CameraPose.look_at(req.camera_m, req.look_at_m, float(req.roll_deg))
     _check_camera_position(np.asarray(cam_pose.position_m, float), truth_field, scene)
 
