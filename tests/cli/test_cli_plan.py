@@ -96,6 +96,10 @@ def test_plan_files_read_by_third_party_readers(tmp_path, capsys):
         (["--time", TIME, "--fleet-hours", "0"], "--fleet-hours must be a positive number of hours per day"),
         (["--time", TIME, "--max-mission-items", "12"], "single capture, more than 12"),
         (["--time", TIME, "--autopilot", "inav"], "--autopilot must be ardupilot or px4"),
+        (["--time", "2021-05-13T10:00+01:00", "--site", "37.09,-2.36,500"],
+         "--site 37.09,-2.36,500 is not near the nsttf: give --geoid-undulation"),
+        (["--time", TIME, "--geoid-undulation", "nan"], "--geoid-undulation must be a number of metres"),
+        (["--time", TIME, "--geoid-undulation", "500"], "--geoid-undulation must be a number of metres within +/-120"),
     ],
 )
 def test_impossible_requests(tmp_path, capsys, args, needle):
@@ -112,6 +116,19 @@ def test_out_that_cannot_be_created_is_one_line(capsys):
     assert main(["plan", "--time", TIME, "--heliostats", "8E3", "--out", "/proc/x"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("pihim: error: --out /proc/x: cannot create")
+
+
+def test_a_site_away_from_the_nsttf_with_its_geoid_undulation(tmp_path, capsys):
+    """Plataforma Solar de Almeria (EGM96 geoid about +51.5 m): the plan carries the undulation given, and the QGC
+    home is at the sea-level height it gives (ellipsoidal height - undulation)."""
+    out = tmp_path / "psa"
+    assert main(["plan", "--time", "2021-05-13T10:00+01:00", "--site", "37.09,-2.36,500", "--geoid-undulation",
+                 "51.5", "--heliostats", "8E3", "--out", str(out)]) == 0
+    capsys.readouterr()
+    doc = json.loads((out / "plan.json").read_text())
+    assert doc["site"]["geoid_undulation_m"] == 51.5 and doc["site"]["latitude_deg"] == 37.09
+    home = json.loads(sorted(out.glob("flight_*.plan"))[0].read_text())["mission"]["plannedHomePosition"]
+    assert home[2] == pytest.approx(doc["home"]["height_m"] - 51.5)
 
 
 def test_plan_scores_with_the_second_surface_mirror_by_default(tmp_path, capsys):

@@ -7,11 +7,12 @@ A thin layer over :func:`pihim.planning.pipeline.build_plan` and
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import time as _time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -21,12 +22,30 @@ from pihim.errors import PihimInputError
 SCHEMA_ID = "pihim.plan-summary/1"
 
 
+def _undulation(value: float | None, site: Any, text: str) -> float:
+    """``--geoid-undulation``, checked, or the one pihim knows at ``site``; refused before any planning."""
+    from pihim.planning.export._common import known_geoid_undulation
+
+    if value is None:
+        known = known_geoid_undulation(site.latitude_deg, site.longitude_deg)
+        if known is None:
+            raise PihimInputError(f"--site {text.strip()} is not near the NSTTF: give --geoid-undulation (the EGM96 "
+                                  f"geoid height there, m), which the mission files' sea-level heights need")
+        return known
+    if not (math.isfinite(value) and abs(value) <= 120.0):
+        raise PihimInputError(f"--geoid-undulation must be a number of metres within +/-120, got {value:g}")
+    return float(value)
+
+
 def plan(
     time: Annotated[str, typer.Option("--time", help="ISO 8601 time with UTC offset, e.g. 2021-05-13T13:00-06:00.")],
     out: Annotated[Path, typer.Option("--out", help="Output directory.")],
     field: Annotated[str, typer.Option("--field", help="nsttf-like (default) or an OpenCSP heliostat CSV.")] = "nsttf-like",
     facets: Annotated[Path | None, typer.Option(help="OpenCSP facet-centroid CSV (with --field CSV).")] = None,
     site: Annotated[str, typer.Option(help="nsttf (default) or LAT,LON,H (deg, deg, ellipsoidal m).")] = "nsttf",
+    geoid_undulation: Annotated[float | None, typer.Option(
+        "--geoid-undulation", help="EGM96 geoid height above the ellipsoid at the site, m, for the sea-level "
+        "heights of the mission files (default -22 near the NSTTF; needed elsewhere).", show_default=False)] = None,
     aim: Annotated[str | None, typer.Option(help="Aim point X,Y,Z (m, ENU); default the field's tower target.")] = None,
     max_altitude: Annotated[float, typer.Option("--max-altitude", help="Highest flight altitude, m above the field origin (at most 1000).")] = 25.0,
     heliostats: Annotated[str | None, typer.Option(help="Comma-separated HUAs to plan for (default: all).")] = None,
@@ -59,6 +78,7 @@ def plan(
 
     when = parse_time(time)
     site_obj = parse_site(site)
+    undulation = _undulation(geoid_undulation, site_obj, site)
     aim_point = parse_point(aim, name="--aim")
     check_out_dir(out)
     if not (math.isfinite(battery_min) and 0 < battery_min <= MAX_BATTERY_MIN):
@@ -85,6 +105,7 @@ def plan(
                               facet_captures=(False if single_capture
                                               else FacetCaptureSettings(target_fraction=facet_target)),
                               progress=stage)
+        the_plan = dataclasses.replace(the_plan, site={**the_plan.site, "geoid_undulation_m": undulation})
         stage(f"writing plan.json, plan.kml, plan.png and {len(the_plan.flights)} flights' missions")
         files = export_all(the_plan, make_out_dir(out), field=fld, max_mission_items=max_mission_items, **options)
     summary = the_plan.summary

@@ -204,6 +204,18 @@ def heading_0_360(deg: float) -> float:
     return 0.0 if h >= 360.0 else h
 
 
+def known_geoid_undulation(latitude_deg: float, longitude_deg: float) -> float | None:
+    """The geoid undulation pihim knows without being told, metres: the NSTTF estimate
+    (:data:`pihim.sky.sun.NSTTF_GEOID_UNDULATION_M`) within 0.5 deg of the NSTTF, else None."""
+    from pihim.field.geodesy import NSTTF_ORIGIN_LATITUDE_DEG, NSTTF_ORIGIN_LONGITUDE_DEG
+    from pihim.sky.sun import NSTTF_GEOID_UNDULATION_M
+
+    if (abs(latitude_deg - NSTTF_ORIGIN_LATITUDE_DEG) <= _NSTTF_DEFAULT_RADIUS_DEG
+            and abs(longitude_deg - NSTTF_ORIGIN_LONGITUDE_DEG) <= _NSTTF_DEFAULT_RADIUS_DEG):
+        return NSTTF_GEOID_UNDULATION_M
+    return None
+
+
 def geoid_undulation(plan: Plan, value: float | None) -> float:
     """EGM96 geoid height above the WGS84 ellipsoid at the site, metres.
 
@@ -223,16 +235,10 @@ def geoid_undulation(plan: Plan, value: float | None) -> float:
     f = _finite(site.get("geoid_undulation_m"))
     if f is not None:
         return f
-    from pihim.field.geodesy import (
-        NSTTF_ORIGIN_LATITUDE_DEG,
-        NSTTF_ORIGIN_LONGITUDE_DEG,
-    )
-    from pihim.sky.sun import NSTTF_GEOID_UNDULATION_M
-
     lat, lon = plan.home.latitude_deg, plan.home.longitude_deg
-    if (abs(lat - NSTTF_ORIGIN_LATITUDE_DEG) <= _NSTTF_DEFAULT_RADIUS_DEG
-            and abs(lon - NSTTF_ORIGIN_LONGITUDE_DEG) <= _NSTTF_DEFAULT_RADIUS_DEG):
-        return NSTTF_GEOID_UNDULATION_M
+    f = known_geoid_undulation(lat, lon)
+    if f is not None:
+        return f
     raise PihimInputError(
         f"geoid undulation unknown at lat {lat:.5f}, lon {lon:.5f}: pass geoid_undulation_m= "
         "(EGM96 geoid height above the WGS84 ellipsoid, m) or put it in plan.site"
