@@ -400,6 +400,32 @@ def test_malformed_scheduler_is_one_line_and_quick(flight_copy, tmp_path) -> Non
     assert not (tmp_path / "c.sqlite").exists()
 
 
+def test_an_empty_frame_is_skipped_like_a_truncated_one(flight_copy, tmp_path, capsys) -> None:
+    """A zero-byte frame (its header unreadable) is the batch's bad item too: skipped, the other frame processed."""
+    frames = read_frames_csv(flight_copy / "frames.csv")
+    (flight_copy / frames[1].file).write_bytes(b"")
+    store = tmp_path / "c.sqlite"
+    assert main(["campaign", "run", str(flight_copy), "--store", str(store), "--stages", "select", "--workers", "1",
+                 "--json"]) == 2
+    out, err = capsys.readouterr()
+    assert json.loads(out)["counts"]["frames"] == {"pending": 0, "selected": 1, "done": 0, "skipped": 1}
+    assert err.strip().startswith("pihim: error: 1 of 2 frames could not be read") and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize(("sensor", "needle"), [({"layout": "1,2,3,4", "model": {}}, "layout must place"),
+                                                ([1], "'sensor' must be an object, got list"),
+                                                ({"model": {"analyser": "x"}}, "analyser must be an object")])
+def test_a_bad_sensor_in_flight_json_is_refused_before_the_store(flight_copy, tmp_path, capsys, sensor, needle):
+    doc = json.loads((flight_copy / "flight.json").read_text())
+    doc["sensor"] = sensor
+    (flight_copy / "flight.json").write_text(json.dumps(doc))
+    store = tmp_path / "c.sqlite"
+    assert main(["campaign", "run", str(flight_copy), "--store", str(store), "--workers", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pihim: error: ") and "flight.json" in err[0] and needle in err[0]
+    assert not store.exists()
+
+
 def test_unreadable_frame_exit_2_others_kept_and_retried(flight_copy, tmp_path, capsys) -> None:
     """A truncated frame is recorded as skipped, the other frame's results are kept, the run says so and exits 2;
     the next run reads the frame again (here repaired) and exits 0."""

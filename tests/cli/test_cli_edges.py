@@ -144,6 +144,20 @@ def test_bad_input_one_line_exit_2_nothing_written(frame, tmp_path, capsys):
     _assert_bad_input(rc, cap, out, "no 'log'")
     rc, cap = _run([frame, "--meta", tmp_path / "missing.json", "--out", out], capsys)
     _assert_bad_input(rc, cap, out, "not found")
+    # a sensor description of the wrong shape (an internal error once: the analyser went through dict())
+    for where, value, needle in ((("sensor", "model", "analyser"), "x", "analyser must be an object"),
+                                 (("sensor", "model", "analyser"), [1, 2], "analyser must be an object"),
+                                 (("sensor", "model", "analyser"), {"m": 1}, "analyser: calibration JSON has no"),
+                                 (("sensor",), [], "'sensor' must be an object, got list"),
+                                 (("sensor", "model"), 0, "'sensor.model' must be an object, got int")):
+        bad = json.loads(frame.with_suffix(".json").read_text())
+        node = bad["log"]
+        for key in where[:-1]:
+            node = node[key]
+        node[where[-1]] = value
+        (tmp_path / "bad.json").write_text(json.dumps(bad))
+        rc, cap = _run([frame, "--meta", tmp_path / "bad.json", "--out", out], capsys)
+        _assert_bad_input(rc, cap, out, needle)
     rc, cap = _run([frame, "--out", out, "--method", "laplace"], capsys)
     _assert_bad_input(rc, cap, out, "laplace")
     rc, cap = _run([frame, "--out", out, "--demosaic", "bayer"], capsys)

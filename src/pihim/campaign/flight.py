@@ -126,6 +126,12 @@ def load_flight(directory: str | os.PathLike[str], *, name: str | None = None) -
     if not isinstance(settings, dict) or settings.get("schema") != FLIGHT_SCHEMA_ID:
         raise PihimInputError(f"{meta}: not a {FLIGHT_SCHEMA_ID} document")
     CameraModel.from_dict(settings.get("camera") or {})  # one-line error now if malformed
+    from pihim.inspection.pipeline import sensor_settings
+
+    try:  # the sensor too, not frame by frame after the store is written
+        sensor_settings({"sensor": settings.get("sensor")})
+    except PihimInputError as exc:
+        raise PihimInputError(f"{meta}: {exc}") from None
     site = _site(settings, meta)
     frames = read_frames_csv(d / str(settings.get("frames", "frames.csv")))
     max_gap = float(settings.get("max_gap_s", DEFAULT_MAX_GAP_S))
@@ -149,7 +155,10 @@ def load_flight(directory: str | os.PathLike[str], *, name: str | None = None) -
 
 
 def check_frame_files(flight: Flight) -> None:
-    """Every frame file exists and has the camera's size (headers only; one-line error naming the first bad one)."""
+    """Every frame file exists and has the camera's size (headers only; one-line error naming the first bad one).
+
+    A frame whose header cannot be read is left to the run, which records it as skipped (unreadable) and goes on.
+    """
     import tifffile
 
     from pihim.camera.model import CameraModel
@@ -163,8 +172,8 @@ def check_frame_files(flight: Flight) -> None:
             try:
                 with tifffile.TiffFile(p) as tf:
                     shape = tf.pages[0].shape
-            except Exception as exc:  # noqa: BLE001 - any reader failure is a bad file
-                raise PihimInputError(f"{p}: not a readable TIFF ({' '.join(str(exc).split())})") from None
+            except Exception:  # noqa: BLE001 - a corrupt frame (even empty) is the batch's bad item, skipped then
+                continue
             if tuple(shape[:2]) != (cam.height_px, cam.width_px):
                 raise PihimInputError(
                     f"{p}: a {shape[1]}x{shape[0]} frame, but flight {flight.name}'s camera is "

@@ -186,24 +186,11 @@ def _polygon_mask(shape: tuple[int, int], outline_px: NDArray, scale: float) -> 
 
 
 def _sensor_settings(log: Mapping[str, Any]) -> dict[str, Any]:
-    """Layout, analyser, dark level and bit depth from ``log["sensor"]`` (the simulated frames' layout)."""
-    from pihim.camera.layout import IMX250MZR, MosaicLayout
-    from pihim.polarimetry.analyser import AnalyserMatrix
+    """Layout, analyser, dark level and bit depth from ``log["sensor"]``
+    (:func:`pihim.inspection.pipeline.sensor_settings`)."""
+    from pihim.inspection.pipeline import sensor_settings
 
-    sensor = log.get("sensor") or {}
-    model = sensor.get("model") or {} if isinstance(sensor, Mapping) else {}
-    if not isinstance(sensor, Mapping) or not isinstance(model, Mapping):
-        raise PihimInputError("log 'sensor' must be an object with an optional 'model' object")
-    layout = sensor.get("layout", model.get("layout"))
-    dark = model.get("dark_level_dn", 0.0)
-    bits = model.get("bit_depth")
-    if isinstance(dark, bool) or not isinstance(dark, (int, float)) or not math.isfinite(dark):
-        raise PihimInputError(f"log sensor dark_level_dn must be a finite number, got {dark!r}")
-    if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int)):
-        raise PihimInputError(f"log sensor bit_depth must be an integer, got {bits!r}")
-    return {"layout": IMX250MZR if layout is None else MosaicLayout.parse(str(layout)),
-            "analyser": AnalyserMatrix.from_dict(dict(model["analyser"])) if "analyser" in model else None,
-            "dark_level": float(dark), "bit_depth": bits}
+    return sensor_settings(log)
 
 
 def select_pairs(raw: NDArray, log: Mapping[str, Any], field: Any,

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import time as _time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -20,15 +19,13 @@ import numpy as np
 import typer
 
 from pihim._atomic import describe_os_error, write_group
-from pihim.camera.frames import MAX_RAW_VALUE, RAW_SUFFIXES, read_frame
-from pihim.camera.layout import IMX250MZR, MosaicLayout
+from pihim.camera.frames import RAW_SUFFIXES, read_frame
 from pihim.camera.model import CameraModel
 from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
 from pihim.cli._common import check_out_dir, emit_json, make_out_dir, report_error, stderr_console
 from pihim.errors import PihimInputError
 from pihim.inspection._log import sensor_entries
 from pihim.inspection.edges import EDGE_METHODS, IMAGE_TYPES, EdgeMaps, edge_maps, noise_sigmas, sensor_noise
-from pihim.polarimetry.analyser import AnalyserMatrix
 
 SCHEMA_ID = "pihim.edges/1"
 
@@ -65,25 +62,15 @@ def read_log(meta: Path) -> dict[str, Any]:
 
 def sensor_settings(log: Mapping[str, Any], meta: Path) -> dict[str, Any]:
     """Layout, analyser, dark level and bit depth from ``log["sensor"]`` (defaults if absent)."""
+    from pihim.inspection.pipeline import sensor_settings as from_log
+
     try:
+        settings = from_log(log)
         sensor, model = sensor_entries(log)
     except PihimInputError as exc:
         raise PihimInputError(f"{meta}: {exc}") from None
     layout_text = sensor.get("layout", model.get("layout"))
-    try:
-        layout = IMX250MZR if layout_text is None else MosaicLayout.parse(str(layout_text))
-        analyser = AnalyserMatrix.from_dict(dict(model["analyser"])) if "analyser" in model else None
-    except PihimInputError as exc:
-        raise PihimInputError(f"{meta}: {exc}") from None
-    dark = model.get("dark_level_dn", 0.0)
-    bits = model.get("bit_depth")
-    if isinstance(dark, bool) or not isinstance(dark, (int, float)) \
-            or not (math.isfinite(dark) and 0 <= dark <= MAX_RAW_VALUE):
-        raise PihimInputError(f"{meta}: sensor dark_level_dn must be a raw level in [0, {MAX_RAW_VALUE}], got {dark!r}")
-    if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int)):
-        raise PihimInputError(f"{meta}: sensor bit_depth must be an integer, got {bits!r}")
-    return {"layout": layout, "analyser": analyser, "dark_level": float(dark), "bit_depth": bits,
-            "layout_source": "log" if layout_text is not None else "default"}
+    return {**settings, "layout_source": "log" if layout_text is not None else "default"}
 
 
 def _write_all(out_dir: Path, writers: dict[Path, Callable[[Path], None]]) -> None:

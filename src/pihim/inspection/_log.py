@@ -16,10 +16,12 @@ def sensor_entries(log: Mapping[str, Any]) -> tuple[Mapping[str, Any], Mapping[s
     PihimInputError
         Either is present but not an object.
     """
-    sensor = log.get("sensor") or {}
+    sensor = log.get("sensor")
+    sensor = {} if sensor is None else sensor
     if not isinstance(sensor, Mapping):
-        raise PihimInputError("log 'sensor' must be an object")
-    model = sensor.get("model") or {}
+        raise PihimInputError(f"log 'sensor' must be an object, got {type(sensor).__name__}")
+    model = sensor.get("model")
+    model = {} if model is None else model
     if not isinstance(model, Mapping):
-        raise PihimInputError("log 'sensor.model' must be an object")
+        raise PihimInputError(f"log 'sensor.model' must be an object, got {type(model).__name__}")
     return sensor, model

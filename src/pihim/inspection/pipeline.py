@@ -172,7 +172,15 @@ def sensor_settings(log: Mapping[str, Any]) -> dict[str, Any]:
     sensor, model = sensor_entries(log)
     layout_text = sensor.get("layout", model.get("layout"))
     layout = IMX250MZR if layout_text is None else MosaicLayout.parse(str(layout_text))
-    analyser = AnalyserMatrix.from_dict(dict(model["analyser"])) if "analyser" in model else None
+    analyser = None
+    if "analyser" in model:
+        if not isinstance(model["analyser"], Mapping):
+            raise PihimInputError(f"log sensor.model.analyser must be an object with a 'matrix', "
+                                  f"got {type(model['analyser']).__name__}")
+        try:
+            analyser = AnalyserMatrix.from_dict(dict(model["analyser"]))
+        except PihimInputError as exc:
+            raise PihimInputError(f"log sensor.model.analyser: {exc}") from None
     dark = model.get("dark_level_dn", 0.0)
     bits = model.get("bit_depth")
     if isinstance(dark, bool) or not isinstance(dark, (int, float)) \
