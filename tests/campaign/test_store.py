@@ -81,6 +81,19 @@ def test_not_a_store_refused(tmp_path) -> None:
         open_store(tmp_path / "missing.sqlite", create=False)
 
 
+@pytest.mark.parametrize("readonly", [False, True])
+def test_a_store_missing_a_table_is_one_line(tmp_path, readonly) -> None:
+    """A store of the current schema with a table dropped (by hand): refused by name, not an SQL error later."""
+    path = tmp_path / "c.sqlite"
+    open_store(path).close()
+    db = sqlite3.connect(path)
+    db.execute("DROP TABLE observation")
+    db.commit()
+    db.close()
+    with pytest.raises(PihimInputError, match="a damaged campaign store \\(no table observation\\)"):
+        open_store(path, readonly=readonly)
+
+
 def test_registration_is_idempotent(tmp_path) -> None:
     with open_store(tmp_path / "c.sqlite") as s:
         cid, fid, _ = _fill(s)

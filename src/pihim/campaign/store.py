@@ -45,6 +45,7 @@ import csv
 import io
 import json
 import os
+import re
 import socket
 import sqlite3
 import time as _time
@@ -157,6 +158,8 @@ CREATE INDEX observation_hua ON observation (hua);
 
 #: Migrations: ``MIGRATIONS[k]`` takes a store from schema ``k`` to ``k + 1`` (0 is a new file).
 MIGRATIONS: tuple[str, ...] = (_V1, _V2)
+#: The tables a store of the current schema has (from :data:`MIGRATIONS`).
+_TABLES = frozenset(re.findall(r"CREATE TABLE (?:IF NOT EXISTS )?(\w+)", "".join(MIGRATIONS)))
 #: Schema version written by this pihim.
 SCHEMA_VERSION = len(MIGRATIONS)
 
@@ -267,6 +270,7 @@ class CampaignStore:
                 "upgrade pihim to use it (the store was not changed)"
             )
         if version == SCHEMA_VERSION:
+            self._check_tables()
             return
         if self.readonly:
             if version == 0:
@@ -301,6 +305,14 @@ class CampaignStore:
             raise
         if self.readonly:
             self.db.execute("PRAGMA query_only = ON")  # the migrated copy is read-only too: writes fail
+
+    def _check_tables(self) -> None:
+        """A store of the current schema whose tables are not all there (edited by hand, damaged): one line."""
+        have = {r[0] for r in self.db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        missing = sorted(_TABLES - have)
+        if missing:
+            raise PihimInputError(f"{self.path}: a damaged campaign store (no table {', '.join(missing)}); "
+                                  "start a new one with pihim campaign run --store")
 
     @property
     def schema_version(self) -> int:
