@@ -76,9 +76,16 @@ def _nan_capture_x(doc) -> None:
     (lambda d: d.pop("passes"), "the plan has no 'passes' list"),
     (lambda d: d["flights"][0]["waypoints"][0].pop("heading_deg"),
      r"flights\[0\]\.waypoints\[0\] has no 'heading_deg'"),
+    # refused by the first frame, after the folders were made: they go again
+    (lambda d: d.update(time_iso="2021-05-13T23:00:00-06:00"), "the sun is below the horizon"),
+    (lambda d: [q.update(target="99E99") for p in d["passes"] for q in p.get("predictions", [])],
+     "unknown heliostat '99E99'"),
+    # an overflow in the timeline once (an internal error)
+    (lambda d: d["flights"][0]["waypoints"][2].update(z_m=1e300), r"waypoint 2 of flight 1 is not a position within"),
 ])
 def test_malformed_plan_one_line_exit_2_nothing_written(plan_json, tmp_path, capsys, edit, msg) -> None:
-    """A capture waypoint at x = NaN used to be dropped silently, a plan without passes was a KeyError."""
+    """A capture waypoint at x = NaN used to be dropped silently, a plan without passes was a KeyError; a refused
+    first frame left empty folders."""
     from pihim.cli import main
 
     plan = _plan_with(plan_json, tmp_path, edit)

@@ -362,6 +362,19 @@ def _request_record(request: Any) -> dict[str, Any]:
 
 
 @contextlib.contextmanager
+def _removed_if_empty_on_refusal(made: Sequence[Path]) -> Iterator[None]:
+    """On a :class:`PihimInputError` (a frame refused: the sun below the horizon, say), remove the folders this run
+    made (``made``, parents first) that are still empty."""
+    try:
+        yield
+    except PihimInputError:
+        for d in reversed(made):
+            with contextlib.suppress(OSError):
+                d.rmdir()  # only an empty folder goes
+        raise
+
+
+@contextlib.contextmanager
 def _flight_directory_lock(out: Path) -> Iterator[None]:
     """Hold an exclusive lock on ``out`` (``out/.simulate-flight.lock``) while a run writes it; one line if held."""
     import fcntl
@@ -470,7 +483,7 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     from pihim.campaign.logs import write_dataflash, write_frames_csv, write_ulog
     from pihim.camera.model import camera_for_size
     from pihim.field import Field, enu_to_geodetic, nsttf_like_field
-    from pihim.render.simulate import LookAtPose, WaypointPose, simulate_frame
+    from pihim.render.simulate import MAX_CAMERA_DISTANCE_M, LookAtPose, WaypointPose, simulate_frame
     from pihim.sky.sun import parse_time
 
     if log not in ("csv", "ulog", "dataflash"):
@@ -490,6 +503,12 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     aim = [float(v) for v in doc["aim_point"]]
     camera = camera_for_size(*size)
     wps, caps = _flight_waypoints(doc, flight - 1)
+    for i, w in enumerate(wps):  # a position kilometres away would overflow the timeline before any frame refuses it
+        xyz = [w.get(c) for c in ("x_m", "y_m", "z_m")]
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in xyz) \
+                or not math.hypot(*xyz) <= MAX_CAMERA_DISTANCE_M:
+            raise PihimInputError(f"{plan}: waypoint {i} of flight {flight} is not a position within "
+                                  f"{MAX_CAMERA_DISTANCE_M / 1000:g} km of the field origin: {xyz}")
     arrive = _timeline(wps)
 
     # the frames: (time from start, true camera pose, request, capture index)
@@ -520,9 +539,10 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
         raise PihimInputError(f"flight {flight} of {plan} records no frame (no captures / scan passes)")
 
     out = Path(out_dir)
+    made = [d for d in (*reversed(out.parents), out, out / "frames", out / "truth") if not d.exists()]
     (out / "frames").mkdir(parents=True, exist_ok=True)
     (out / "truth").mkdir(parents=True, exist_ok=True)
-    with _flight_directory_lock(out):
+    with _removed_if_empty_on_refusal(made), _flight_directory_lock(out):
         # a rerun first withdraws what said the directory was complete: killed, it leaves no flight.json
         for name in ("flight.json", "frames.csv", "flight.ulg", "flight.bin", "truth/flight.json"):
             (out / name).unlink(missing_ok=True)

@@ -78,7 +78,7 @@ def simulate_flight(
     """Render the frames a flight of a plan would record, with its log and the truth beside it."""
     import math
 
-    from pihim.cli._common import make_out_dir
+    from pihim.cli._common import check_out_dir
     from pihim.cli.simulate import parse_size
 
     if fps is not None and captures_only:
@@ -107,7 +107,7 @@ def simulate_flight(
     from pihim.campaign.flight import load_plan, simulate_flight as _simulate
 
     load_plan(plan, flight)  # a malformed plan is one line before --out is made
-    make_out_dir(out)
+    check_out_dir(out)  # made by the run, and removed again if its first frame is refused
 
     with _bars(sys.stderr.isatty()) as bar:
         summary = _simulate(plan, out, flight=flight, fps=fps, max_frames=max_frames, size=(w, h), log=log,
