@@ -332,6 +332,10 @@ def test_waypoint_pose_tracks_the_aim_point_its_plan_was_made_for(field, pair, t
     path.write_text(json.dumps({"schema": "pihim.plan/1", "passes": [{"waypoints": [wp]}]}))
     old = simulate_frame(field, TIME, camera=small_camera(64, 54), pose_request=WaypointPose(path, 0), settings=FAST)
     assert old.log["aim_point_m"] == list(UFACET_AIM_POINT)  # a plan that does not say: UFACET's
+    for bad in ([float("nan"), 1, 1], [1], "tower"):  # a plan that says it wrongly: refused, not UFACET's
+        path.write_text(json.dumps({"schema": "pihim.plan/1", "aim_point": bad, "passes": [{"waypoints": [wp]}]}))
+        with pytest.raises(PihimInputError, match="aim_point must be three finite numbers"):
+            simulate_frame(field, TIME, camera=small_camera(64, 54), pose_request=WaypointPose(path, 0))
 
 
 # -- refusals (all before rendering) ----------------------------------------------

@@ -344,13 +344,25 @@ def _pair_pose(fld: Any, ts: Any, site: Site, aim: NDArray, req: PairPose) -> tu
 
 
 def _plan_aim_point(path: Path) -> list[float] | None:
-    """The aim point a plan.json was made for, or None when it does not say (then the caller's default)."""
+    """The aim point a plan.json was made for, or None when it does not say (then the caller's default).
+
+    An ``aim_point`` that is not three finite numbers is refused (one line), not replaced by the default: the
+    field would track toward another point than the plan's.
+    """
     try:
-        aim = json.loads(path.read_text(encoding="utf-8"))["aim_point"]
-        out = [float(v) for v in aim]
-    except (OSError, ValueError, KeyError, TypeError):
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None  # the waypoint reader names what is wrong with the file
+    if not isinstance(doc, dict) or doc.get("aim_point") is None:
         return None
-    return out if len(out) == 3 and all(math.isfinite(v) for v in out) else None
+    aim = doc["aim_point"]
+    try:
+        out = [float(v) for v in aim]
+    except (TypeError, ValueError):
+        out = []
+    if len(out) != 3 or not all(math.isfinite(v) for v in out):
+        raise PihimInputError(f"{path}: aim_point must be three finite numbers X,Y,Z in metres, got {aim!r}")
+    return out
 
 
 def _waypoint_pair(path: Path, index: int) -> tuple[str | None, str | None]:
