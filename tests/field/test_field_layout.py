@@ -236,6 +236,41 @@ def test_field_lookup_and_errors() -> None:
     assert [h.name for h in f][:2] == list(f.names[:2])
 
 
+def test_two_heliostats_on_one_pedestal_are_refused(tmp_path: Path) -> None:
+    spec = nsttf_spec()
+    with pytest.raises(PihimInputError, match="heliostats 5E1 and 5E3 are 0.30 m apart, less than 0.5 m"):
+        Field(("5E1", "5E2", "5E3"), [[0.0, 0.0, 0.0], [9.0, 0.0, 0.0], [0.0, 0.3, 1.0]], spec)
+    Field(("5E1", "5E2"), [[0.0, 0.0, 0.0], [0.0, 0.6, 0.0]], spec)  # 0.6 m: two pedestals, however odd
+    p = write(tmp_path, f"{HEADER}\n{ROW_8E2}\n{ROW_8E3}\n" + ROW_8E3.replace("8E3", "14E99") + "\n")
+    with pytest.raises(PihimInputError, match=f"^{p}: heliostats 8E3 and 14E99 are 0.00 m apart"):
+        load_field(p)
+
+
+def test_closest_pair_agrees_with_every_pair() -> None:
+    """The sort-and-sweep search finds a pair below the bound exactly when the brute force over all pairs does."""
+    from pihim.field.layout import _closest_pair
+
+    rng = np.random.default_rng(7)
+    for trial in range(200):
+        xy = rng.uniform(0, 20, size=(int(rng.integers(2, 60)), 2))
+        if trial % 3 == 0:
+            xy[:, 0] = np.round(xy[:, 0])  # columns sharing x, as in a surveyed grid
+        d = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
+        d[np.diag_indices(len(xy))] = np.inf
+        got = _closest_pair(xy, 0.5)
+        assert (got is not None) == bool((d < 0.5).any())
+        if got is not None:
+            i, j, dist = got
+            assert i < j and dist == pytest.approx(d[i, j]) and dist < 0.5
+
+
+def test_overlapping_facets_are_refused() -> None:
+    c = nsttf_spec().facet_centroids.copy()
+    c[24] = c[0] + [0.2, 0.0, 0.0]
+    with pytest.raises(PihimInputError, match="facets 1 and 25 are 0.200 m apart, less than half a facet"):
+        HeliostatSpec(5, 5, 1.2192, 1.2192, 4.02, 0.1778, c)
+
+
 def test_field_validation() -> None:
     spec = nsttf_spec()
     with pytest.raises(PihimInputError, match="duplicate heliostat name '5E1'"):

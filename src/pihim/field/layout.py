@@ -306,6 +306,11 @@ class HeliostatSpec:
             raise PihimInputError(
                 f"HeliostatSpec.facet_centroids must be finite with shape ({self.rows * self.cols}, 3), got {c.shape}"
             )
+        close = _closest_pair(c[:, :2], 0.5 * min(self.facet_width_m, self.facet_height_m))
+        if close is not None:
+            i, j, d = close
+            raise PihimInputError(f"HeliostatSpec.facet_centroids: facets {i + 1} and {j + 1} are {d:.3f} m apart, "
+                                  f"less than half a facet: they overlap")
         object.__setattr__(self, "facet_centroids", _readonly(c))
 
     @property
@@ -451,6 +456,28 @@ class Heliostat:
     pivot: tuple[float, float, float]
 
 
+#: Two pivots closer than this (horizontally, metres) would share a pedestal: a field refuses them.
+MIN_PIVOT_SPACING_M = 0.5
+
+
+def _closest_pair(xy: NDArray[np.float64], tol: float) -> tuple[int, int, float] | None:
+    """A pair of points closer than ``tol`` (indices in ``xy`` order, distance), or None; sorted by x, then each
+    point compared with the next ones while they are within ``tol`` in x."""
+    order = np.argsort(xy[:, 0], kind="stable")
+    s = xy[order]
+    for k in range(1, len(s)):
+        dx = s[k:, 0] - s[:-k, 0]
+        near = dx < tol
+        if not near.any():
+            break
+        d = np.hypot(dx, s[k:, 1] - s[:-k, 1])
+        hit = np.flatnonzero(near & (d < tol))
+        if hit.size:
+            a, b = sorted((int(order[hit[0]]), int(order[hit[0] + k])))
+            return a, b, float(d[hit[0]])
+    return None
+
+
 @dataclass(frozen=True, eq=False)
 class Field:
     """Heliostats of one spec, their pivots and (optionally) the tower.
@@ -501,6 +528,11 @@ class Field:
             raise PihimInputError(f"Field.pivots must be finite with shape ({len(names)}, 3), got {p.shape}")
         if not isinstance(self.spec, HeliostatSpec):
             raise PihimInputError(f"Field.spec must be a HeliostatSpec, got {type(self.spec).__name__}")
+        close = _closest_pair(p[:, :2], MIN_PIVOT_SPACING_M)
+        if close is not None:
+            i, j, d = close
+            raise PihimInputError(f"heliostats {names[i]} and {names[j]} are {d:.2f} m apart, less than "
+                                  f"{MIN_PIVOT_SPACING_M:g} m: two heliostats on one pedestal")
         if self.tower is not None and not isinstance(self.tower, Tower):
             raise PihimInputError(f"Field.tower must be a Tower or None, got {type(self.tower).__name__}")
         rows = np.array([r for r, _, _ in parsed], dtype=np.int64)
@@ -824,10 +856,16 @@ def load_field(
         centroids = nsttf_facet_centroids()
     else:
         centroids = grid_facet_centroids(rows, cols, w, h)
-    spec = HeliostatSpec(rows=rows, cols=cols, facet_width_m=w, facet_height_m=h,
-                         pivot_height_m=s["Pivot Height"], pivot_offset_m=s["Pivot Offset"],
-                         facet_centroids=centroids)
-    return Field(names, pivots, spec, tower)
+    try:
+        spec = HeliostatSpec(rows=rows, cols=cols, facet_width_m=w, facet_height_m=h,
+                             pivot_height_m=s["Pivot Height"], pivot_offset_m=s["Pivot Offset"],
+                             facet_centroids=centroids)
+    except PihimInputError as exc:
+        raise PihimInputError(f"{facet_csv if facet_csv is not None else hpath}: {exc}") from None
+    try:
+        return Field(names, pivots, spec, tower)
+    except PihimInputError as exc:
+        raise PihimInputError(f"{hpath}: {exc}") from None
 
 
 # --------------------------------------------------------------------------- NSTTF-like field
