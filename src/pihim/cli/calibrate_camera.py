@@ -4,7 +4,7 @@ A thin layer over :func:`pihim.inspection.calibration.calibrate_camera`: it
 reads the images (raw DoFP frames, turned into S0 with
 :func:`pihim.camera.polar_image`, or ordinary grey images), calibrates,
 writes ``camera.json`` atomically (schema ``pihim.camera/1``) and prints a
-summary.
+summary on stderr (with ``--json`` the record on stdout).
 """
 
 from __future__ import annotations
@@ -33,6 +33,8 @@ if TYPE_CHECKING:  # the calibration module imports the renderer (scipy): loaded
     from pihim.inspection.calibration import CameraCalibration
 
 GREY_SUFFIXES = (".png", ".tif", ".tiff")
+#: Largest --binning accepted (sensor pixels per image pixel; 2 for pihim's super-pixel images).
+MAX_BINNING = 16
 
 
 def parse_board(text: str) -> tuple[int, int]:
@@ -187,8 +189,9 @@ def calibrate_camera(
         raise PihimInputError(f"--pixel-size-um must be positive, got {pixel_size_um:g}")
     if demosaic not in DEMOSAIC_METHODS:
         raise PihimInputError(f"--demosaic must be one of {', '.join(DEMOSAIC_METHODS)}, got {demosaic!r}")
-    if binning < 1:
-        raise PihimInputError(f"--binning must be a positive integer, got {binning}")
+    if not 1 <= binning <= MAX_BINNING:
+        raise PihimInputError(f"--binning must be an integer from 1 to {MAX_BINNING} (sensor pixels per image "
+                              f"pixel), got {binning}")
     if binning != 1 and not grey:
         raise PihimInputError("--binning applies to --grey images; DoFP frames set it from --demosaic")
     if max_view_rms is not None and not (math.isfinite(max_view_rms) and max_view_rms > 0):
@@ -237,7 +240,7 @@ def calibrate_camera(
         write_json_atomic(out, record)
     except OSError as exc:
         raise OSError(f"{out}: cannot write the calibration ({describe_os_error(exc)})") from None
-    console = Console(file=sys.stderr if json_output else sys.stdout, width=160)
+    console = Console(file=sys.stderr, width=160)  # human messages on stderr (docs/cli.md), JSON alone on stdout
     console.print(_summary(cal, out))
     for w in cal.warnings:
         print(f"pihim: warning: {w}", file=sys.stderr)
