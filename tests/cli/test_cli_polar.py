@@ -224,6 +224,26 @@ def test_never_writes_over_an_input(frame, tmp_path, capsys):
     assert (same / "frame_a.S0.S0.tiff").is_file()  # the other frame was processed
 
 
+@pytest.mark.parametrize("overwrite", [[], ["--overwrite"]])
+def test_never_writes_over_the_truth_of_a_simulated_frame(frame, tmp_path, capsys, overwrite):
+    """``pihim simulate`` writes FRAME.S0.tiff (rendered truth) beside FRAME.json: polar --out that folder refuses
+    the frame rather than replace the truth with its measurement (also with --overwrite, which is for polar's own
+    outputs); a FRAME.json of anything else does not stop it."""
+    same = frame.parent
+    truth = same / "frame_a.S0.tiff"
+    tifffile.imwrite(truth, np.ones((32, 40), np.float32))
+    before = truth.read_bytes()
+    (same / "frame_a.json").write_text(json.dumps({"schema": "pihim.simulated-frame/1", "log": {}, "truth": {}}))
+    assert main(["polar", str(frame), "--out", str(same), *overwrite]) == 2
+    err = capsys.readouterr().err
+    assert "is the rendered truth of" in err and "(pihim simulate); choose another --out" in err
+    assert truth.read_bytes() == before
+    (same / "frame_a.json").write_text(json.dumps({"schema": "something-else/1"}))
+    assert main(["polar", str(frame), "--out", str(same), *overwrite]) == 0
+    capsys.readouterr()
+    assert tifffile.imread(truth).shape == (16, 20)  # polar's super-pixel S0 now
+
+
 def test_corrupt_png_is_one_line(tmp_path, capfd):
     import cv2
 

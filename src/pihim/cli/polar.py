@@ -62,6 +62,8 @@ from pihim.visualize import aop_to_rgb, dolp_to_rgb, polar_figure_png, s0_range,
 SCHEMA_ID = "pihim.polar-frame/1"
 #: Suffix of the per-frame record, written after the frame's images: its completion mark.
 RECORD_SUFFIX = ".polar.json"
+#: ``schema`` of the FRAME.json that ``pihim simulate`` writes beside its truth images (FRAME.S0.tiff, ...).
+SIMULATED_FRAME_SCHEMA = "pihim.simulated-frame/1"
 #: Peak bytes per output pixel of a batch run, raw frames read ahead and outputs waiting to be written included:
 #: the peak resident size (``VmHWM``: numpy's, OpenCV's, libtiff's and matplotlib's C allocations counted) of
 #: ``pihim polar`` over six 1500x1500 frames grew by 69 B per output pixel with full demosaicing, and by 124 B
@@ -244,6 +246,22 @@ def check_not_an_input(path: Path, outputs: Sequence[Path], inputs: dict[tuple[i
         fid = _file_id(o)
         if fid is not None and fid in inputs:
             raise PihimInputError(f"{path}: its output {o} would overwrite the input {inputs[fid]}; choose another --out")
+
+
+def check_not_simulated_truth(path: Path, outputs: Sequence[Path], frame_json: Path) -> None:
+    """Refuse (for this frame) outputs that are the rendered truth images ``pihim simulate`` wrote beside
+    ``frame_json`` (``FRAME.S0.tiff``, ...: the same names): ``--out`` the folder of simulated frames would replace
+    the truth with measurements."""
+    existing = [o for o in outputs if o.is_file()]
+    if not existing or not frame_json.is_file():
+        return
+    try:
+        schema = json.loads(frame_json.read_text(encoding="utf-8")).get("schema")
+    except (OSError, ValueError, AttributeError):
+        return
+    if schema == SIMULATED_FRAME_SCHEMA:
+        raise PihimInputError(f"{path}: its output {existing[0]} is the rendered truth of {frame_json} "
+                              f"(pihim simulate); choose another --out")
 
 
 def estimate_frame_bytes(height: int, width: int, *, demosaic: str, png: bool) -> int:
@@ -559,7 +577,9 @@ def polar(
         """The record of a frame that needs no processing (resumed, or refused before reading), else None."""
         name = names[path]
         record_path = out_dir / f"{name}{RECORD_SUFFIX}"
-        check_not_an_input(path, [*output_paths(out_dir, name, png=png).values(), record_path], inputs)
+        outputs = [*output_paths(out_dir, name, png=png).values(), record_path]
+        check_not_an_input(path, outputs, inputs)
+        check_not_simulated_truth(path, outputs, out_dir / f"{name}.json")
         done = None if overwrite else completed_record(record_path, path, fingerprint)
         return None if done is None else {**done, "file": str(path), "resumed": True}
 
