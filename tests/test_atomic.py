@@ -11,6 +11,7 @@ from pihim._atomic import (
     LEGACY_TEMP_MAX_AGE_S,
     _host_tag,
     atomic_group,
+    check_out_dir,
     clean_stale_temporaries,
     temp_sibling,
     write_group,
@@ -72,3 +73,19 @@ def test_write_group_runs_every_writer_before_any_rename(tmp_path):
     assert list(tmp_path.iterdir()) == []
     assert write_group({a: lambda p: p.write_text("{}"), b: lambda p: p.write_bytes(b"png")}) == [a, b]
     assert a.read_text() == "{}" and b.read_bytes() == b"png" and len(list(tmp_path.iterdir())) == 2
+
+
+def test_an_out_folder_on_a_read_only_file_system_is_named_so(tmp_path, monkeypatch):
+    """Not "permission denied" (root gets that message on a read-only mount too, where chmod would not help)."""
+    from types import SimpleNamespace
+
+    from pihim.errors import PihimInputError
+
+    monkeypatch.setattr(os, "access", lambda *a, **k: False)
+    flags = {"f_flag": os.ST_RDONLY}
+    monkeypatch.setattr(os, "statvfs", lambda p: SimpleNamespace(**flags))
+    with pytest.raises(PihimInputError, match=r"cannot write in .* \(a read-only file system\)"):
+        check_out_dir(tmp_path / "out")
+    flags["f_flag"] = 0
+    with pytest.raises(PihimInputError, match=r"cannot write in .* \(permission denied\)"):
+        check_out_dir(tmp_path / "out")

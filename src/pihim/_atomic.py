@@ -282,7 +282,11 @@ def check_out_dir(out: str | os.PathLike, *, option: str = "--out") -> None:
             break
         missing.append(q)
     if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
-        raise PihimInputError(f"{option} {out}: cannot write in {existing} (permission denied)")
+        why = "permission denied"
+        with contextlib.suppress(OSError, AttributeError):
+            if os.statvfs(existing).f_flag & os.ST_RDONLY:
+                why = "a read-only file system"
+        raise PihimInputError(f"{option} {out}: cannot write in {existing} ({why})")
     if not missing:
         return
     try:

@@ -122,6 +122,12 @@ def test_hua_not_in_view(frame, tmp_path, capsys):
     assert "not in view" in _bad(tmp_path, capsys, ["canting", str(frame), "--hua", "5E10", "--target", "7E3"])
 
 
+def test_empty_names_are_named(frame, tmp_path, capsys):
+    """``--hua ''`` said the log had no 'hua' (it has one): now the empty option is named."""
+    assert "the hua name is empty (--hua NAME)" in _bad(tmp_path, capsys, ["canting", str(frame), "--hua", ""])
+    assert "the target name is empty" in _bad(tmp_path, capsys, ["canting", str(frame), "--target", " "])
+
+
 def test_unreadable_frame(frame, tmp_path, capsys):
     bad = tmp_path / "bad.tiff"
     bad.write_bytes(b"not a tiff at all")

@@ -99,6 +99,7 @@ def test_plan_files_read_by_third_party_readers(tmp_path, capsys):
         (["--time", "2021-05-13T10:00+01:00", "--site", "37.09,-2.36,500"],
          "--site 37.09,-2.36,500 is not near the nsttf: give --geoid-undulation"),
         (["--time", TIME, "--geoid-undulation", "nan"], "--geoid-undulation must be a number of metres"),
+        (["--time", TIME, "--heliostats", " , "], "--heliostats names no heliostat"),
         (["--time", TIME, "--geoid-undulation", "500"], "--geoid-undulation must be a number of metres within +/-120"),
     ],
 )

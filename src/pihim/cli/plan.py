@@ -95,6 +95,8 @@ def plan(
         raise PihimInputError(f"--facet-target must be a fraction in [0, 1], got {facet_target:g}")
     fld = load_field_option(field, facets, nsttf_tower=site.strip().lower() == "nsttf")
     names = None if heliostats is None else [h for h in heliostats.split(",") if h.strip()]
+    if names == []:
+        raise PihimInputError("--heliostats names no heliostat (leave it out to plan for all)")
     scoring = ScoringModel(sky=SkyModel(kind=sky_model, dmax=dmax), mirror=mirror_model(mirror))  # type: ignore[arg-type]
     options = {"autopilot": autopilot}
     with _stage_status(len(fld)) as stage:

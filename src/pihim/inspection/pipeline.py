@@ -252,6 +252,9 @@ def inspect_frame(
         raise PihimInputError(f"unknown demosaic method {demosaic!r}; choose one of {', '.join(DEMOSAIC_METHODS)}")
     if demosaic != "full":
         raise PihimInputError("canting needs full-resolution demosaicing (the camera model's pixel grid)")
+    for name, given in (("hua", hua), ("target", target)):
+        if given is not None and not str(given).strip():
+            raise PihimInputError(f"the {name} name is empty (--{name} NAME)")
     hua = hua if hua is not None else log.get("hua")
     target = target if target is not None else log.get("target")
     if not hua:
