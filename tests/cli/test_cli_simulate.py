@@ -157,6 +157,16 @@ def test_bad_output_name(tmp_path, capsys, out_name, needle):
     assert not out.exists() or out.is_dir() and list(out.iterdir()) == []
 
 
+@pytest.mark.parametrize("beside", ["d.json", "d.S0.tiff"])
+def test_a_directory_where_a_file_beside_the_frame_goes(tmp_path, capsys, beside):
+    """``d.json`` a directory: one line naming it, exit 2, before rendering (it was exit 1 naming d.tiff)."""
+    (tmp_path / beside).mkdir()
+    rc = main(["simulate", "--time", TIME, "--hua", "8E3", "--target", "7E3", "--out", str(tmp_path / "d.tiff")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and f"{tmp_path / beside}, one of the files written" in err
+    assert sorted(q.name for q in tmp_path.iterdir()) == [beside]
+
+
 def test_deeply_nested_waypoint_plan_is_one_line(tmp_path, capsys):
     plan = tmp_path / "plan.json"
     plan.write_text("[" * 100_000 + "]" * 100_000)

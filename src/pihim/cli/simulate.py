@@ -150,6 +150,9 @@ def simulate(
     paths = simulated_frame_paths(out)
     if out.is_dir():
         raise PihimInputError(f"--out {out}: is a directory; give a FRAME.tiff file name")
+    for p in paths.values():  # FRAME.json, FRAME.S0.tiff, ... are written beside it
+        if p.is_dir():
+            raise PihimInputError(f"--out {out}: {p}, one of the files written beside it, is a directory")
     check_out_dir(out.parent, option="--out")
     request = parse_pose_request(hua, target, waypoint, camera, look_at, roll)
     width, height = parse_size(size)
