@@ -236,13 +236,14 @@ def test_field_lookup_and_errors() -> None:
     assert [h.name for h in f][:2] == list(f.names[:2])
 
 
-def test_two_heliostats_on_one_pedestal_are_refused(tmp_path: Path) -> None:
+def test_one_heliostat_given_twice_is_refused(tmp_path: Path) -> None:
     spec = nsttf_spec()
-    with pytest.raises(PihimInputError, match="heliostats 5E1 and 5E3 are 0.30 m apart, less than 0.5 m"):
-        Field(("5E1", "5E2", "5E3"), [[0.0, 0.0, 0.0], [9.0, 0.0, 0.0], [0.0, 0.3, 1.0]], spec)
-    Field(("5E1", "5E2"), [[0.0, 0.0, 0.0], [0.0, 0.6, 0.0]], spec)  # 0.6 m: two pedestals, however odd
+    with pytest.raises(PihimInputError, match="heliostats 5E1 and 5E3 have pivots 0.32 m apart, less than 0.5 m"):
+        Field(("5E1", "5E2", "5E3"), [[0.0, 0.0, 0.0], [9.0, 0.0, 0.0], [0.0, 0.3, 0.1]], spec)
+    Field(("5E1", "5E2"), [[0.0, 0.0, 0.0], [0.0, 0.6, 0.0]], spec)  # 0.6 m: two heliostats, however odd
+    Field(("5E1", "5E2"), [[0.0, 0.0, 0.0], [0.0, 0.3, 6.0]], spec)  # one above the other (a blocking test's)
     p = write(tmp_path, f"{HEADER}\n{ROW_8E2}\n{ROW_8E3}\n" + ROW_8E3.replace("8E3", "14E99") + "\n")
-    with pytest.raises(PihimInputError, match=f"^{p}: heliostats 8E3 and 14E99 are 0.00 m apart"):
+    with pytest.raises(PihimInputError, match=f"^{p}: heliostats 8E3 and 14E99 have pivots 0.00 m apart"):
         load_field(p)
 
 
@@ -252,10 +253,10 @@ def test_closest_pair_agrees_with_every_pair() -> None:
 
     rng = np.random.default_rng(7)
     for trial in range(200):
-        xy = rng.uniform(0, 20, size=(int(rng.integers(2, 60)), 2))
+        xy = rng.uniform(0, 20, size=(int(rng.integers(2, 60)), 2 + trial % 2))  # 2-D and 3-D points
         if trial % 3 == 0:
             xy[:, 0] = np.round(xy[:, 0])  # columns sharing x, as in a surveyed grid
-        d = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
+        d = np.sqrt((((xy[:, None, :] - xy[None, :, :])) ** 2).sum(axis=-1))
         d[np.diag_indices(len(xy))] = np.inf
         got = _closest_pair(xy, 0.5)
         assert (got is not None) == bool((d < 0.5).any())

@@ -456,13 +456,13 @@ class Heliostat:
     pivot: tuple[float, float, float]
 
 
-#: Two pivots closer than this (horizontally, metres) would share a pedestal: a field refuses them.
+#: Two pivots closer than this (metres) are one heliostat given twice (a duplicated row): a field refuses them.
 MIN_PIVOT_SPACING_M = 0.5
 
 
 def _closest_pair(xy: NDArray[np.float64], tol: float) -> tuple[int, int, float] | None:
-    """A pair of points closer than ``tol`` (indices in ``xy`` order, distance), or None; sorted by x, then each
-    point compared with the next ones while they are within ``tol`` in x."""
+    """A pair of points (rows of ``xy``, any dimension) closer than ``tol`` (their indices, distance), or None;
+    sorted by the first coordinate, each point compared with the next ones while they are within ``tol`` in it."""
     order = np.argsort(xy[:, 0], kind="stable")
     s = xy[order]
     for k in range(1, len(s)):
@@ -470,7 +470,7 @@ def _closest_pair(xy: NDArray[np.float64], tol: float) -> tuple[int, int, float]
         near = dx < tol
         if not near.any():
             break
-        d = np.hypot(dx, s[k:, 1] - s[:-k, 1])
+        d = np.sqrt(dx**2 + np.sum((s[k:, 1:] - s[:-k, 1:]) ** 2, axis=1))
         hit = np.flatnonzero(near & (d < tol))
         if hit.size:
             a, b = sorted((int(order[hit[0]]), int(order[hit[0] + k])))
@@ -528,11 +528,11 @@ class Field:
             raise PihimInputError(f"Field.pivots must be finite with shape ({len(names)}, 3), got {p.shape}")
         if not isinstance(self.spec, HeliostatSpec):
             raise PihimInputError(f"Field.spec must be a HeliostatSpec, got {type(self.spec).__name__}")
-        close = _closest_pair(p[:, :2], MIN_PIVOT_SPACING_M)
+        close = _closest_pair(p, MIN_PIVOT_SPACING_M)
         if close is not None:
             i, j, d = close
-            raise PihimInputError(f"heliostats {names[i]} and {names[j]} are {d:.2f} m apart, less than "
-                                  f"{MIN_PIVOT_SPACING_M:g} m: two heliostats on one pedestal")
+            raise PihimInputError(f"heliostats {names[i]} and {names[j]} have pivots {d:.2f} m apart, less than "
+                                  f"{MIN_PIVOT_SPACING_M:g} m: one heliostat given twice?")
         if self.tower is not None and not isinstance(self.tower, Tower):
             raise PihimInputError(f"Field.tower must be a Tower or None, got {type(self.tower).__name__}")
         rows = np.array([r for r, _, _ in parsed], dtype=np.int64)
