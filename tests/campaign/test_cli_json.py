@@ -53,14 +53,15 @@ def test_simulate_run_report_export_json(plan_json, tmp_path, capsys) -> None:
     (["simulate-flight", "PLAN", "--out", "X", "--fps", "0"], "--fps"),
     (["simulate-flight", "PLAN", "--out", "X", "--log", "mavlink"], "--log"),
     (["simulate-flight", "PLAN", "--out", "X", "--flight", "9"], "flights"),
+    (["simulate-flight", "PLANDIR", "--out", "X"], "a folder; give its plan.json"),
     (["campaign", "run", "NOWHERE", "--store", "S"], "not a flight directory"),
     (["campaign", "run", "NOWHERE", "--store", "S", "--stages", "edges"], "stages"),
     (["campaign", "run", "NOWHERE", "--store", "S", "--campaign", " "], "--campaign must be a name"),
     (["campaign", "export", "S", "--out", "E", "--format", "xlsx"], "csv or parquet"),
 ])
 def test_bad_options_one_line_exit_2(plan_json, tmp_path, capsys, argv, msg) -> None:
-    argv = [str(plan_json) if a == "PLAN" else str(tmp_path / a) if a in ("X", "S", "E", "NOWHERE") else a
-            for a in argv]
+    argv = [str(plan_json) if a == "PLAN" else str(plan_json.parent) if a == "PLANDIR"
+            else str(tmp_path / a) if a in ("X", "S", "E", "NOWHERE") else a for a in argv]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and msg in err[0]

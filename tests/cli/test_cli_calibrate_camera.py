@@ -165,6 +165,7 @@ def _bad_cases(raw, tmp):
         "sizes differ": ([*three, str(small), *ARGS], "images have different sizes"),
         "binning without grey": ([*three, *ARGS, "--binning", "2"], "--binning applies to --grey"),
         "huge binning": ([*three, *ARGS, "--grey", "--binning", "1000"], "--binning must be an integer from 1 to 16"),
+        "a folder": ([str(tmp), *ARGS, "--grey"], "a folder; give the image files"),
         "colour grey image": ([str(grey), *ARGS, "--grey"], "expected a single-channel grey image"),
         "bad demosaic": ([*three, *ARGS, "--demosaic", "bilinear"], "--demosaic must be one of"),
         "out is a directory": ([*three, *ARGS], "is a directory"),
@@ -172,7 +173,7 @@ def _bad_cases(raw, tmp):
 
 
 @pytest.mark.parametrize("case", ["missing file", "bad board", "small board", "square board", "bad square",
-                                  "no board", "too few views", "sizes differ", "binning without grey", "huge binning",
+                                  "no board", "too few views", "sizes differ", "binning without grey", "huge binning", "a folder",
                                   "colour grey image", "bad demosaic", "out is a directory"])
 def test_bad_input_is_one_line_exit_2_and_no_file(raw_tiffs, tmp_path, capsys, case):
     argv, message = _bad_cases(raw_tiffs, tmp_path)[case]

@@ -31,6 +31,11 @@ def test_ground_maps_written(tmp_path, capsys):
         (["--sun-zenith", "95", "--sun-azimuth", "0"], "zenith"),
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--model", "mie"], "sky model"),
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--sigma", "-2"], "sigma"),
+        # the options named, not the library's parameters (sigma_deg, refractive_index, ...)
+        (["--sun-zenith", "30", "--sun-azimuth", "0", "--sigma", "1e9"], "--sigma must be a number of degrees in (0, 90]"),
+        (["--sun-zenith", "30", "--sun-azimuth", "0", "--refractive-index", "0.5"], "--refractive-index must be"),
+        (["--sun-zenith", "30", "--sun-azimuth", "0", "--diffuse-albedo", "2"], "--diffuse-albedo must be in [0, 1]"),
+        (["--sun-zenith", "30", "--sun-azimuth", "0", "--sun-irradiance", "-1"], "--sun-irradiance must be"),
         (["--time", "2025-06-01T10:00"], "time"),
         (["--time", "yesterday-ish+01:00"], "time"),
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--mirror", "bronze"], "mirror"),

@@ -61,6 +61,8 @@ def read_grey(path: Path) -> NDArray:
     """A single-channel grey image from a PNG (8/16 bit) or TIFF (8/16 bit unsigned or float), any size."""
     label = os.fspath(path)
     suffix = path.suffix.lower()
+    if path.is_dir():
+        raise PihimInputError(f"{label}: a folder; give the image files (e.g. {label}/*.png)")
     if suffix not in GREY_SUFFIXES:
         raise PihimInputError(f"{label}: unsupported grey image type {suffix or '(no extension)'!r}; "
                               f"expected one of {', '.join(GREY_SUFFIXES)}")

@@ -99,6 +99,8 @@ def simulate_flight(
             raise PihimInputError(f"{name} must be a finite number in [0, {top:g}], got {v}")
     if seed < 0:
         raise PihimInputError(f"--seed must be >= 0, got {seed}")
+    if plan.is_dir():
+        raise PihimInputError(f"{plan}: a folder; give its plan.json ({plan / 'plan.json'})")
     if not plan.is_file():
         raise PihimInputError(f"{plan}: no such plan file")
     w, h = parse_size(size)

@@ -128,8 +128,8 @@ def ground(
     json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
 ) -> int:
     """Ground and mirror-reflected-ground AoP/DoLP maps over camera directions (paper Fig. 5c-d)."""
-    if not (math.isfinite(sigma) and sigma > 0):
-        raise PihimInputError(f"--sigma must be a positive number of degrees, got {sigma:g}")
+    if not (math.isfinite(sigma) and 0 < sigma <= 90):
+        raise PihimInputError(f"--sigma must be a number of degrees in (0, 90], got {sigma:g}")
     if not (math.isfinite(mirror_normal_zenith) and 0.0 <= mirror_normal_zenith <= 90.0):
         raise PihimInputError(f"--mirror-normal-zenith must be in [0, 90] deg, got {mirror_normal_zenith:g}")
     if not math.isfinite(mirror_normal_azimuth):
@@ -149,9 +149,14 @@ def ground(
                        f"--monte-carlo --facets {facets:g}")
     from pihim.surfaces.ground import GroundModel
 
-    ground_model = GroundModel(
-        sigma_deg=sigma, refractive_index=refractive_index, diffuse_albedo=diffuse_albedo, sun_irradiance=sun_irradiance
-    )
+    try:
+        ground_model = GroundModel(sigma_deg=sigma, refractive_index=refractive_index, diffuse_albedo=diffuse_albedo,
+                                   sun_irradiance=sun_irradiance)
+    except PihimInputError as exc:  # the library's parameter names -> this command's options
+        text = str(exc)
+        for name in ("refractive_index", "diffuse_albedo", "sun_irradiance"):
+            text = text.replace(name, "--" + name.replace("_", "-"))
+        raise PihimInputError(text) from None
     mirror_obj = mirror_model(mirror)  # type: ignore[arg-type]
     sun, when = resolve_sun(time, site, sun_zenith, sun_azimuth)
     require_daylight(sun, what="pihim ground")
