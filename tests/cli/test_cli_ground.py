@@ -33,6 +33,9 @@ def test_ground_maps_written(tmp_path, capsys):
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--sigma", "-2"], "sigma"),
         # the options named, not the library's parameters (sigma_deg, refractive_index, ...)
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--sigma", "1e9"], "--sigma must be a number of degrees in (0, 90]"),
+        (["--sun-zenith", "30", "--sun-azimuth", "1e308"], "--sun-azimuth must be in [-360, 360] deg"),
+        (["--sun-zenith", "30", "--sun-azimuth", "0", "--mirror-normal-azimuth", "-1e300"],
+         "--mirror-normal-azimuth must be in [-360, 360] deg"),
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--refractive-index", "0.5"], "--refractive-index must be"),
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--diffuse-albedo", "2"], "--diffuse-albedo must be in [0, 1]"),
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--sun-irradiance", "-1"], "--sun-irradiance must be"),

@@ -107,6 +107,7 @@ def _bad_cases(geometry):
         "no pose": ([], "exactly one"),
         "hua without target": (["--hua", "8E3"], "go together"),
         "roll alone": (["--roll", "3", "--hua", "8E3", "--target", "7E3"], "exactly one"),
+        "huge roll": (["--camera", "24,75,20", *look, "--roll", "1e308"], "--roll must be in [-360, 360] deg"),
         "target not visible": (["--hua", "8E3", "--target", "14W6"], "not visible in hua 8e3"),
         "bad waypoint": (["--waypoint", "plan.json"], "plan.json:index"),
         "missing plan": (["--waypoint", "nowhere/plan.json:0"], "no such file"),
@@ -121,7 +122,7 @@ def _bad_cases(geometry):
 @pytest.mark.parametrize("case", [
     "camera below the ground", "camera inside a heliostat", "camera in the mirror box", "camera in the pedestal",
     "unknown heliostat", "look-at equal to position", "night", "negative sigma", "negative gps sigma",
-    "negative seed", "two pose groups", "no pose", "hua without target", "roll alone", "target not visible",
+    "negative seed", "two pose groups", "no pose", "hua without target", "roll alone", "huge roll", "target not visible",
     "bad waypoint", "missing plan", "odd size", "bad supersample", "naive time", "huge size",
 ])
 def test_bad_input_one_line_exit_2_nothing_written(tmp_path, capsys, geometry, case):

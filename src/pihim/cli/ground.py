@@ -132,8 +132,8 @@ def ground(
         raise PihimInputError(f"--sigma must be a number of degrees in (0, 90], got {sigma:g}")
     if not (math.isfinite(mirror_normal_zenith) and 0.0 <= mirror_normal_zenith <= 90.0):
         raise PihimInputError(f"--mirror-normal-zenith must be in [0, 90] deg, got {mirror_normal_zenith:g}")
-    if not math.isfinite(mirror_normal_azimuth):
-        raise PihimInputError(f"--mirror-normal-azimuth must be a finite number of degrees, got {mirror_normal_azimuth:g}")
+    if not (math.isfinite(mirror_normal_azimuth) and -360.0 <= mirror_normal_azimuth <= 360.0):
+        raise PihimInputError(f"--mirror-normal-azimuth must be in [-360, 360] deg, got {mirror_normal_azimuth:g}")
     normal_azimuth = mirror_normal_azimuth % 360.0
     normal_azimuth = 0.0 if normal_azimuth >= 360.0 else normal_azimuth  # a tiny negative rounds up to 360.0
     if not (math.isfinite(resolution) and resolution > 0 and abs(90.0 / resolution - round(90.0 / resolution)) < 1e-9):

@@ -7,6 +7,7 @@ A thin layer over :func:`pihim.render.simulate.simulate_frame` and
 from __future__ import annotations
 
 import contextlib
+import math
 import sys
 import time as _time
 from collections.abc import Callable, Iterator
@@ -97,6 +98,8 @@ def parse_pose_request(hua: str | None, target: str | None, waypoint: str | None
     assert cam is not None and tgt is not None
     if cam == tgt:
         raise PihimInputError(f"--look-at equals --camera ({camera}): the camera must look somewhere")
+    if roll is not None and not (math.isfinite(roll) and -360.0 <= roll <= 360.0):
+        raise PihimInputError(f"--roll must be in [-360, 360] deg, got {roll:g}")
     return LookAtPose(tuple(cam), tuple(tgt), 0.0 if roll is None else float(roll))  # type: ignore[arg-type]
 
 

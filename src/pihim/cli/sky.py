@@ -76,8 +76,8 @@ def resolve_sun(
         raise PihimInputError("give --time (and optionally --site), or both --sun-zenith and --sun-azimuth")
     if not (math.isfinite(sun_zenith) and 0.0 <= sun_zenith <= 90.0):
         raise PihimInputError(f"--sun-zenith must be in [0, 90] deg, got {sun_zenith:g}")
-    if not math.isfinite(sun_azimuth):
-        raise PihimInputError("--sun-azimuth must be a finite number of degrees")
+    if not (math.isfinite(sun_azimuth) and -360.0 <= sun_azimuth <= 360.0):  # 1e308 would be reduced to noise
+        raise PihimInputError(f"--sun-azimuth must be in [-360, 360] deg, got {sun_azimuth:g}")
     return SunPosition.from_angles(sun_zenith, sun_azimuth), {"time": None, "site": None}
 
 
