@@ -28,7 +28,7 @@ def _refused(capsys, argv, needle):
     (["windows", "--date", "2021-05-13", "--aim", "1e308,0,30"], "--aim: coordinates must be within"),
     (["windows", "--date", "2021-05-13", "--min-elevation", "89"], "--min-elevation must be in [0, 89) deg"),
     (["ground", "--sun-zenith", "30", "--sun-azimuth", "0", "--mirror-normal-azimuth", "inf"],
-     "--mirror-normal-azimuth must be a finite number"),
+     "--mirror-normal-azimuth must be in [-360, 360] deg, got inf"),
 ])
 def test_planning_and_physics_options(tmp_path, capsys, argv, needle):
     out = tmp_path / "o"
