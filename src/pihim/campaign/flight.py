@@ -483,7 +483,7 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     from pihim.campaign.logs import write_dataflash, write_frames_csv, write_ulog
     from pihim.camera.model import camera_for_size
     from pihim.field import Field, enu_to_geodetic, nsttf_like_field
-    from pihim.render.simulate import MAX_CAMERA_DISTANCE_M, LookAtPose, WaypointPose, simulate_frame
+    from pihim.render.simulate import LookAtPose, WaypointPose, check_camera_distance, simulate_frame
     from pihim.sky.sun import parse_time
 
     if log not in ("csv", "ulog", "dataflash"):
@@ -504,11 +504,10 @@ def simulate_flight(plan_path: str | os.PathLike[str], out_dir: str | os.PathLik
     camera = camera_for_size(*size)
     wps, caps = _flight_waypoints(doc, flight - 1)
     for i, w in enumerate(wps):  # a position kilometres away would overflow the timeline before any frame refuses it
-        xyz = [w.get(c) for c in ("x_m", "y_m", "z_m")]
-        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in xyz) \
-                or not math.hypot(*xyz) <= MAX_CAMERA_DISTANCE_M:
-            raise PihimInputError(f"{plan}: waypoint {i} of flight {flight} is not a position within "
-                                  f"{MAX_CAMERA_DISTANCE_M / 1000:g} km of the field origin: {xyz}")
+        try:
+            check_camera_distance([w.get(c) for c in ("x_m", "y_m", "z_m")])
+        except (PihimInputError, TypeError, ValueError) as exc:
+            raise PihimInputError(f"{plan}: waypoint {i} of flight {flight}: {exc}") from None
     arrive = _timeline(wps)
 
     # the frames: (time from start, true camera pose, request, capture index)

@@ -77,12 +77,14 @@ from pihim.render.shading import Environment
 from pihim.sky.sun import NSTTF, Site, parse_time, sun_position
 
 __all__ = [
+    "MAX_CAMERA_DISTANCE_M",
     "SCHEMA_ID",
     "LookAtPose",
     "PairPose",
     "PoseRequest",
     "SimulatedFrame",
     "WaypointPose",
+    "check_camera_distance",
     "simulate_frame",
     "simulated_frame_paths",
     "write_simulated_frame",
@@ -275,7 +277,7 @@ def _check_request(req: Any) -> None:
 # --------------------------------------------------------------------------- geometry
 
 
-def _check_camera_distance(position: Any) -> None:
+def check_camera_distance(position: Any) -> None:
     """Refuse a camera more than :data:`MAX_CAMERA_DISTANCE_M` from the field origin (one line)."""
     x, y, z = (float(v) for v in position)
     if not math.hypot(x, y, z) <= MAX_CAMERA_DISTANCE_M:
@@ -288,7 +290,7 @@ def _check_camera_position(position: NDArray, pose: FieldPose, scene: Scene) -> 
     fld = pose.field
     names = fld.names  # type: ignore[attr-defined]
     spec = fld.spec  # type: ignore[attr-defined]
-    _check_camera_distance(position)
+    check_camera_distance(position)
     x, y, z = (float(v) for v in position)
     where = f"({x:.2f}, {y:.2f}, {z:.2f})"
     if scene.ground is not None:
@@ -638,7 +640,7 @@ def simulate_frame(
                     raise PihimInputError(f"waypoint {req.index} of {req.plan_path}: {exc} (a plan for another "
                                           f"field?)") from None
     else:
-        _check_camera_distance(req.camera_m)  # before the pose's arithmetic overflows
+        check_camera_distance(req.camera_m)  # before the pose's arithmetic overflows
         cam_pose = CameraPose.look_at(req.camera_m, req.look_at_m, float(req.roll_deg))
     _check_camera_position(np.asarray(cam_pose.position_m, float), truth_field, scene)
 
