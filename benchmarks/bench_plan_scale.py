@@ -40,9 +40,13 @@ What ``pihim plan`` runs
     takes about ten minutes, give it explicitly): the size-N field written
     as an OpenCSP heliostat CSV (untimed), then ``python -m pihim plan
     --field FIELD.csv --time ... --aim 0,0,195 --out DIR --json`` timed as
-    a child process: wall, CPU (user + system of the child, from
-    ``os.wait4``), peak resident memory, the files written and their size,
-    and the command's own split (``seconds`` of its JSON: planning stages,
+    a child process, once with ``--workers 1`` (or each ``--process-workers``)
+    and once with the command's default (a forked worker per CPU): wall,
+    CPU (user + system of the child and its workers, from ``os.wait4``),
+    peak resident memory of the largest process, the peak of the summed
+    proportional set size of the command and its workers (sampled from
+    ``/proc`` four times a second; shared pages counted once), the files
+    written and their size, and the command's own split (``seconds`` of its JSON: planning stages,
     and ``total_with_export``; the exports are the difference). The command
     puts the NSTTF tower box at the origin (``--field`` CSVs carry no tower),
     so its plan differs a little from ``build_plan``'s on the same field.
@@ -177,9 +181,30 @@ def _write_opencsp_csv(field: Any, path: Path) -> None:
                      f"{spec.pivot_height_m},{spec.pivot_offset_m},{spec.facet_width_m},{spec.facet_height_m}\n")
 
 
-def child_process(n: int) -> dict[str, Any]:
+def _tree_memory_mb(pid: int) -> tuple[float, float]:
+    """Proportional (PSS: shared pages split among their sharers) and resident set sizes summed over process
+    ``pid`` and its descendants (forked workers share the parent's pages: PSS counts them once), MB."""
+    pss = rss = 0.0
+    todo = [pid]
+    while todo:
+        p = todo.pop()
+        try:
+            for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
+                if line.startswith("Pss:"):
+                    pss += float(line.split()[1]) / 1024.0
+                elif line.startswith("Rss:"):
+                    rss += float(line.split()[1]) / 1024.0
+            for task in Path(f"/proc/{p}/task").iterdir():
+                todo += [int(c) for c in (task / "children").read_text().split()]
+        except (OSError, ValueError):  # the process ended meanwhile
+            continue
+    return pss, rss
+
+
+def child_process(n: int, workers: int | None = None) -> dict[str, Any]:
     """``pihim plan`` on the size-``n`` field from a CSV, as a child process (see the module docstring)."""
     import tempfile
+    import threading
 
     from bench_plan import BIG_TOWER
 
@@ -190,54 +215,69 @@ def child_process(n: int) -> dict[str, Any]:
         _write_opencsp_csv(radial_staggered_field(n, tower=BIG_TOWER), csv)
         out = Path(tmp) / "out"
         cmd = [sys.executable, "-m", "pihim", "plan", "--field", str(csv), "--time", CASE_TIME, "--aim", "0,0,195",
-               "--out", str(out), "--json"]
+               "--out", str(out), "--json", *([] if workers is None else ["--workers", str(workers)])]
         load0 = os.getloadavg()[0]
+        peak = [0.0, 0.0]
+        stop = threading.Event()
         t0 = time.perf_counter()
         with open(Path(tmp) / "stdout.json", "w+", encoding="utf-8") as stdout:
             proc = subprocess.Popen(cmd, stdout=stdout, stderr=subprocess.PIPE, text=True)
+
+            def sample() -> None:  # the whole tree's memory, the command and its forked workers, 4 times a second
+                while not stop.wait(0.25):
+                    pss, rss = _tree_memory_mb(proc.pid)
+                    peak[0], peak[1] = max(peak[0], pss), max(peak[1], rss)
+
+            sampler = threading.Thread(target=sample, daemon=True)
+            sampler.start()
             _, status, usage = os.wait4(proc.pid, 0)
             wall = time.perf_counter() - t0
+            stop.set()
+            sampler.join()
             proc.returncode = os.waitstatus_to_exitcode(status)
             if proc.returncode != 0:
                 raise RuntimeError(f"pihim plan exited with {proc.returncode}: {proc.stderr.read().strip()[-300:]}")
             stdout.seek(0)
             summary = json.load(stdout)
         files = [p for p in out.rglob("*") if p.is_file()]
-        return {"heliostats": n, "passes": summary["passes"], "flights": summary["flights"],
+        return {"heliostats": n, "workers": workers, "passes": summary["passes"], "flights": summary["flights"],
                 "wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime, "peak_rss_mb": usage.ru_maxrss / 1024.0,
+                "peak_tree_pss_mb": peak[0], "peak_tree_rss_mb": peak[1],
                 "command_seconds": summary["seconds"], "files": len(files),
                 "files_mb": sum(p.stat().st_size for p in files) / 1e6,
                 "load_avg": round((load0 + os.getloadavg()[0]) / 2.0, 2)}
 
 
-def _run_child(flag: str, n: int) -> dict[str, Any]:
-    out = subprocess.run([sys.executable, str(Path(__file__).resolve()), flag, str(n)], capture_output=True,
+def _run_child(flag: str, n: int, *extra: str) -> dict[str, Any]:
+    out = subprocess.run([sys.executable, str(Path(__file__).resolve()), flag, str(n), *extra], capture_output=True,
                          text=True, env=dict(os.environ), check=False)
     if out.returncode != 0:
         return {"heliostats": n, "error": out.stderr.strip().splitlines()[-1:] or [f"exit code {out.returncode}"]}
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def _run_children(flag: str, sizes: Sequence[int], line: Any) -> list[dict[str, Any]]:
-    """One child process per size, each result echoed by ``line(row)`` as it comes."""
+def _run_children(flag: str, sizes: Sequence[int], line: Any,
+                  extras: Sequence[tuple[str, ...]] = ((),)) -> list[dict[str, Any]]:
+    """One child process per size (and per ``extras``, more arguments), each result echoed by ``line(row)``."""
     rows = []
-    for n in sizes:
-        rows.append(_run_child(flag, n))
+    for n, extra in ((n, e) for n in sizes for e in extras):
+        rows.append(_run_child(flag, n, *extra))
         if "error" not in rows[-1]:
             print("  " + line(rows[-1]), flush=True)
     return rows
 
 
 def run_benchmark(sizes: Sequence[int], pipeline_sizes: Sequence[int] = (),
-                  process_sizes: Sequence[int] = ()) -> dict[str, Any]:
+                  process_sizes: Sequence[int] = (), process_workers: Sequence[int | None] = (1, None)) -> dict[str, Any]:
     rows = _run_children("--child", sizes, lambda r: f"{r['heliostats']:,}: {r['total_wall_s']:.1f} s wall, "
                          f"{r['total_cpu_s']:.1f} s CPU, {r['peak_rss_mb']:.0f} MB")
     pipeline_rows = _run_children("--child-pipeline", pipeline_sizes, lambda r: (
         f"build_plan {r['heliostats']:,}: {r['total_wall_s']:.1f} s wall, {r['total_cpu_s']:.1f} s CPU, "
         f"{r['peak_rss_mb']:.0f} MB"))
     process_rows = _run_children("--child-process", process_sizes, lambda r: (
-        f"pihim plan {r['heliostats']:,}: {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU, "
-        f"{r['peak_rss_mb']:.0f} MB, {r['files']:,} files"))
+        f"pihim plan {r['heliostats']:,} --workers {r['workers'] or 'default'}: {r['wall_s']:.1f} s wall, "
+        f"{r['cpu_s']:.1f} s CPU, {r['peak_tree_pss_mb']:.0f} MB (PSS, with its workers), {r['files']:,} files"),
+        extras=[() if w is None else (str(w),) for w in process_workers])
     ok = [r for r in rows if "error" not in r]
     fit = {}
     if len(ok) >= 2:
@@ -258,12 +298,15 @@ def run_benchmark(sizes: Sequence[int], pipeline_sizes: Sequence[int] = (),
                                    big_p and big_p["total_wall_s"], 300.0, "s"),
                     harness.target("100,000 heliostats, build_plan, peak memory",
                                    big_p and big_p["peak_rss_mb"] / 1024.0, 8.0, "GB")]
-    big_c = next((r for r in process_rows if "error" not in r and r["heliostats"] == 100_000), None)
-    if 100_000 in process_sizes:
-        targets += [harness.target("100,000 heliostats, pihim plan as a process (plan and all its files), wall",
-                                   big_c and big_c["wall_s"], 300.0, "s"),
-                    harness.target("100,000 heliostats, pihim plan as a process, peak memory",
-                                   big_c and big_c["peak_rss_mb"] / 1024.0, 8.0, "GB")]
+    for w in process_workers if 100_000 in process_sizes else ():
+        big_c = next((r for r in process_rows if "error" not in r and r["heliostats"] == 100_000
+                      and r["workers"] == w), None)
+        how = "--workers 1" if w == 1 else "default workers" if w is None else f"--workers {w}"
+        targets += [harness.target(f"100,000 heliostats, pihim plan as a process ({how}; plan and all its files), "
+                                   "wall", big_c and big_c["wall_s"], 300.0, "s"),
+                    harness.target(f"100,000 heliostats, pihim plan as a process ({how}), peak memory of the "
+                                   "process and its workers (PSS)", big_c and big_c["peak_tree_pss_mb"] / 1024.0,
+                                   8.0, "GB")]
     return {"benchmark": "bench_plan_scale", "sizes": list(sizes), "rows": rows, "pipeline_sizes": list(pipeline_sizes),
             "pipeline_rows": pipeline_rows, "process_sizes": list(process_sizes), "process_rows": process_rows,
             "loglog_slope": fit, "targets": targets, "machine": harness.machine_info()}
@@ -286,9 +329,10 @@ def _pipeline_row(r: dict[str, Any]) -> str:
 def _process_row(r: dict[str, Any]) -> str:
     sec = r["command_seconds"]
     planning = sum(v for k, v in sec.items() if k != "total_with_export")
-    return (f"| {r['heliostats']:,} | {r['passes']:,} | {r['flights']:,} | {planning:.1f} | "
-            f"{sec['total_with_export'] - planning:.1f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
-            f"{r['peak_rss_mb']:.0f} | {r['files']:,} | {r['files_mb']:.0f} | {r['load_avg']:.1f} |")
+    return (f"| {r['heliostats']:,} | {r.get('workers') or 'default'} | {r['passes']:,} | {r['flights']:,} | "
+            f"{planning:.1f} | {sec['total_with_export'] - planning:.1f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
+            f"{r['peak_rss_mb']:.0f} | {r.get('peak_tree_pss_mb', float('nan')):.0f} | {r['files']:,} | "
+            f"{r['files_mb']:.0f} | {r['load_avg']:.1f} |")
 
 
 def markdown_report(report: dict[str, Any]) -> str:
@@ -315,9 +359,9 @@ def markdown_report(report: dict[str, Any]) -> str:
     if report.get("process_rows"):
         lines += ["", "`pihim plan` as a whole process on the field from a CSV (plan, plan.json, KML, map and every "
                   "flight's missions):", ""]
-        lines += _table(report["process_rows"], "| heliostats | passes | flights | planning s (the command's) | "
-                        "exports s | total wall s | total CPU s | peak RSS MB | files | MB written | load |",
-                        _process_row)
+        lines += _table(report["process_rows"], "| heliostats | workers | passes | flights | planning s (the "
+                        "command's) | exports s | total wall s | total CPU s (with its workers) | peak RSS MB (largest "
+                        "process) | peak PSS MB (process and workers) | files | MB written | load |", _process_row)
     lines += harness.target_table(report["targets"], spec=".1f")
     return "\n".join(lines)
 
@@ -385,6 +429,9 @@ def main(argv: Sequence[str] | None = None, *, quick: bool = False, json_path: P
         parser.add_argument("--process-sizes", type=int, nargs="*", metavar="N",
                             help="sizes for the pihim plan process rows (default: those of the sizes up to 30,000; "
                                  "none: skip them)")
+        parser.add_argument("--process-workers", type=int, nargs="*", metavar="W",
+                            help="--workers of the process rows, each beside the command's default (one per CPU); "
+                                 "default 1")
 
     o = harness.options(argv, description="The planner at scale (radial fields).", counts=COUNTS, repeat=None,
                         warmup=None, quick=quick, json_path=json_path, configure=configure)
@@ -399,7 +446,10 @@ def main(argv: Sequence[str] | None = None, *, quick: bool = False, json_path: P
         fig_path = o.args.figure
     if process_sizes is None:
         process_sizes = tuple(n for n in sizes if n <= 30_000)
-    report = run_benchmark(sizes, pipeline_sizes, process_sizes)
+    workers: tuple[int | None, ...] = (1, None)
+    if o.args is not None and o.args.process_workers is not None:
+        workers = (*o.args.process_workers, None)
+    report = run_benchmark(sizes, pipeline_sizes, process_sizes, workers)
     if echo:
         print(markdown_report(report))
     if fig_path is not None and sum("error" not in r for r in report["rows"]) >= 2:
@@ -414,7 +464,7 @@ if __name__ == "__main__":
         print(json.dumps(child(int(sys.argv[2]))))
     elif len(sys.argv) == 3 and sys.argv[1] == "--child-pipeline":
         print(json.dumps(child_pipeline(int(sys.argv[2]))))
-    elif len(sys.argv) == 3 and sys.argv[1] == "--child-process":
-        print(json.dumps(child_process(int(sys.argv[2]))))
+    elif len(sys.argv) in (3, 4) and sys.argv[1] == "--child-process":
+        print(json.dumps(child_process(int(sys.argv[2]), int(sys.argv[3]) if len(sys.argv) == 4 else None)))
     else:
         main(sys.argv[1:] or None)

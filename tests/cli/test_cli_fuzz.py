@@ -267,6 +267,7 @@ def test_plan(root, capsys, budget, data):
         "--autopilot": st.sampled_from(["ardupilot", "px4", "inav", ""]),
         "--fleet-hours": values(["8", "24"]),
         "--time": texts([TIME, "9999-12-31T12:00Z"]),
+        "--workers": values(["1", "2"]),
     }
     argv = mutated(data, ["plan", "--time", TIME, "--heliostats", "8E3", "--out", str(fresh(root))], opts)
     check(main(argv), capsys.readouterr().err)

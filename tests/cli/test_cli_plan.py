@@ -101,6 +101,8 @@ def test_plan_files_read_by_third_party_readers(tmp_path, capsys):
         (["--time", TIME, "--geoid-undulation", "nan"], "--geoid-undulation must be a number of metres"),
         (["--time", TIME, "--heliostats", " , "], "--heliostats names no heliostat"),
         (["--time", TIME, "--geoid-undulation", "500"], "--geoid-undulation must be a number of metres within +/-120"),
+        (["--time", TIME, "--workers", "0"], "--workers must be in [1, 64], got 0"),
+        (["--time", TIME, "--workers", "65"], "--workers must be in [1, 64], got 65"),
     ],
 )
 def test_impossible_requests(tmp_path, capsys, args, needle):

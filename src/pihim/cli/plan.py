@@ -62,11 +62,13 @@ def plan(
         "--facet-target", help="Share of the imaged HUAs' facets to show a heliostat's back, [0, 1].")] = 0.96,
     single_capture: Annotated[bool, typer.Option(
         "--single-capture", help="One capture per HUA aimed at its centre (no facet captures).")] = False,
+    workers: Annotated[int | None, typer.Option("--workers", help="Processes sharing the scoring, the facet captures, the facet report and the files (default: one per CPU, at most 8; 1: this process only).")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
 ) -> int:
     """Plan UFACET scan passes scored for polarimetric contrast and export missions."""
     t0 = _time.perf_counter()
     # the planner and its dependencies (scipy, numba, pandas) load only when the command runs, not for --help
+    from pihim._forked import MAX_WORKERS
     from pihim.planning.endurance import MAX_BATTERY_MIN, DroneEndurance
     from pihim.planning.facet_captures import FacetCaptureSettings
     from pihim.planning.export import export_all
@@ -87,6 +89,8 @@ def plan(
     if not (math.isfinite(fleet_hours) and 0 < fleet_hours <= 24):
         raise PihimInputError(f"--fleet-hours must be a positive number of hours per day, at most 24, "
                               f"got {fleet_hours:g}")
+    if workers is not None and not 1 <= workers <= MAX_WORKERS:
+        raise PihimInputError(f"--workers must be in [1, {MAX_WORKERS}], got {workers}")
     if max_mission_items < 4:
         raise PihimInputError(f"--max-mission-items must be at least 4, got {max_mission_items}")
     if autopilot not in ("ardupilot", "px4"):
@@ -106,10 +110,11 @@ def plan(
                               max_mission_items=max_mission_items, mission_options=options,
                               facet_captures=(False if single_capture
                                               else FacetCaptureSettings(target_fraction=facet_target)),
-                              progress=stage)
+                              progress=stage, workers=workers)
         the_plan = dataclasses.replace(the_plan, site={**the_plan.site, "geoid_undulation_m": undulation})
         stage(f"writing plan.json, plan.kml, plan.png and {len(the_plan.flights)} flights' missions")
-        files = export_all(the_plan, make_out_dir(out), field=fld, max_mission_items=max_mission_items, **options)
+        files = export_all(the_plan, make_out_dir(out), field=fld, max_mission_items=max_mission_items,
+                           workers=workers, **options)
     summary = the_plan.summary
     summary["seconds"]["total_with_export"] = round(_time.perf_counter() - t0, 4)
     if json_out:
@@ -127,11 +132,17 @@ def _stage_status(n_heliostats: int) -> Iterator[Callable[[str], None]]:
     if not stderr_console.is_terminal:
         yield lambda _name: None
         return
-    with stderr_console.status(f"pihim plan: {n_heliostats:,} heliostats ...") as status:
+    from rich.live import Live
+    from rich.text import Text
+
+    # redrawn at each stage only: no refresh thread and no stdout / stderr proxies while the planner forks workers
+    with Live(Text(f"pihim plan: {n_heliostats:,} heliostats ..."), console=stderr_console, auto_refresh=False,
+              transient=True, redirect_stdout=False, redirect_stderr=False) as live:
         t0 = _time.perf_counter()
 
         def stage(name: str) -> None:
-            status.update(f"pihim plan, {n_heliostats:,} heliostats, {_time.perf_counter() - t0:.0f} s in: {name} ...")
+            live.update(Text(f"pihim plan, {n_heliostats:,} heliostats, {_time.perf_counter() - t0:.0f} s in: "
+                             f"{name} ..."), refresh=True)
 
         yield stage
 

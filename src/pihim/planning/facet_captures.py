@@ -78,6 +78,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from pihim import _forked
 from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
 from pihim.field.geodesy import as_origin, enu_to_geodetic
@@ -597,6 +598,7 @@ def plan_facet_captures(
     tower: Any = None,
     aim_point: Any = None,
     unassessed: Iterable[str] = (),
+    workers: int | None = 1,
 ) -> FacetPlan:
     """Replace each pass's captures by captures that show every facet of its HUAs a heliostat back.
 
@@ -619,6 +621,10 @@ def plan_facet_captures(
     unassessed : iterable of str
         Requested HUAs no pass images; with ``settings.rescue`` they are tried
         from nearby pass lines.
+    workers : int or None
+        Processes evaluating the candidates of batches of HUAs side by side
+        (forked on Linux, :func:`pihim._forked.imap`; None: one per CPU). The
+        plan does not depend on it.
 
     Returns
     -------
@@ -629,6 +635,7 @@ def plan_facet_captures(
     """
     camera = camera or CameraModel()
     st = settings or FacetCaptureSettings()
+    _forked.check_workers(workers)
     if not isinstance(st, FacetCaptureSettings):
         raise PihimInputError(f"settings must be FacetCaptureSettings, got {type(st).__name__}")
     org = as_origin(origin)
@@ -676,9 +683,17 @@ def plan_facet_captures(
     used: dict[int, set[int]] = {}
     chosen: list[tuple[_Instance, dict[str, NDArray], int, list]] = []
     coverable: dict[str, int] = {}
-    for b0 in range(0, len(inst), st.batch):
-        part = inst[b0:b0 + st.batch]
-        ev = _evaluate(part, lines, pose, camera, st, ctx)
+    parts = [inst[b0:b0 + st.batch] for b0 in range(0, len(inst), st.batch)]
+    forked = _forked.can_fork(workers, len(parts))
+
+    def evaluate(j: int) -> dict[str, NDArray]:
+        ev = _evaluate(parts[j], lines, pose, camera, st, ctx)
+        if forked:  # what the greedy choice and the plan read, the targets narrowed for the trip back
+            ev = {k: ev[k] for k in ("k", "good", *_KEPT)} | {"target": ev["target"].astype(np.int32)}
+        return ev
+
+    # the candidates of every batch are independent (evaluated side by side with workers); the choice is not
+    for part, ev in zip(parts, _forked.imap(evaluate, len(parts), workers, what="batches of HUAs"), strict=True):
         picks = _greedy(ev, part, used, st)
         for b, i in enumerate(part):
             coverable[names[i.hua]] = int(ev["good"][b].any(axis=(0, 1)).sum())

@@ -201,7 +201,7 @@ _CHUNK = 4096
 
 def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_deg: ArrayLike,
                   pitch_deg: ArrayLike, *, camera: CameraModel | None = None, samples: int = 3,
-                  tower: Any = None, reach_m: float = 60.0) -> NDArray[np.int64]:
+                  tower: Any = None, reach_m: float = 60.0, workers: int | None = 1) -> NDArray[np.int64]:
     """The heliostat whose back each facet shows, per capture, traced ray by ray (module docstring).
 
     Parameters
@@ -221,6 +221,10 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
         Its box blocks sight lines and reflected rays.
     reach_m : float
         Reflected rays are followed this far, metres.
+    workers : int or None
+        Processes tracing chunks of captures side by side (forked on Linux,
+        :func:`pihim._forked.imap_unordered`; None: one per CPU). The result
+        does not depend on it.
 
     Returns
     -------
@@ -249,10 +253,15 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
     if len(h) == 0:
         return out
     if len(h) > _CHUNK:  # captures are traced independently: in chunks, so that memory stays bounded
-        for i in range(0, len(h), _CHUNK):
-            sl = slice(i, i + _CHUNK)
-            out[sl] = facet_targets(pose, h[sl], cam[sl], head[sl], pitch[sl], camera=camera, samples=samples,
-                                    tower=tower, reach_m=reach_m)
+        from pihim import _forked
+
+        def chunk(i: int) -> NDArray[np.int64]:
+            sl = slice(i * _CHUNK, (i + 1) * _CHUNK)
+            return facet_targets(pose, h[sl], cam[sl], head[sl], pitch[sl], camera=camera, samples=samples,
+                                 tower=tower, reach_m=reach_m)
+
+        for i, part in _forked.imap_unordered(chunk, -(-len(h) // _CHUNK), workers, what="chunks of captures"):
+            out[i * _CHUNK:(i + 1) * _CHUNK] = part
         return out
     spec = pose.field.spec
     radius = float(np.hypot(spec.mirror_half_width_m, spec.mirror_half_height_m))
@@ -331,7 +340,7 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
 
 
 def facet_coverage(passes: Sequence[ScanPass], pose: Any, *, camera: CameraModel | None = None,
-                   samples: int = 3, tower: Any = None) -> dict[str, FacetCoverage]:
+                   samples: int = 3, tower: Any = None, workers: int | None = 1) -> dict[str, FacetCoverage]:
     """Facets of every imaged HUA that show a heliostat back in at least one capture (traced).
 
     Parameters
@@ -345,6 +354,8 @@ def facet_coverage(passes: Sequence[ScanPass], pose: Any, *, camera: CameraModel
         Sample points per facet side.
     tower : Tower, optional
         Blocks sight lines and reflected rays.
+    workers : int or None
+        Processes tracing side by side (:func:`facet_targets`).
 
     Returns
     -------
@@ -368,7 +379,7 @@ def facet_coverage(passes: Sequence[ScanPass], pose: Any, *, camera: CameraModel
     cams = np.array([(wps[r[:2]].x_m, wps[r[:2]].y_m, wps[r[:2]].z_m) for r in refs]).reshape(-1, 3)
     shows = facet_targets(pose, [names[r[2]] for r in refs], cams, [wps[r[:2]].heading_deg for r in refs],
                           [wps[r[:2]].gimbal_pitch_deg for r in refs], camera=camera, samples=samples,
-                          tower=tower)
+                          tower=tower, workers=workers)
     by: dict[str, dict[int, tuple[int, int, str]]] = {}
     count: dict[str, int] = {}
     field_names = pose.field.names

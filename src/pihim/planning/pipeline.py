@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from pihim._forked import check_workers
 from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
 from pihim.planning.endurance import (
@@ -65,6 +66,7 @@ def build_plan(
     facet_captures: bool | FacetCaptureSettings = True,
     route: bool | RouteSettings = True,
     progress: Callable[[str], None] | None = None,
+    workers: int | None = 1,
 ) -> Plan:
     """Plan, score and split an inspection of ``field`` at ``time``.
 
@@ -121,6 +123,13 @@ def build_plan(
         ``"scoring"``, ``"facet captures"`` (with ``facet_captures``),
         ``"route and flights"``, ``"facet report"`` (with ``facet_report``).
         A 100,000-heliostat plan takes minutes.
+    workers : int or None
+        Processes sharing the scoring, the facet captures' candidates and the
+        facet report (forked copies of this one on Linux,
+        :mod:`pihim._forked`; None: one per CPU). The plan does not depend
+        on it. With more than one, call it from a process
+        whose other threads hold no lock the workers need (numba compiling,
+        logging, a display refreshing on its own thread).
 
     Returns
     -------
@@ -135,6 +144,7 @@ def build_plan(
         raise PihimInputError("the aim point must be three finite coordinates X,Y,Z in metres")
     if aim[2] <= 0:
         raise PihimInputError(f"the aim point must be above the ground (z > 0), got z = {aim[2]:g}")
+    check_workers(workers)
     if heliostats is not None:
         field.indices(heliostats)  # unknown names -> one-line error
     fleet_estimate(0, 1.0, fleet_hours)  # a bad fleet_hours refused now, not after the planning
@@ -155,14 +165,14 @@ def build_plan(
     stage("scoring")
     scene = build_scene(pose, sun.vector, scoring)
     scored = score_passes(passes, pose, sun.vector, scene=scene, camera=camera, aim_point=aim, origin=site,
-                          search=ShiftSearch(max_altitude_m=max_altitude_m) if shift else None)
+                          search=ShiftSearch(max_altitude_m=max_altitude_m) if shift else None, workers=workers)
     t_score = _time.perf_counter()
     rescued: tuple[str, ...] = ()
     if facet_captures is not False:
         stage("facet captures")
         fc_settings = facet_captures if isinstance(facet_captures, FacetCaptureSettings) else None
         fplan = plan_facet_captures(scored, pose, origin=site, camera=camera, settings=fc_settings, tower=field.tower,
-                                    aim_point=aim, unassessed=[n for n, _ in planned.unassessed])
+                                    aim_point=aim, unassessed=[n for n, _ in planned.unassessed], workers=workers)
         scored, rescued = fplan.passes, fplan.rescued
     elif steady_heading:
         scored = steady_headings(scored, pose, camera=camera)
@@ -187,7 +197,7 @@ def build_plan(
                                 max_mission_items=max_mission_items, count_items=counter)
     if facet_captures is not False or route is not False:  # new or reversed captures: predict them
         scored = score_passes(scored, pose, sun.vector, scene=scene, camera=camera, aim_point=aim, origin=site,
-                              search=None)
+                              search=None, workers=workers)
     t_route = _time.perf_counter()
     rate = throughput(flights, endurance)
     fleet = fleet_estimate(len(field.names), max(rate.heliostats_per_hour, 1e-9), fleet_hours)
@@ -224,7 +234,7 @@ def build_plan(
 
         stage("facet report")
         t_rep = _time.perf_counter()
-        per_hua = facet_coverage(scored, pose, camera=camera, tower=field.tower)
+        per_hua = facet_coverage(scored, pose, camera=camera, tower=field.tower, workers=workers)
         summary["facet_coverage"] = {
             **coverage_summary(per_hua),
             "per_hua": {h: {"covered": list(c.covered), "missing": list(c.missing), "captures": c.captures,

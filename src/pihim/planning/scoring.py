@@ -1120,6 +1120,7 @@ def score_passes(
     aim_point: ArrayLike | None = None,
     origin: Any = None,
     batch_images: int = 2000,
+    workers: int | None = 1,
 ) -> tuple[ScanPass, ...]:
     """Predict the contrast of every planned image and, optionally, shift passes to raise it.
 
@@ -1151,6 +1152,10 @@ def score_passes(
         Passes are scored in consecutive groups of about this many images
         (passes are independent; the groups bound the memory of large
         fields, the result does not depend on it).
+    workers : int or None
+        Processes scoring groups side by side (forked on Linux,
+        :func:`pihim._forked.imap_unordered`; None: one per CPU). The result
+        does not depend on it.
 
     Returns
     -------
@@ -1162,6 +1167,9 @@ def score_passes(
         fractions; other passes keep ``shift=None``.
     """
     passes = tuple(passes)
+    from pihim._forked import check_workers
+
+    check_workers(workers)
     if isinstance(batch_images, bool) or not isinstance(batch_images, int) or batch_images < 1:
         raise PihimInputError(f"batch_images must be a positive integer, got {batch_images!r}")
     if scene is None:
@@ -1178,9 +1186,13 @@ def score_passes(
                 size = 0
             groups[-1].append(sp)
             size += k
-        return tuple(sp for g in groups for sp in score_passes(
-            g, pose, sun_dir, scene=scene, search=search, camera=camera, aim_point=aim_point, origin=origin,
-            batch_images=batch_images))
+        from pihim import _forked
+
+        def group(i: int) -> tuple[ScanPass, ...]:
+            return score_passes(groups[i], pose, sun_dir, scene=scene, search=search, camera=camera,
+                                aim_point=aim_point, origin=origin, batch_images=batch_images)
+
+        return tuple(sp for g in _forked.map_pieces(group, len(groups), workers, what="groups of passes") for sp in g)
     fld = pose.field
     imgs = _collect_images(passes, fld)
     pred = predict_images(scene, imgs.cameras, imgs.hua, imgs.target)

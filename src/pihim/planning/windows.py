@@ -132,10 +132,8 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import functools
 import math
-import os
-import sys
-import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -144,6 +142,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from pihim import _forked
 from pihim._atomic import atomic_path, write_text_atomic
 from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
@@ -522,55 +521,10 @@ def _score_instant(job: _SweepJob, i: int) -> _InstantResult:
                           sum(p.shift is not None for p in scored), error)
 
 
-#: In a forked sweep worker, the sweep it serves (handed over by the fork itself: nothing is pickled).
-_WORKER_JOB: _SweepJob | None = None
 #: Most worker processes ``workers=None`` starts (each a forked copy of the caller; ~170 MB resident each for NSTTF).
-DEFAULT_MAX_WORKERS = 8
+DEFAULT_MAX_WORKERS = _forked.DEFAULT_MAX_WORKERS
 #: Most worker processes accepted at all.
-MAX_WORKERS = 64
-
-
-def _forked_worker_setup(job: _SweepJob, parent_pid: int) -> None:
-    """Start a forked sweep worker.
-
-    It keeps ``job``; runs compiled kernels without threads (GNU OpenMP does
-    not survive ``fork``); leaves Ctrl-C to the parent, which stops the pool,
-    and dies outright on SIGTERM (the parent then takes over its times); dies
-    with the parent (Linux ``PR_SET_PDEATHSIG``), so that a killed sweep leaves
-    no orphan; and writes to the real stdout and stderr, not to a progress
-    display's proxies copied by the fork.
-    """
-    import signal
-
-    from pihim.surfaces import ground
-
-    global _WORKER_JOB
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    try:
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):  # pragma: no cover - not Linux
-        pass
-    if os.getppid() != parent_pid:  # the parent died before the line above took effect
-        os._exit(1)
-    sys.stdout, sys.stderr = sys.__stdout__, sys.__stderr__
-    _WORKER_JOB = job
-    ground.use_serial_kernels(True)
-
-
-def _score_forked_instant(i: int) -> tuple[int, _InstantResult]:
-    """Time ``i`` of the worker's sweep, with its index (results arrive in order of completion)."""
-    if _WORKER_JOB is None:
-        raise RuntimeError("a day-sweep worker started without its job")
-    return i, _score_instant(_WORKER_JOB, i)
-
-
-def _default_workers() -> int:
-    """One worker per CPU this process may run on, at most :data:`DEFAULT_MAX_WORKERS`."""
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, min(cpus, DEFAULT_MAX_WORKERS))
+MAX_WORKERS = _forked.MAX_WORKERS
 
 
 def _run_instants(job: _SweepJob, n: int, workers: int | None) -> Iterator[tuple[int, _InstantResult]]:
@@ -579,36 +533,9 @@ def _run_instants(job: _SweepJob, n: int, workers: int | None) -> Iterator[tuple
     With more than one worker (on Linux), the times go to a pool of forked
     processes one at a time (their costs differ by 2-3x over the day); the
     children inherit ``job`` (planner closures included) and the compiled
-    kernels, and return only small results.
+    kernels, and return only small results (:func:`pihim._forked.imap_unordered`).
     """
-    workers = min(_default_workers() if workers is None else workers, n)
-    if workers <= 1 or not sys.platform.startswith("linux"):  # fork is unsafe on macOS, absent on Windows
-        for i in range(n):
-            yield i, _score_instant(job, i)
-        return
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-    from concurrent.futures.process import BrokenProcessPool
-
-    done: set[int] = set()
-    try:
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
-                                 initializer=_forked_worker_setup, initargs=(job, os.getpid())) as pool:
-            futures = [pool.submit(_score_forked_instant, i) for i in range(n)]
-            try:
-                for fut in as_completed(futures):
-                    i, result = fut.result()
-                    done.add(i)
-                    yield i, result
-            finally:
-                for fut in futures:
-                    fut.cancel()
-    except BrokenProcessPool:  # a worker was killed (out of memory, a signal): the rest here, nothing lost
-        warnings.warn(f"a day-sweep worker process died; the {n - len(done)} remaining times run in this process",
-                      RuntimeWarning, stacklevel=3)
-    for i in range(n):
-        if i not in done:
-            yield i, _score_instant(job, i)
+    return _forked.imap_unordered(functools.partial(_score_instant, job), n, workers, what="day-sweep times")
 
 
 def sweep_day(
@@ -698,9 +625,7 @@ def sweep_day(
     """
     day = parse_date(date)
     site = parse_site(site)
-    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)
-                                or not 1 <= workers <= MAX_WORKERS):
-        raise PihimInputError(f"workers must be None or an integer in [1, {MAX_WORKERS}], got {workers!r}")
+    _forked.check_workers(workers)
     if not (isinstance(step_min, (int, float)) and math.isfinite(step_min) and 0.5 <= step_min <= 240.0):
         raise PihimInputError(f"step must be between 0.5 and 240 minutes, got {step_min!r}")
     if not (isinstance(min_elevation_deg, (int, float)) and 0.0 <= min_elevation_deg < 89.0):

@@ -32,9 +32,12 @@ schema are documented in ``docs/plan-formats.md``.
 from __future__ import annotations
 
 import contextlib
+import functools
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
+from pihim import _forked
 from pihim._atomic import atomic_path
 from pihim.errors import PihimInputError
 from pihim.planning.export._common import check_plan, mission_waypoints, write_data
@@ -135,6 +138,10 @@ def _check_limit(value: Any) -> int:
     return value
 
 
+#: Flights whose mission files one piece of :func:`export_all`'s work renders.
+_FLIGHTS_PER_PIECE = 64
+
+
 def _mission_files(plan: Plan, flight: int | None, stem: str, *, max_items: int, geofence_margin_m: float | None,
                    litchi_hover_ms: int, opts: dict[str, Any]) -> dict[str, tuple[str, str | bytes]]:
     """``{key: (file name, content)}`` of one flight's missions (or of a plan without flights)."""
@@ -176,6 +183,7 @@ def export_all(
     max_mission_items: int = DEFAULT_MAX_MISSION_ITEMS,
     figsize: tuple[float, float] = (10.0, 8.0),
     dpi: float = 120.0,
+    workers: int | None = 1,
     **mission_options: Any,
 ) -> dict[str, Path]:
     """Write ``plan.json``, ``plan.kml``, ``plan.png`` and one set of mission files per flight.
@@ -209,6 +217,10 @@ def export_all(
         splits flights under the same limit.
     figsize, dpi
         Map size (inches) and resolution.
+    workers : int or None
+        Processes rendering the files side by side (forked copies of this
+        one on Linux, :mod:`pihim._forked`; None: one per CPU); the files do
+        not depend on it.
     **mission_options
         Passed to :func:`mission_items` for the mission files (``autopilot``,
         ``altitude_frame``, ``condition_yaw``, ``mount_control``, ``camera``,
@@ -230,19 +242,41 @@ def export_all(
     """
     check_plan(plan)
     limit = _check_limit(max_mission_items)
+    _forked.check_workers(workers)
     opts = dict(mission_options, geoid_undulation_m=geoid_undulation_m)
-    contents: dict[str, tuple[str, str | bytes]] = {
-        "plan_json": ("plan.json", plan_json_text(plan)),
-        "kml": ("plan.kml", kml_text(plan, field=field, altitude_mode=kml_altitude_mode,
-                                     geoid_undulation_m=geoid_undulation_m)),
-        "figure": ("plan.png", plan_png_bytes(plan, field=field, figsize=figsize, dpi=dpi)),
-    }
     if flight is not None:
         mission_waypoints(plan, flight)  # unknown index -> one-line error
     flights = [f.index for f in plan.flights if flight is None or f.index == flight]
-    per_flight = [_mission_files(plan, k, flight_file_stem(k), max_items=limit,
-                                 geofence_margin_m=geofence_margin_m, litchi_hover_ms=litchi_hover_ms, opts=opts)
-                  for k in flights]
+
+    def missions(ks: list[int]) -> list[dict[str, tuple[str, str | bytes]]]:
+        return [_mission_files(plan, k, flight_file_stem(k), max_items=limit, geofence_margin_m=geofence_margin_m,
+                               litchi_hover_ms=litchi_hover_ms, opts=opts) for k in ks]
+
+    # every file is rendered independently: side by side with workers (the plan-wide files first, the longest)
+    pieces: list[Callable[[], Any]] = [
+        lambda: plan_json_text(plan),
+        lambda: kml_text(plan, field=field, altitude_mode=kml_altitude_mode, geoid_undulation_m=geoid_undulation_m),
+        lambda: plan_png_bytes(plan, field=field, figsize=figsize, dpi=dpi),
+    ]
+    pieces += [functools.partial(missions, flights[i:i + _FLIGHTS_PER_PIECE])
+               for i in range(0, len(flights), _FLIGHTS_PER_PIECE)]
+
+    def render(i: int) -> Any:
+        try:
+            return pieces[i]()
+        except PihimInputError as exc:  # raised below in the pieces' order, whichever worker met it first
+            return exc
+
+    done = _forked.map_pieces(render, len(pieces), workers, what="files")
+    for result in done:
+        if isinstance(result, PihimInputError):
+            raise result
+    contents: dict[str, tuple[str, str | bytes]] = {
+        "plan_json": ("plan.json", done[0]),
+        "kml": ("plan.kml", done[1]),
+        "figure": ("plan.png", done[2]),
+    }
+    per_flight = [files for part in done[3:] for files in part]
     # A plan never split into flights is one mission; a plan split into none (every pass beyond a battery's
     # reach from home) has nothing flyable, so no mission files.
     unsplit = not plan.flights and "flights" not in plan.summary

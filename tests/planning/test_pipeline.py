@@ -1,0 +1,73 @@
+"""build_plan and export_all with forked workers: the plan and its files to the byte, whatever the workers."""
+
+import functools
+import sys
+
+import pytest
+
+from pihim import _forked
+from pihim.errors import PihimInputError
+from pihim.field import nsttf_like_field
+from pihim.planning import facets, pipeline, scoring
+from pihim.planning.export import export_all
+from pihim.planning import export as export_module
+from pihim.sky.sun import NSTTF, parse_time
+
+linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="workers are forked on Linux only")
+WHEN = parse_time("2021-05-13T10:00-06:00")
+
+
+def _without_timings(plan) -> dict:
+    d = plan.to_dict()
+    d["summary"].pop("seconds")
+    return d
+
+
+@pytest.fixture(scope="module")
+def field():
+    return nsttf_like_field()
+
+
+@linux
+def test_workers_give_the_one_process_plan_and_files(field, tmp_path, monkeypatch):
+    """Every stage that shares work among workers does (small pieces on this small field), and nothing changes."""
+    one = pipeline.build_plan(field, WHEN, NSTTF, workers=1)  # whole: one group, one chunk
+    files_1 = export_all(one, tmp_path / "one", field=field, workers=1)
+    monkeypatch.setattr(facets, "_CHUNK", 100)  # the facet report in several chunks of captures
+    monkeypatch.setattr(pipeline, "score_passes", functools.partial(scoring.score_passes, batch_images=60))
+    monkeypatch.setattr(export_module, "_FLIGHTS_PER_PIECE", 1)
+    forked = []
+    imap_unordered = _forked.imap_unordered
+
+    def spy(job, n, workers, *, what="pieces"):
+        if _forked.can_fork(workers, n):
+            forked.append(what)
+        return imap_unordered(job, n, workers, what=what)
+
+    monkeypatch.setattr(_forked, "imap_unordered", spy)
+    assert pipeline.build_plan(field, WHEN, NSTTF, workers=1, facet_report=False).passes == one.passes
+    assert forked == []
+    two = pipeline.build_plan(field, WHEN, NSTTF, workers=2)
+    assert forked == ["groups of passes", "batches of HUAs", "groups of passes", "chunks of captures"]
+    assert len(one.flights) >= 2 and _without_timings(two) == _without_timings(one)
+    files_2 = export_all(one, tmp_path / "two", field=field, workers=2)
+    assert forked[4:] == ["files"]
+    assert files_1.keys() == files_2.keys() and len(files_1) >= 3 + 3 * len(one.flights)
+    for key, path in files_1.items():
+        assert files_2[key].read_bytes() == path.read_bytes(), key
+
+
+@linux
+def test_a_flight_over_the_item_limit_is_named_in_flight_order_with_workers(field, tmp_path, monkeypatch):
+    monkeypatch.setattr(export_module, "_FLIGHTS_PER_PIECE", 1)
+    plan = pipeline.build_plan(field, WHEN, NSTTF, facet_report=False)
+    assert len(plan.flights) >= 2
+    with pytest.raises(PihimInputError, match=r"^flight 1 needs \d+ mission items, more than the limit of 10"):
+        export_all(plan, tmp_path / "out", max_mission_items=10, workers=2)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("workers", [0, 1.0, "2"])
+def test_bad_worker_counts_are_refused_before_planning(field, workers):
+    with pytest.raises(PihimInputError, match="workers"):
+        pipeline.build_plan(field, WHEN, NSTTF, workers=workers)

@@ -1,0 +1,76 @@
+"""Work shared among forked workers (pihim._forked): the serial results, in order, nothing lost."""
+
+import os
+import signal
+import sys
+
+import numpy as np
+import pytest
+
+from pihim import _forked
+from pihim.errors import PihimInputError
+
+linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="workers are forked on Linux only")
+
+
+@linux
+def test_pieces_run_in_other_processes_and_come_back_in_order(tmp_path):
+    big = np.arange(1_000_000, dtype=np.float64)  # inherited by the fork, never pickled
+    pids = tmp_path / "pids"
+
+    def job(i: int) -> tuple[int, float]:
+        with pids.open("a") as fh:
+            fh.write(f"{os.getpid()}\n")
+        return i, float(big[i * 1000: (i + 1) * 1000].sum())
+
+    got = _forked.map_pieces(job, 40, 2)
+    assert got == [job(i) for i in range(40)]  # the serial values, in the pieces' order
+    workers = {int(v) for v in pids.read_text().split()} - {os.getpid()}
+    assert 1 <= len(workers) <= 2
+    assert list(_forked.imap(lambda i: i * i, 25, 2)) == [i * i for i in range(25)]
+    assert sorted(_forked.imap_unordered(lambda i: -i, 9, 2)) == [(i, -i) for i in range(9)]
+
+
+def test_one_worker_runs_here_in_order():
+    seen = []
+
+    def job(i: int) -> int:
+        seen.append((i, os.getpid()))
+        return 2 * i
+
+    assert _forked.map_pieces(job, 5, 1) == [0, 2, 4, 6, 8]
+    assert seen == [(i, os.getpid()) for i in range(5)]
+    assert not _forked.can_fork(1, 100) and not _forked.can_fork(4, 1)
+
+
+@linux
+def test_a_killed_worker_loses_no_piece():
+    parent = os.getpid()
+
+    def job(i: int) -> int:
+        if os.getpid() != parent and i == 3:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return i + 100
+
+    with pytest.warns(RuntimeWarning, match=r"worker process died; the \d+ remaining tests run in this process"):
+        got = _forked.map_pieces(job, 12, 2, what="tests")
+    assert got == [i + 100 for i in range(12)]
+
+
+@linux
+def test_an_exception_in_a_worker_reaches_the_caller():
+    def job(i: int) -> int:
+        if i == 2:
+            raise PihimInputError("piece 2 refused")
+        return i
+
+    with pytest.raises(PihimInputError, match="piece 2 refused"):
+        _forked.map_pieces(job, 6, 2)
+
+
+@pytest.mark.parametrize("workers", [0, -1, _forked.MAX_WORKERS + 1, 1.5, True, "2"])
+def test_bad_worker_counts_are_refused(workers):
+    with pytest.raises(PihimInputError, match="workers must be None or an integer"):
+        _forked.check_workers(workers)
+    with pytest.raises(PihimInputError):
+        _forked.map_pieces(lambda i: i, 3, workers)
