@@ -124,12 +124,12 @@ def build_plan(
         ``"route and flights"``, ``"facet report"`` (with ``facet_report``).
         A 100,000-heliostat plan takes minutes.
     workers : int or None
-        Processes sharing the scoring, the facet captures' candidates and the
-        facet report (forked copies of this one on Linux,
-        :mod:`pihim._forked`; None: one per CPU). The plan does not depend
-        on it. With more than one, call it from a process
-        whose other threads hold no lock the workers need (numba compiling,
-        logging, a display refreshing on its own thread).
+        Processes sharing the choice of the lines' offsets and altitudes, the
+        scoring, the facet captures' candidates and the facet report (forked
+        copies of this one on Linux, :mod:`pihim._forked`; None: one per
+        CPU). The plan does not depend on it. With more than one, call it
+        from a process whose other threads hold no lock the workers need
+        (numba compiling, logging, a display refreshing on its own thread).
 
     Returns
     -------
@@ -155,7 +155,7 @@ def build_plan(
     stage("passes")
     sun, pose = track_at(field, time, aim_point=aim, site=site)
     planned = plan_ufacet(field, pose, aim_point=aim, origin=site, camera=camera,
-                          max_altitude_m=max_altitude_m, heliostats=heliostats)
+                          max_altitude_m=max_altitude_m, heliostats=heliostats, workers=workers)
     passes = planned.passes
     if not passes:
         first = "; ".join(f"{n}: {why}" for n, why in planned.unassessed[:3])

@@ -104,6 +104,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from pihim import _forked
 from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
 from pihim.field.geodesy import GeodeticOrigin, as_origin, enu_to_geodetic
@@ -531,6 +532,7 @@ class _Context:
     lines: ScanLines
     offsets: NDArray[np.float64]
     altitudes: NDArray[np.float64]
+    workers: int | None = 1  # processes evaluating chunks of configurations side by side (pihim._forked)
 
     def views(self, pair: NDArray[np.int64], line: NDArray[np.int64], offset: NDArray[np.float64],
               altitude: NDArray[np.float64], *, trace: bool = True) -> Views:
@@ -565,9 +567,10 @@ def _config_scores(ctx: _Context, pairs: NDArray[np.int64], line_of: NDArray[np.
     m, nz = len(ctx.offsets), len(ctx.altitudes)
     n_cfg = len(ctx.lines) * m * nz
     combos = len(pairs) * m * nz
-    keys, frames = [], []
-    for a in range(0, combos, chunk):
-        k = np.arange(a, min(combos, a + chunk))
+
+    def part(j: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Keys and facet centres framed of the viewing combinations of chunk ``j`` (independent chunks)."""
+        k = np.arange(j * chunk, min(combos, (j + 1) * chunk))
         p, mi, zi = pairs[k // (m * nz)], (k // nz) % m, k % nz
         ln = line_of[cand.hua[p]]
         if allowed is not None:
@@ -576,11 +579,11 @@ def _config_scores(ctx: _Context, pairs: NDArray[np.int64], line_of: NDArray[np.
         h = cand.hua[p]
         v = ctx.views(p, ln, ctx.offsets[mi], ctx.altitudes[zi], trace=trace)  # traces only the geometric survivors
         s = np.flatnonzero(v.ok)
-        cam = v.camera[s]
-        keys.append(((ln[s] * m + mi[s]) * nz + zi[s]) * n_h + h[s])
-        frames.append(ctx.facets_in_view(h[s], cam))
-    key = np.concatenate(keys) if keys else np.zeros(0, np.int64)
-    frm = np.concatenate(frames) if frames else np.zeros(0, np.int64)
+        return ((ln[s] * m + mi[s]) * nz + zi[s]) * n_h + h[s], ctx.facets_in_view(h[s], v.camera[s])
+
+    done = _forked.map_pieces(part, -(-combos // chunk), ctx.workers, what="chunks of line settings")
+    key = np.concatenate([kf[0] for kf in done]) if done else np.zeros(0, np.int64)
+    frm = np.concatenate([kf[1] for kf in done]) if done else np.zeros(0, np.int64)
     n_img = np.zeros(n_cfg)
     n_frm = np.zeros(n_cfg)
     if len(key):
@@ -888,8 +891,15 @@ def plan_ufacet(
     speed_m_s: float = OPENCSP_SPEED_M_S,
     heliostats: Iterable[str] | None = None,
     settings: UfacetSettings = UfacetSettings(),
+    workers: int | None = 1,
 ) -> UfacetPlan:
-    """UFACET scan passes for a tracked field, with diagnostics. See :func:`plan_passes`."""
+    """UFACET scan passes for a tracked field, with diagnostics. See :func:`plan_passes`.
+
+    ``workers``: processes evaluating the lines' offsets and altitudes side by
+    side (forked on Linux, :mod:`pihim._forked`; None: one per CPU); the plan
+    does not depend on it.
+    """
+    _forked.check_workers(workers)
     # ---------------------------------------------------------------- inputs
     if len(pose.normals) != len(field.names):
         raise PihimInputError(
@@ -949,7 +959,7 @@ def plan_ufacet(
     merge_lat = 1.5 * spec.mirror_width_m if st.merge_lateral_m is None else st.merge_lateral_m
     ctx = _Context(pose, mirror_index(pose), limits, camera, cand, pair_geometry(pose, cand.hua, cand.target),
                    chain_lines(chain, b, c[:, :2]), line_offsets(st.line_offset_max_m, st.line_offset_step_m),
-                   _altitude_grid(min_alt, max_altitude_m, st.altitude_step_m))
+                   _altitude_grid(min_alt, max_altitude_m, st.altitude_step_m), workers)
 
     # ---------------------------------------------------------------- offset, altitude and HUAs of each line
     ctx, line_of, line_off, line_z, views = _assign_lines(ctx, all_cand, chain, b, st, abreast, merge_lat, wanted)
