@@ -13,6 +13,7 @@ order: the results do not depend on the number of workers.
 
 from __future__ import annotations
 
+import gc
 import os
 import sys
 import warnings
@@ -126,6 +127,9 @@ def imap_unordered(job: Callable[[int], T], n: int, workers: int | None, *,
 
     n_workers = min(default_workers() if workers is None else workers, n)
     done: set[int] = set()
+    # the parent's objects out of the collector's sight while workers live: a collection in a worker would write
+    # to every object's header and copy every page of the parent's heap (gc.freeze's documented use)
+    gc.freeze()
     try:
         with ProcessPoolExecutor(n_workers, mp_context=multiprocessing.get_context("fork"),
                                  initializer=_worker_setup, initargs=(job, os.getpid())) as pool:
@@ -141,6 +145,8 @@ def imap_unordered(job: Callable[[int], T], n: int, workers: int | None, *,
     except BrokenProcessPool:
         warnings.warn(f"a worker process died; the {n - len(done)} remaining {what} run in this process",
                       RuntimeWarning, stacklevel=3)
+    finally:
+        gc.unfreeze()
     for i in range(n):
         if i not in done:
             yield i, job(i)

@@ -8,7 +8,7 @@ import pytest
 from pihim import _forked
 from pihim.errors import PihimInputError
 from pihim.field import nsttf_like_field
-from pihim.planning import facets, pipeline, scoring, ufacet
+from pihim.planning import facet_captures, facets, pipeline, scoring, ufacet
 from pihim.planning.export import export_all
 from pihim.planning import export as export_module
 from pihim.sky.sun import NSTTF, parse_time
@@ -34,6 +34,7 @@ def test_workers_give_the_one_process_plan_and_files(field, tmp_path, monkeypatc
     one = pipeline.build_plan(field, WHEN, NSTTF, workers=1)  # whole: one group, one chunk
     files_1 = export_all(one, tmp_path / "one", field=field, workers=1)
     monkeypatch.setattr(facets, "_CHUNK", 100)  # the facet report in several chunks of captures
+    monkeypatch.setattr(facet_captures, "_BATCHES_PER_PIECE", 2)
     monkeypatch.setattr(ufacet, "_config_scores", functools.partial(ufacet._config_scores, chunk=3000))
     monkeypatch.setattr(pipeline, "score_passes", functools.partial(scoring.score_passes, batch_images=60))
     monkeypatch.setattr(export_module, "_FLIGHTS_PER_PIECE", 1)

@@ -426,6 +426,10 @@ class _Extents:
         self.lo[k], self.hi[k] = lo_hi
 
 
+#: Batches of HUAs one forked worker evaluates in a row (:func:`plan_facet_captures`).
+_BATCHES_PER_PIECE = 8
+
+
 def _evaluate(inst: Sequence[_Instance], lines: Sequence[_Line], pose: Any, camera: CameraModel,
               st: FacetCaptureSettings, ctx: dict[str, Any]) -> dict[str, NDArray]:
     """For each instance: the facets each (position, aim) candidate covers and the target shown.
@@ -685,15 +689,19 @@ def plan_facet_captures(
     coverable: dict[str, int] = {}
     parts = [inst[b0:b0 + st.batch] for b0 in range(0, len(inst), st.batch)]
     forked = _forked.can_fork(workers, len(parts))
+    run = _BATCHES_PER_PIECE if forked else 1  # consecutive batches to one worker: its flux answers reused
 
-    def evaluate(j: int) -> dict[str, NDArray]:
-        ev = _evaluate(parts[j], lines, pose, camera, st, ctx)
+    def evaluate(j: int) -> list[dict[str, NDArray]]:
+        evs = [_evaluate(part, lines, pose, camera, st, ctx) for part in parts[j * run:(j + 1) * run]]
         if forked:  # what the greedy choice and the plan read, the targets narrowed for the trip back
-            ev = {k: ev[k] for k in ("k", "good", *_KEPT)} | {"target": ev["target"].astype(np.int32)}
-        return ev
+            evs = [{k: ev[k] for k in ("k", "good", *_KEPT)} | {"target": ev["target"].astype(np.int32)}
+                   for ev in evs]
+        return evs
 
     # the candidates of every batch are independent (evaluated side by side with workers); the choice is not
-    for part, ev in zip(parts, _forked.imap(evaluate, len(parts), workers, what="batches of HUAs"), strict=True):
+    evaluated = (ev for evs in _forked.imap(evaluate, -(-len(parts) // run), workers, what="batches of HUAs")
+                 for ev in evs)
+    for part, ev in zip(parts, evaluated, strict=True):
         picks = _greedy(ev, part, used, st)
         for b, i in enumerate(part):
             coverable[names[i.hua]] = int(ev["good"][b].any(axis=(0, 1)).sum())
