@@ -125,12 +125,11 @@ def build_plan(
         A 100,000-heliostat plan takes minutes.
     workers : int or None
         Processes sharing the choice of the lines' offsets and altitudes, the
-        scoring, the facet captures' candidates, the passes' costs and the
-        flights' tours of the route, and the facet report (forked copies of
-        this one on Linux, :mod:`pihim._forked`; None: one per CPU). The plan
-        does not depend on it. With more than one, call it from a process
-        whose other threads hold no lock the workers need (numba compiling,
-        logging, a display refreshing on its own thread).
+        scoring, the facet captures' candidates and the facet report (forked
+        copies of this one on Linux, :mod:`pihim._forked`; None: one per
+        CPU). The plan does not depend on it. With more than one, call it
+        from a process whose other threads hold no lock the workers need
+        (numba compiling, logging, a display refreshing on its own thread).
 
     Returns
     -------
@@ -192,7 +191,7 @@ def build_plan(
         scored, flights = plan_flights(scored, home, origin=site, model=endurance, tower=field.tower,
                                        max_mission_items=max_mission_items, count_items=counter,
                                        settings=route if isinstance(route, RouteSettings) else RouteSettings(),
-                                       unflyable=unflown, workers=workers)
+                                       unflyable=unflown)
     else:
         flights = split_flights(scored, home, origin=site, model=endurance, tower=field.tower,
                                 max_mission_items=max_mission_items, count_items=counter)

@@ -57,7 +57,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from pihim import _forked
 from pihim.errors import PihimInputError
 from pihim.field.geodesy import as_origin
 from pihim.planning.endurance import (
@@ -291,10 +290,6 @@ class _PassCost:
     alone_items: int = 0  # and its mission items
 
 
-#: Passes (or flights) whose costs one forked worker works out in a row (:func:`plan_flights`).
-_PASSES_PER_PIECE = 64
-
-
 def _pass_costs(passes: Sequence[ScanPass], home: Waypoint, model: DroneEndurance,
                 count_items: Callable[[Sequence[Waypoint]], int] | None,
                 keepout: Any = None) -> tuple[list[_PassCost], int]:
@@ -364,7 +359,7 @@ def split_pass(p: ScanPass, pieces: int) -> list[ScanPass]:
 
 def _fit_passes(fly: list[ScanPass], home: Waypoint, model: DroneEndurance,
                 count_items: Callable[[Sequence[Waypoint]], int] | None, max_items: int | None, keepout: Any,
-                workers: int | None = 1) -> tuple[list[ScanPass], list[_PassCost], int]:
+                ) -> tuple[list[ScanPass], list[_PassCost], int]:
     """Passes too long for one flight cut by :func:`split_pass`, with the pieces' costs.
 
     A pass is cut while a piece needs more mission items than ``max_items``
@@ -376,13 +371,7 @@ def _fit_passes(fly: list[ScanPass], home: Waypoint, model: DroneEndurance,
     PihimInputError
         A single capture needs more mission items than ``max_items``.
     """
-    if _forked.can_fork(workers, len(fly) // _PASSES_PER_PIECE):  # every pass's costs alone: side by side
-        n = _PASSES_PER_PIECE
-        done = _forked.map_pieces(lambda j: _pass_costs(fly[j * n:(j + 1) * n], home, model, count_items, keepout),
-                                  -(-len(fly) // n), workers, what="groups of passes")
-        pc, base = [c for part, _ in done for c in part], done[0][1]
-    else:
-        pc, base = _pass_costs(fly, home, model, count_items, keepout)
+    pc, base = _pass_costs(fly, home, model, count_items, keepout)
     limit = model.usable_s
 
     def too_long(q: _PassCost) -> bool:
@@ -485,7 +474,6 @@ def plan_flights(
     include_infeasible: bool = False,
     settings: RouteSettings = RouteSettings(),
     unflyable: list[int] | None = None,
-    workers: int | None = 1,
 ) -> tuple[tuple[ScanPass, ...], tuple[Flight, ...]]:
     """Passes ordered and oriented, and flights cut, for the shortest path (module docstring).
 
@@ -514,10 +502,6 @@ def plan_flights(
         Given, a pass that a flight from home cannot reach and fly within one
         battery (the edge of a field kilometres wide) is not flown and its
         final index appended here, instead of raising.
-    workers : int or None
-        Processes working out the passes' costs and the flights' tours side
-        by side (forked on Linux, :mod:`pihim._forked`; None: one per CPU);
-        the result does not depend on it.
 
     Returns
     -------
@@ -536,7 +520,6 @@ def plan_flights(
     """
     if not isinstance(home, Waypoint):
         raise PihimInputError(f"home must be a Waypoint (see home_waypoint), got {type(home).__name__}")
-    _forked.check_workers(workers)
     if max_mission_items is not None and count_items is None:
         raise PihimInputError("max_mission_items needs count_items (see pihim.planning.export.count_mission_items)")
     org = as_origin(origin)
@@ -544,7 +527,7 @@ def plan_flights(
     rest = [p for p in passes if not ((p.feasible or include_infeasible) and p.waypoints)]
     keepout = _keepout(tower, model.tower_clearance_m)
     counter = count_items if max_mission_items is not None else None
-    fly, pc, base = _fit_passes(fly, home, model, counter, max_mission_items, keepout, workers)
+    fly, pc, base = _fit_passes(fly, home, model, counter, max_mission_items, keepout)
     beyond: list[ScanPass] = []
     if unflyable is not None:  # out of reach of a battery even alone: not flown
         reach = [c.alone_s <= model.usable_s for c in pc]
@@ -564,40 +547,25 @@ def plan_flights(
     cap = item_cap
     tours: dict[tuple[int, ...], tuple[list[ScanPass], float, int | None, int]] = {}
 
-    def figures(key: tuple[int, ...]) -> tuple[list[int], list[bool], float, int | None, int]:
-        """A flight of the passes ``key``: its order improved as a tour from home and back and the passes
-        flown reversed; its time, mission items and the items its passes alone were estimated at."""
-        hp = costs.home_pass
-        block = _improve([hp, *key, hp], costs, settings, pinned=True)[1:-1]
-        _, dirs = orient_passes(block, costs, home_z=float(costs.home[2]))
-        group = [reverse_pass(fly[k]) if o else fly[k] for k, o in zip(block, dirs, strict=True)]
-        legs = _build(group, home, keepout, model, None)
-        t, _ = _time_and_distance(legs, model)
-        n = count_items(_leg_waypoints(legs)) if max_mission_items is not None and count_items is not None else None
-        return list(block), [bool(o) for o in dirs], t, n, base + sum(pc[k].items for k in block)
-
     def tour(key: tuple[int, ...]) -> tuple[list[ScanPass], float, int | None, int]:
-        """:func:`figures` with the flight's passes, oriented. The same block recurs from one cut to the next:
-        each is worked out once."""
+        """A flight of the passes ``key``: its order improved as a tour from home and back, oriented; its
+        passes, time, mission items and the items its passes alone were estimated at. The same block recurs
+        from one cut to the next: each is worked out once."""
         if key not in tours:
-            add(key, figures(key))
+            hp = costs.home_pass
+            block = _improve([hp, *key, hp], costs, settings, pinned=True)[1:-1]
+            _, dirs = orient_passes(block, costs, home_z=float(costs.home[2]))
+            group = [reverse_pass(fly[k]) if o else fly[k] for k, o in zip(block, dirs, strict=True)]
+            legs = _build(group, home, keepout, model, None)
+            t, _ = _time_and_distance(legs, model)
+            n = count_items(_leg_waypoints(legs)) if max_mission_items is not None and count_items is not None \
+                else None
+            tours[key] = (group, t, n, base + sum(pc[k].items for k in block))
         return tours[key]
-
-    def add(key: tuple[int, ...], fig: tuple[list[int], list[bool], float, int | None, int]) -> None:
-        block, dirs, t, n, estimate = fig
-        tours[key] = ([reverse_pass(fly[k]) if o else fly[k] for k, o in zip(block, dirs, strict=True)], t, n,
-                      estimate)
 
     for _ in range(6):  # the estimates are a little optimistic: tighten them by the error seen and cut again
         blocks = _split(order, costs, pc, base, model, z_of, cap,
                         dataclasses.replace(settings, time_margin=time_margin))
-        new = list(dict.fromkeys(k for k in (tuple(order[i:j]) for i, j in blocks) if k not in tours))
-        if _forked.can_fork(workers, len(new) // _PASSES_PER_PIECE):  # the new flights' tours: side by side
-            per = _PASSES_PER_PIECE
-            done = _forked.map_pieces(lambda j: [figures(k) for k in new[j * per:(j + 1) * per]],
-                                      -(-len(new) // per), workers, what="flights")
-            for key, fig in zip(new, (f for part in done for f in part), strict=True):
-                add(key, fig)
         groups = []
         item_err, time_err, bad = 0, 0.0, False
         for i, j in blocks:
