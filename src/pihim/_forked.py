@@ -1,12 +1,17 @@
 """Independent pieces of work shared among forked copies of this process (Linux), with a serial fallback.
 
-The planner's costly stages (the day sweep's times, the scoring's groups of
-passes, the facet report's chunks of captures) are independent pieces whose
-inputs are large (the tracked field, closures, compiled kernels) and whose
-results are small. :func:`imap_unordered` hands them to a pool of processes
-forked from the caller: the children inherit every input by the fork itself
-(nothing is pickled on the way in; only each piece's index is sent) and
-send back only the results. With one worker, or off Linux (``fork`` is
+The planner's costly stages (the day sweep's times; in ``pihim plan`` the
+lines' settings, the scoring's groups of passes, the facet captures'
+candidates, the facet report's chunks of captures and the files) are
+independent pieces whose inputs are large (the tracked field, the plan,
+closures, compiled kernels). :func:`imap_unordered` hands them to a pool of
+processes forked from the caller: the children inherit every input by the
+fork itself (nothing is pickled on the way in; only each piece's index is
+sent) and send back only the results. What a worker reads of the parent's
+Python objects it copies (their reference counts are written), so the
+workers' memory grows with what they touch: a ``pihim plan`` of 100,000
+heliostats and its two workers held 6.9 GB together at their peak, 3.0 GB in
+one process (proportional set sizes, ``BENCHMARKS.md``). With one worker, or off Linux (``fork`` is
 unsafe on macOS and absent on Windows), the pieces run in this process, in
 order: the results do not depend on the number of workers.
 """

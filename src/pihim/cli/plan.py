@@ -62,7 +62,7 @@ def plan(
         "--facet-target", help="Share of the imaged HUAs' facets to show a heliostat's back, [0, 1].")] = 0.96,
     single_capture: Annotated[bool, typer.Option(
         "--single-capture", help="One capture per HUA aimed at its centre (no facet captures).")] = False,
-    workers: Annotated[int | None, typer.Option("--workers", help="Processes sharing the scoring, the facet captures, the facet report and the files (default: one per CPU, at most 8; 1: this process only).")] = None,
+    workers: Annotated[int | None, typer.Option("--workers", help="Processes sharing the lines' settings, the scoring, the facet captures, the facet report and the files (default: one per CPU, at most 8; 1: this process only).")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
 ) -> int:
     """Plan UFACET scan passes scored for polarimetric contrast and export missions."""

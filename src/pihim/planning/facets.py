@@ -41,6 +41,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from pihim import _forked
 from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
 from pihim.field.kinematics import facet_corners
@@ -253,8 +254,6 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
     if len(h) == 0:
         return out
     if len(h) > _CHUNK:  # captures are traced independently: in chunks, so that memory stays bounded
-        from pihim import _forked
-
         def chunk(i: int) -> NDArray[np.int64]:
             sl = slice(i * _CHUNK, (i + 1) * _CHUNK)
             return facet_targets(pose, h[sl], cam[sl], head[sl], pitch[sl], camera=camera, samples=samples,
