@@ -12,6 +12,8 @@ from dataclasses import replace
 import jsonschema
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pihim.errors import PihimInputError
 from pihim.field.geodesy import enu_to_geodetic
@@ -769,6 +771,38 @@ def test_mission_item_limit(plan, tmp_path):
     assert len(small) > 1 and all(count_mission_items(f.waypoints) <= 40 for f in small)
     with pytest.raises(PihimInputError, match="mission items, more than 10"):
         split_flights(plan.passes, plan.home, origin=ORIGIN, max_mission_items=10, count_items=count_mission_items)
+
+
+_KINDS = ("scan", "lead_in", "run_past", "transit", "return", "takeoff")
+
+
+@settings(max_examples=300, deadline=None)
+@given(steps=st.lists(st.tuples(st.sampled_from([0.0, 0.0, 1e-7, 0.3, 4.0, 25.0]),  # leg length, m
+                                st.sampled_from([0.0, 0.0, 1e-10, 5.0, 90.0, 200.0, 359.0]),  # heading change
+                                st.sampled_from([0.0, 0.0, 1e-7, 1e-5, 3.0, -40.0]),  # pitch change
+                                st.sampled_from([0.0, 0.05, 2.0, 2.0 + 1e-10, 8.0]),  # speed
+                                st.sampled_from(_KINDS), st.booleans()),
+                      min_size=0, max_size=25),
+       takeoff=st.booleans(), land_at=st.none() | st.integers(0, 30),
+       options=st.fixed_dictionaries({}, optional={
+           "autopilot": st.sampled_from(["ardupilot", "px4"]), "condition_yaw": st.booleans(),
+           "mount_control": st.booleans(), "speed_commands": st.booleans(), "end": st.sampled_from(["rtl", "land"]),
+           "camera": st.sampled_from(["image_start_capture", "digicam"]),
+           "yaw_rate_deg_s": st.sampled_from([5.0, 30.0]), "settle_s": st.sampled_from([0.0, 0.5])}))
+def test_mission_item_count_is_the_built_items(steps, takeoff, land_at, options):
+    """count_mission_items counts without building: it must equal the items mission export builds, for any
+    sequence (turns, near-equal speeds and pitches at the tolerances, landings mid-way) and any options."""
+    from pihim.planning.export.qgc import MAV_FRAME_GLOBAL_RELATIVE_ALT, _build_items, _options
+
+    x = y = heading = pitch = 0.0
+    wps = [Waypoint(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 10.0, 0.0, 0.0, "takeoff" if takeoff else "transit")]
+    for k, (leg, turn, dp, speed, kind, capture) in enumerate(steps):
+        heading, pitch = (heading + turn) % 360.0, pitch + dp
+        x, y = x + leg * math.sin(math.radians(heading)), y + leg * math.cos(math.radians(heading))
+        wps.append(Waypoint(x, y, 20.0, 0.0, 0.0, 0.0, heading, pitch, speed, "land" if k == land_at else kind,
+                            capture and kind == "scan"))
+    built = _build_items(wps, wps[0], lambda w: 0.0, MAV_FRAME_GLOBAL_RELATIVE_ALT, _options(**options))
+    assert count_mission_items(wps, **options) == len(built) + 1
 
 
 def test_kml_is_valid_against_the_ogc_schema(plan, field, tmp_path):

@@ -232,6 +232,19 @@ def test_every_photo_at_its_planned_point_heading_and_pitch(nsttf, tmp_path, aut
         assert flown.duration_s <= limit_s
 
 
+def test_mission_item_count_of_planned_flights(nsttf):
+    """count_mission_items (counting without building, for the route) equals the items the export builds, on
+    the planned flights, for every option that changes the layout."""
+    from pihim.planning.export.qgc import MAV_FRAME_GLOBAL_RELATIVE_ALT, _build_items, _options, count_mission_items
+
+    plan, _ = nsttf
+    for options in ({}, {"autopilot": "px4"}, {"mount_control": True}, {"speed_commands": False, "end": "land"}):
+        for f in plan.flights:
+            built = _build_items(f.waypoints, f.waypoints[0], lambda w: 0.0, MAV_FRAME_GLOBAL_RELATIVE_ALT,
+                                 _options(**options))
+            assert count_mission_items(f.waypoints, **options) == len(built) + 1
+
+
 def test_headings_do_change_between_captures(nsttf):
     # the test above is not trivial: the drone turns by many degrees between captures
     plan, _ = nsttf

@@ -323,21 +323,16 @@ def _options(autopilot: Any = "ardupilot", condition_yaw: Any = None, yaw_rate_d
                     _nonneg("acceptance_radius_m", acceptance_radius_m), speed_commands, end)
 
 
-def _build_items(wps: Sequence[Waypoint], home: Waypoint, alt: Any, frame: int, o: _Options,
-                 count_only: bool = False) -> list[MissionItem]:
-    """Mission items for a waypoint sequence (module docstring, "Mission layout"); with ``count_only`` the
-    same sequence of placeholders (None), for :func:`count_mission_items`."""
+def _build_items(wps: Sequence[Waypoint], home: Waypoint, alt: Any, frame: int, o: _Options) -> list[MissionItem]:
+    """Mission items for a waypoint sequence (module docstring, "Mission layout"; :func:`_count_items` counts
+    them without building them)."""
 
     def nav(command: int, w: Waypoint, p1: float, p2: float, p4: float, target: Waypoint | None,
             altitude: float | None = None) -> MissionItem:
-        if count_only:
-            return None  # type: ignore[return-value]
         z = alt(w) if altitude is None else altitude
         return MissionItem(command, frame, (p1, p2, 0.0, p4, w.latitude_deg, w.longitude_deg, z), True, target)
 
     def do(command: int, params: tuple[float, ...], w: Waypoint | None) -> MissionItem:
-        if count_only:
-            return None  # type: ignore[return-value]
         return MissionItem(command, MAV_FRAME_MISSION, params, True, w)  # type: ignore[arg-type]
 
     items: list[MissionItem] = []
@@ -402,6 +397,51 @@ def _build_items(wps: Sequence[Waypoint], home: Waypoint, alt: Any, frame: int, 
     return items
 
 
+def _count_items(wps: Sequence[Waypoint], o: _Options) -> int:
+    """``len(_build_items(wps, wps[0], ...))`` without building the items.
+
+    The route counts every flight it tries (tens of thousands at 100,000
+    heliostats), so the rules of :func:`_build_items` are applied here to
+    plain floats: the leg speed of :func:`~pihim.planning.attitude.leg_speed`
+    (the same operations in the same order, so the same speeds to the last
+    bit), a speed item where it changes, a pitch item (and a mount item)
+    where the pitch changes, the yaw condition, the navigation item, the
+    capture. ``tests/planning/test_export.py`` holds it to the built items.
+    """
+    first = wps[0]
+    rest = wps[1:] if first.kind == "takeoff" else wps
+    n = 1  # the take-off
+    if not rest:
+        return n + 1  # and the return
+    yaw_rate, gimbal_rate, settle = o.yaw_rate_deg_s, o.gimbal_rate_deg_s, o.settle_s
+    speeds, per_waypoint, per_pitch = o.speed_commands, 1 + o.condition_yaw, 1 + o.mount_control
+    speed_state = pitch_state = _NAN
+    px, py, pz, ph, pp = first.x_m, first.y_m, first.z_m, float(rest[0].heading_deg), 0.0
+    for w in rest:
+        kind = w.kind
+        if kind == "land":
+            break  # its landing item ends the mission (counted below, as the return would be)
+        x, y, z, h, pitch = w.x_m, w.y_m, w.z_m, float(w.heading_deg), float(w.gimbal_pitch_deg)
+        speed = float(w.speed_m_s)
+        if kind != "takeoff":  # leg_speed -> turn_limited_speed, inlined
+            dist = math.dist((px, py, pz), (x, y, z))
+            d = abs(h - ph) % 360.0
+            turn = min(d, 360.0 - d)
+            dp = pitch - pp
+            if not (speed <= 0 or dist <= 1e-6 or (turn <= 1e-9 and abs(dp) <= 1e-9)):
+                need = max(turn / yaw_rate, abs(dp) / gimbal_rate) + settle
+                speed = float(min(speed, max(dist / need, min(0.1, speed))))
+        if speeds and speed > 0 and not math.isclose(speed, speed_state, abs_tol=1e-9):
+            n += 1
+            speed_state = speed
+        if not math.isclose(pitch, pitch_state, abs_tol=1e-6):
+            n += per_pitch
+            pitch_state = pitch
+        n += per_waypoint + bool(w.capture)
+        px, py, pz, ph, pp = x, y, z, h, pitch
+    return n + 1  # the return, or the landing
+
+
 def count_mission_items(waypoints: Sequence[Waypoint], **mission_options: Any) -> int:
     """Mission items a waypoint sequence becomes, home slot included (what an autopilot stores).
 
@@ -424,10 +464,7 @@ def count_mission_items(waypoints: Sequence[Waypoint], **mission_options: Any) -
     if not waypoints:
         raise PihimInputError("no waypoints to count")
     opts = {k: v for k, v in mission_options.items() if k not in ("altitude_frame", "geoid_undulation_m", "flight")}
-    o = _options(**opts)
-    items = _build_items(tuple(waypoints), waypoints[0], lambda w: 0.0, MAV_FRAME_GLOBAL_RELATIVE_ALT, o,
-                         count_only=True)
-    return len(items) + 1
+    return _count_items(waypoints, _options(**opts)) + 1
 
 
 def mission_items(
