@@ -36,7 +36,7 @@ import itertools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 from pihim.errors import PihimInputError
 from pihim.field.geodesy import GeodeticOrigin, as_origin, enu_to_geodetic
 from pihim.planning.attitude import turn_limited_speed
-from pihim.planning.model import Flight, ScanPass, Waypoint
+from pihim.planning.model import Flight, ScanPass, Waypoint, replace_fields
 
 __all__ = [
     "PAPER_HELIOSTATS_PER_HOUR",
@@ -247,9 +247,10 @@ def _detour(a: NDArray[np.float64], b: NDArray[np.float64], keepout: Any) -> lis
     return [path[k].copy() for k in range(n)]
 
 
-@dataclass(frozen=True)
-class _Leg:
-    """A planned position before geodetic conversion (internal)."""
+class _Leg(NamedTuple):
+    """A planned position before geodetic conversion (internal; a named tuple: the route builds and rebuilds
+    millions of them at 100,000 heliostats, and a tuple is made and changed several times faster than a frozen
+    dataclass)."""
 
     xyz: tuple[float, float, float]
     heading_deg: float
@@ -346,7 +347,7 @@ class _FlightLegs:
                         heading=first.heading_deg, pitch=first.gimbal_pitch_deg, direct=True)
         for i, w in enumerate(p.waypoints):
             if i == 0:  # the pass is reached at the transit speed
-                w = replace(w, speed_m_s=model.transit_speed_m_s)
+                w = replace_fields(w, speed_m_s=model.transit_speed_m_s)
             legs.append(_Leg(_xyz(w), w.heading_deg, w.gimbal_pitch_deg, w.speed_m_s, w.kind, w.capture, w.hua, w,
                              pass_start=i == 0))
         return legs
@@ -366,7 +367,7 @@ class _FlightLegs:
         h, z_c, last = _xyz(self.home), self.z_c, self.body[-1]
         back = _transit(last.xyz, h, z_c, self.keepout, self.model, start_heading=last.heading_deg)
         if back:
-            back[-1] = replace(back[-1], kind="return")
+            back[-1] = back[-1]._replace(kind="return")
         if not back or math.dist(back[-1].xyz, (h[0], h[1], z_c)) > 1e-9:  # above home before landing
             back.append(_Leg((h[0], h[1], z_c), last.heading_deg if not back else back[-1].heading_deg, 0.0,
                              self.model.transit_speed_m_s, "return"))
@@ -386,8 +387,8 @@ def _turn_speeds(legs: list[_Leg], model: DroneEndurance) -> list[_Leg]:
                                    leg.pitch_deg - prev.pitch_deg, leg.speed_m_s, yaw_rate_deg_s=model.yaw_rate_deg_s,
                                    gimbal_rate_deg_s=model.gimbal_rate_deg_s, settle_s=model.settle_s)
         if speed < leg.speed_m_s:
-            wp = None if leg.waypoint is None else replace(leg.waypoint, speed_m_s=speed)
-            leg = replace(leg, speed_m_s=speed, waypoint=wp)
+            wp = None if leg.waypoint is None else replace_fields(leg.waypoint, speed_m_s=speed)
+            leg = leg._replace(speed_m_s=speed, waypoint=wp)
         out.append(leg)
     return out
 
