@@ -479,14 +479,32 @@ def transit(pts: NDArray, out: NDArray, e1: int, e2: int, keep: NDArray, turn_co
                     out[e2, 0], out[e2, 1], keep, turn_cost, cos_turn)
 
 
+@njit(cache=True, inline="always")
+def _unchanged_since(stamp: NDArray, lo: int, hi: int, seen: int) -> bool:  # pragma: no cover - compiled
+    """Whether no position ``lo..hi`` (clipped to the order) changed since clock ``seen`` (0: never seen)."""
+    if seen == 0:
+        return False
+    for k in range(max(lo, 0), min(hi, stamp.shape[0] - 1) + 1):
+        if stamp[k] >= seen:
+            return False
+    return True
+
+
 @njit(cache=True)
 def improve_sweep(order: NDArray, dirs: NDArray, pts: NDArray, out: NDArray, keep: NDArray, turn_cost: float,
-                  cos_turn: float, lo_i: int, hi_i: int, window: int) -> bool:  # pragma: no cover - compiled
+                  cos_turn: float, lo_i: int, hi_i: int, window: int, stamp: NDArray, seen: NDArray,
+                  clock: NDArray) -> bool:  # pragma: no cover - compiled
     """One sweep of :func:`pihim.planning.route._improve` in place: 2-opt (reverse positions i..j), then
     Or-opt (move a run of 1-3 positions between two others, maybe reversed), each within ``window``
     positions, on the positions ``lo_i..hi_i``. Pass ``k`` flown in direction ``o`` runs from end
     ``2k + o`` to end ``2k + 1 - o``; a move is made when it shortens the transits at the segment ends by
-    more than 1e-6 m (Or-opt: the best such place). Returns whether any move was made."""
+    more than 1e-6 m (Or-opt: the best such place). Returns whether any move was made.
+
+    Don't-look marks, kept across sweeps by the caller: ``clock[0]`` counts changes, ``stamp[k]`` is the
+    clock at which position ``k`` last changed, ``seen[m, i]`` the clock at which the search from position
+    ``i`` (m = 0: 2-opt, 1-3: Or-opt of that many) last found no move. A search whose positions (all it
+    reads) have not changed since is skipped: it would find no move again, so the result is the same as
+    searching, and the later sweeps, where few positions still move, cost little."""
     n = order.shape[0]
     improved = False
 
@@ -499,8 +517,17 @@ def improve_sweep(order: NDArray, dirs: NDArray, pts: NDArray, out: NDArray, kee
     def leg(e1: int, e2: int) -> float:  # the transit between two ends, 0 where either is missing (-1)
         return transit(pts, out, e1, e2, keep, turn_cost, cos_turn) if e1 >= 0 and e2 >= 0 else 0.0
 
+    def mark(a: int, b: int) -> None:  # positions a..b changed
+        for k in range(a, b + 1):
+            stamp[k] = clock[0]
+        clock[0] += 1
+
     for i in range(lo_i, hi_i):
-        for j in range(i + 1, min(hi_i + 1, i + window + 1)):
+        j_hi = min(hi_i + 1, i + window + 1)
+        if _unchanged_since(stamp, i - 1, j_hi, seen[0, i]):
+            continue
+        moved = False
+        for j in range(i + 1, j_hi):
             old = leg(e_(i - 1), s_(i)) + leg(e_(j), s_(j + 1))
             new = leg(e_(i - 1), e_(j)) + leg(s_(i), s_(j + 1))
             if new < old - 1e-6:  # reverse positions i..j in place, each pass flown the other way
@@ -512,18 +539,25 @@ def improve_sweep(order: NDArray, dirs: NDArray, pts: NDArray, out: NDArray, kee
                     b -= 1
                 if a == b:
                     dirs[a] = 1 - dirs[a]
-                improved = True
+                mark(i, j)
+                improved = moved = True
+        if not moved:
+            seen[0, i] = clock[0]
     for length in range(1, 4):
         i = lo_i
         while i + length - 1 <= hi_i:
             j = i + length - 1
+            p_lo, p_hi = max(lo_i, i - window), min(hi_i + 1, j + 1 + window)
+            if _unchanged_since(stamp, min(i, p_lo) - 1, max(j + 1, p_hi), seen[length, i]):
+                i += 1
+                continue
             a, b = s_(i), e_(j)
             before, after = e_(i - 1), s_(j + 1)
             gain = (leg(before, a)
                     + leg(b, after)
                     - leg(before, after))
             best, best_p, best_rev = 1e-6, -1, False
-            for p in range(max(lo_i, i - window), min(hi_i + 1, j + 1 + window) + 1):
+            for p in range(p_lo, p_hi + 1):
                 if i <= p <= j + 1:
                     continue
                 left, right = e_(p - 1), s_(p)
@@ -551,7 +585,10 @@ def improve_sweep(order: NDArray, dirs: NDArray, pts: NDArray, out: NDArray, kee
                     src = length - 1 - k if best_rev else k
                     order[q + k] = seg_o[src]
                     dirs[q + k] = 1 - seg_d[src] if best_rev else seg_d[src]
+                mark(min(best_p, i), max(best_p - 1, j))
                 improved = True
+            else:
+                seen[length, i] = clock[0]
             i += 1
     return improved
 

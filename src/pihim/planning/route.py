@@ -256,8 +256,11 @@ def _improve(order: list[int], costs: _Costs, st: RouteSettings, *, pinned: bool
 
     Moves are scored by the change of the transits at the segment ends with
     the directions fixed (a reversed segment flips its passes); the
-    directions are re-optimised exactly after every sweep. With ``pinned``
-    the first and last entries stay in place (home).
+    directions are re-optimised exactly after every sweep. A search from a
+    position whose neighbourhood has not changed since it last found nothing
+    is skipped (don't-look marks, :func:`pihim.planning._kernels.improve_sweep`):
+    same moves, fewer evaluations. With ``pinned`` the first and last entries
+    stay in place (home).
     """
     n = len(order)
     lo_i, hi_i = (1, n - 2) if pinned else (0, n - 1)  # positions that may move
@@ -267,10 +270,16 @@ def _improve(order: list[int], costs: _Costs, st: RouteSettings, *, pinned: bool
 
     _, dirs = orient_passes(order, costs)
     order_a = np.array(order, dtype=np.int64)
+    stamp, seen, clock = np.zeros(n, np.int64), np.zeros((4, n), np.int64), np.ones(1, np.int64)  # don't-look marks
+    swept: NDArray[np.int64] | None = None
     for _ in range(st.sweeps):
         dirs_a = np.array(dirs, dtype=np.int64)
+        if swept is not None:  # directions the re-optimisation changed: those positions searched again
+            stamp[dirs_a != swept] = clock[0]
+            clock[0] += 1
         improved = _kernels.improve_sweep(order_a, dirs_a, costs.pts, costs.out, costs.keep, costs.turn_cost_m,
-                                          _COS_TURN, lo_i, hi_i, st.window)
+                                          _COS_TURN, lo_i, hi_i, st.window, stamp, seen, clock)
+        swept = dirs_a
         _, dirs = orient_passes(order_a.tolist(), costs)
         if not improved:
             break
@@ -304,6 +313,7 @@ def _pass_costs(passes: Sequence[ScanPass], home: Waypoint, model: DroneEnduranc
     if count_items is not None:
         lift = dataclasses.replace(home, z_m=1.0, kind="transit")  # type: ignore[arg-type]
         base = count_items([home, lift, land])
+    empty = count_items([home, land]) if count_items is not None else 0
     for p in passes:
         legs = _build([p], home, keepout, model, None)
         own = [k for k, leg in enumerate(legs) if leg.waypoint is not None]
@@ -312,7 +322,7 @@ def _pass_costs(passes: Sequence[ScanPass], home: Waypoint, model: DroneEnduranc
         if len(inner) > 1:
             t, _ = _time_and_distance(inner, model)
             t -= model.takeoff_landing_s  # counted once per flight
-        items = count_items([home, *p.waypoints, land]) - count_items([home, land]) if count_items is not None else 0
+        items = count_items([home, *p.waypoints, land]) - empty if count_items is not None else 0
         out.append(_PassCost(max(t, 0.0), items, _time_and_distance(legs, model)[0],
                              count_items(_leg_waypoints(legs)) if count_items is not None else 0))
     return out, base
