@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -458,7 +459,19 @@ def test_facet_capture_settings_are_checked():
             FacetCaptureSettings(**bad)
 
 
-def test_huas_left_without_a_pass_are_rescued_or_given_their_own(plan10):
+@pytest.fixture(scope="module")
+def orphaned(plan10):
+    """Half of the flown passes withheld, and the HUAs only they imaged."""
+    plan, field_, pose, _ = plan10
+    base = build_plan(field_, parse_time(TIME), NSTTF, facet_captures=False, route=False, facet_report=False)
+    flown = [p for p in base.passes if p.feasible]
+    kept, withheld = flown[1::2], flown[::2]
+    orphans = sorted({w.hua for p in withheld for w in p.waypoints if w.capture and w.hua} -
+                     {w.hua for p in kept for w in p.waypoints if w.capture and w.hua})
+    return kept, orphans
+
+
+def test_huas_left_without_a_pass_are_rescued_or_given_their_own(plan10, orphaned):
     """Half of the passes withheld: their HUAs are imaged from the nearest remaining lines (rescue) or from
     short passes of their own, each with at least ``rescue_min_fraction`` of its facets predicted, and the
     traced report confirms most of those facets."""
@@ -466,11 +479,7 @@ def test_huas_left_without_a_pass_are_rescued_or_given_their_own(plan10):
     from pihim.planning.facets import facet_coverage
 
     plan, field_, pose, _ = plan10
-    base = build_plan(field_, parse_time(TIME), NSTTF, facet_captures=False, route=False, facet_report=False)
-    flown = [p for p in base.passes if p.feasible]
-    kept, withheld = flown[1::2], flown[::2]
-    orphans = sorted({w.hua for p in withheld for w in p.waypoints if w.capture and w.hua} -
-                     {w.hua for p in kept for w in p.waypoints if w.capture and w.hua})
+    kept, orphans = orphaned
     st = FacetCaptureSettings()
     fplan = plan_facet_captures(kept, pose, origin=NSTTF, tower=field_.tower, aim_point=plan.aim_point,
                                 unassessed=orphans, settings=st)
@@ -484,6 +493,36 @@ def test_huas_left_without_a_pass_are_rescued_or_given_their_own(plan10):
     traced = facet_coverage(fplan.passes, pose, tower=field_.tower)
     got = sum(len(set(traced[h].covered) & set(fplan.predicted[h])) for h in helped)
     assert got >= 0.9 * sum(len(fplan.predicted[h]) for h in helped)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="workers are forked on Linux only")
+def test_own_lines_offered_by_workers_change_nothing(plan10, orphaned, monkeypatch):
+    """The HUAs' own lines are evaluated side by side in whole batches: with workers (one batch of two HUAs'
+    lines per piece) the same captures, rescues and passes as in one process and one piece."""
+    from pihim import _forked
+    from pihim.planning import facet_captures
+
+    plan, field_, pose, _ = plan10
+    kept, orphans = orphaned
+    st = FacetCaptureSettings(batch=2)
+    args = dict(origin=NSTTF, tower=field_.tower, aim_point=plan.aim_point, unassessed=orphans, settings=st)
+    monkeypatch.setattr(facet_captures, "_BATCHES_PER_PIECE", 10**6)
+    one = facet_captures.plan_facet_captures(kept, pose, workers=1, **args)  # every HUA's own lines in one piece
+    monkeypatch.setattr(facet_captures, "_BATCHES_PER_PIECE", 1)
+    pieces = {}
+    imap_unordered = _forked.imap_unordered
+
+    def spy(job, n, workers, *, what="pieces"):
+        if _forked.can_fork(workers, n):
+            pieces[what] = n
+        return imap_unordered(job, n, workers, what=what)
+
+    monkeypatch.setattr(_forked, "imap_unordered", spy)
+    two = facet_captures.plan_facet_captures(kept, pose, workers=2, **args)
+    assert pieces.get("HUAs' own lines", 0) >= 3
+    assert any("short pass of its own" in i for p in two.passes for i in p.issues)
+    assert (two.passes, two.captures, two.predicted, two.coverable, two.rescued) == \
+        (one.passes, one.captures, one.predicted, one.coverable, one.rescued)
 
 
 def test_build_plan_names_each_stage_as_it_starts(monkeypatch):

@@ -781,27 +781,41 @@ def plan_facet_captures(
             alts = [p.altitude_m for p, ln in zip(passes, lines, strict=True) if ln is not None and p.feasible]
             own = {"z": float(np.median(alts)) if alts else None,  # the own lines' altitude (their own adds keep it)
                    "index": max(q.index for q in passes) + 1}
-            offers = []
             own_pending = []  # every HUA's own lines first (their numbering), then evaluated in batches
             for hh in left:
                 ks = _own_lines(hh, pose, passes, lines, ctx, own)
                 if ks is not None:
                     own_pending.append((hh, ks, np.zeros(len(ks))))
-            for hh, cand_, ev_ in _evaluated(own_pending, lambda ks, _along, _before: np.ones(len(ks), bool), lines,
-                                             pose, camera, st, ctx):
-                picks_ = _greedy(ev_, cand_, used, st, commit=False)
-                total = [sum(int(m.sum()) for _, _, m, _ in pk) for pk in picks_]
-                b_ = int(np.argmax(total))
-                if total[b_] == 0 or total[b_] < st.rescue_min_fraction * n_f:
-                    continue
-                got = ([cand_[b_]], {k: v[b_:b_ + 1].copy() for k, v in ev_.items()}, [picks_[b_]], 0)  # the best only
-                xy = ev_["cam"][b_, [g for g, _, _, _ in picks_[b_]], :2]
-                cost = 0.0
-                if caps_tree is not None:  # distance to the nearest planned capture: among its 8 nearest, exactly
-                    _, near = caps_tree.query(xy, k=min(8, len(caps_xy)))
-                    near = np.unique(np.asarray(near).ravel())
-                    cost = float(np.min(np.linalg.norm(caps_xy[near][:, None, :] - xy[None], axis=-1)))
-                offers.append((cost, hh, got))
+
+            def own_offers(j: int) -> list[tuple[float, int, tuple]]:
+                """The offers of the HUAs of piece ``j`` (whole batches): each HUA's best own line, its cost."""
+                found = []
+                for hh, cand_, ev_ in _evaluated(own_pending[cuts[j]:cuts[j + 1]],
+                                                 lambda ks, _along, _before: np.ones(len(ks), bool), lines, pose,
+                                                 camera, st, ctx):
+                    picks_ = _greedy(ev_, cand_, used, st, commit=False)  # used: nothing yet on new lines
+                    total = [sum(int(m.sum()) for _, _, m, _ in pk) for pk in picks_]
+                    b_ = int(np.argmax(total))
+                    if total[b_] == 0 or total[b_] < st.rescue_min_fraction * n_f:
+                        continue
+                    # the best only, what commit() reads: its facets any position and aim covers (kept 4-D)
+                    best_ev = {k: ev_[k][b_:b_ + 1].copy() for k in ("k", *_KEPT)}
+                    best_ev["good"] = ev_["good"][b_:b_ + 1].any(axis=(1, 2), keepdims=True)
+                    xy = ev_["cam"][b_, [g for g, _, _, _ in picks_[b_]], :2]
+                    cost = 0.0
+                    if caps_tree is not None:  # distance to the nearest planned capture: among its 8 nearest
+                        _, near = caps_tree.query(xy, k=min(8, len(caps_xy)))
+                        near = np.unique(np.asarray(near).ravel())
+                        cost = float(np.min(np.linalg.norm(caps_xy[near][:, None, :] - xy[None], axis=-1)))
+                    found.append((cost, hh, ([cand_[b_]], best_ev, [picks_[b_]], 0)))
+                return found
+
+            # the HUAs' own lines are independent (nothing is committed before all are offered): runs of whole
+            # batches (as _evaluated forms them, so the same batches whatever the workers) side by side
+            starts = _batch_starts([len(ks) for _, ks, _ in own_pending], st.batch)
+            cuts = starts[::_BATCHES_PER_PIECE] + [len(own_pending)]
+            offers = [o for part in _forked.imap(own_offers, len(cuts) - 1, workers, what="HUAs' own lines")
+                      for o in part]
             for cost, hh, (cand_, ev_, picks_, b_) in sorted(offers, key=lambda o: o[:2])[:need]:
                 if any(int(ev_["k"][b_, g]) in used.get(cand_[b_].pass_k, set()) for g, _, _, _ in picks_[b_]):
                     continue
@@ -891,6 +905,20 @@ def _trim(chosen: list[tuple[Any, Any, int, list]], n_f: int, target: float) -> 
         covered -= gain
         if len(picks) > 1:
             heapq.heappush(heap, (int(picks[-1][2].sum()), k))
+
+
+def _batch_starts(counts: Sequence[int], size: int) -> list[int]:
+    """Where :func:`_evaluated` starts its batches when it admits every candidate: ``counts`` candidates per
+    HUA, at most ``size`` per batch (a HUA with more alone)."""
+    starts: list[int] = []
+    n = 0
+    for k, m in enumerate(counts):
+        if not starts or n + m > size:
+            starts.append(k)
+            n = m
+        else:
+            n += m
+    return starts
 
 
 def _evaluated(pending: Sequence[tuple[int, NDArray[np.int64], NDArray[np.float64]]], admit: Any,
