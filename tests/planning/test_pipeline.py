@@ -36,6 +36,7 @@ def test_workers_give_the_one_process_plan_and_files(field, tmp_path, monkeypatc
     monkeypatch.setattr(facets, "_CHUNK", 100)  # the facet report in several chunks of captures
     monkeypatch.setattr(facet_captures, "_BATCHES_PER_PIECE", 2)
     monkeypatch.setattr(ufacet, "_config_scores", functools.partial(ufacet._config_scores, chunk=3000))
+    monkeypatch.setattr(ufacet, "_FLUX_PIECE", 500)  # the flux samples along the passes in several pieces
     monkeypatch.setattr(pipeline, "score_passes", functools.partial(scoring.score_passes, batch_images=60))
     monkeypatch.setattr(export_module, "_FLIGHTS_PER_PIECE", 1)
     forked = []
@@ -51,11 +52,11 @@ def test_workers_give_the_one_process_plan_and_files(field, tmp_path, monkeypatc
     assert forked == []
     two = pipeline.build_plan(field, WHEN, NSTTF, workers=2)
     lines = forked.count("chunks of line settings")
-    assert lines >= 2 and forked[lines:] == ["groups of passes", "batches of HUAs", "groups of passes",
-                                             "chunks of captures"]
+    assert lines >= 2 and forked[lines:] == ["flux samples", "groups of passes", "batches of HUAs",
+                                             "HUAs' own lines", "groups of passes", "chunks of captures"]
     assert len(one.flights) >= 2 and _without_timings(two) == _without_timings(one)
     files_2 = export_all(one, tmp_path / "two", field=field, workers=2)
-    assert forked[lines + 4:] == ["files"]
+    assert forked[lines + 6:] == ["files"]
     assert files_1.keys() == files_2.keys() and len(files_1) >= 3 + 3 * len(one.flights)
     for key, path in files_1.items():
         assert files_2[key].read_bytes() == path.read_bytes(), key

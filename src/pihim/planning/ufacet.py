@@ -109,7 +109,7 @@ from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
 from pihim.field.geodesy import GeodeticOrigin, as_origin, enu_to_geodetic
 from pihim.field.kinematics import FieldPose, track_field
-from pihim.planning.flux import beam_concentration
+from pihim.planning.flux import Beams, beam_concentration
 from pihim.planning.lines import (
     VIEW_BEHIND,
     VIEW_CAMERA_BLOCKED,
@@ -801,9 +801,14 @@ def _order_around_tower(centres_xy: list[NDArray[np.float64]], tower: Any) -> ND
     return order
 
 
+#: Flux samples per piece of work for forked workers (:func:`_flux_issues`; each point is independent).
+_FLUX_PIECE = 200_000
+
+
 def _flux_issues(paths: list[list[NDArray[np.float64]]], pose: FieldPose, aim: NDArray[np.float64],
-                 st: UfacetSettings) -> dict[int, str]:
-    """Concentrated-sunlight warnings per pass, sampled every ``flux_sample_m`` along its waypoints."""
+                 st: UfacetSettings, workers: int | None = 1) -> dict[int, str]:
+    """Concentrated-sunlight warnings per pass, sampled every ``flux_sample_m`` along its waypoints
+    (:func:`pihim.planning.flux.beam_concentration`; pieces of the samples side by side with ``workers``)."""
     samples, owner = [], []
     for k, pts in enumerate(paths):
         xyz = np.array(pts)
@@ -815,7 +820,11 @@ def _flux_issues(paths: list[list[NDArray[np.float64]]], pose: FieldPose, aim: N
         samples.append(xyz[-1:])
         owner.append(np.array([k]))
     ow = np.concatenate(owner)
-    suns = beam_concentration(np.concatenate(samples), pose, aim, divergence_mrad=st.beam_divergence_mrad)
+    pts = np.concatenate(samples)
+    beams = Beams(pose, aim, divergence_mrad=st.beam_divergence_mrad)
+    pieces = _forked.map_pieces(lambda i: beams.concentration(pts[i * _FLUX_PIECE:(i + 1) * _FLUX_PIECE]),
+                                -(-len(pts) // _FLUX_PIECE), workers, what="flux samples")
+    suns = np.concatenate(pieces)
     out = {}
     for k in np.unique(ow[suns > st.flux_limit_suns]).tolist():
         m_ = (ow == k) & (suns > st.flux_limit_suns)
@@ -1063,7 +1072,7 @@ def plan_ufacet(
 
     if settings.flux_check and passes_enu:
         for k, text in _flux_issues([[w_[0] for w_ in d.waypoints] for d in passes_enu], pose, aim,
-                                    settings).items():
+                                    settings, workers).items():
             passes_enu[k].issues.append(text)
     passes = _scan_passes(passes_enu, org, speed_m_s)
     return UfacetPlan(
