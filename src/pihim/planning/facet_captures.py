@@ -70,9 +70,10 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import statistics
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -838,7 +839,8 @@ def plan_facet_captures(
             per_pass.setdefault(i.pass_k, []).append((float(ev["s"][g]), fc, float(ev["head"][g, a_]),
                                                       float(ev["pitch"][g, a_])))
         predicted[names[i.hua]] = tuple(np.flatnonzero(mask).tolist())
-    out = []
+    out: list[ScanPass | None] = []
+    redo: list[tuple[int, ScanPass, _Line | None, _Layout]] = []  # passes rebuilt: their slot in out, layout
     for k, p in enumerate(passes):
         got = per_pass.get(k)
         if k >= n_planned and not got:
@@ -848,8 +850,17 @@ def plan_facet_captures(
         if not got and not keep_old:
             out.append(dataclasses.replace(p, predictions=()))
             continue
-        out.append(_rebuild(p, lines[k], got or [], keep_old, names, org, st))
-    return FacetPlan(tuple(out), tuple(caps), predicted, coverable, tuple(rescued))
+        redo.append((len(out), p, lines[k], _layout(lines[k], got or [], keep_old, names, st)))
+        out.append(None)
+    # the new waypoints' geodetic coordinates at once (a call per pass cost seconds at 100,000 heliostats)
+    pts = np.concatenate([lay.pts for *_, lay in redo]) if redo else np.zeros((0, 3))
+    lat, lon, hgt = enu_to_geodetic(pts, org) if len(pts) else (np.zeros(0),) * 3
+    q = 0
+    for slot, p, ln, lay in redo:
+        m = len(lay.pts)
+        out[slot] = _rebuild(p, ln, lay, lat[q:q + m], lon[q:q + m], hgt[q:q + m], st)
+        q += m
+    return FacetPlan(tuple(o for o in out if o is not None), tuple(caps), predicted, coverable, tuple(rescued))
 
 
 def _own_lines(hh: int, pose: Any, passes: list[ScanPass], lines: list[_Line | None], ctx: dict[str, Any],
@@ -968,51 +979,64 @@ def _slice(ev: dict[str, NDArray], b: int) -> dict[str, NDArray]:
     return {k: ev[k][b].copy() for k in _KEPT}
 
 
-def _rebuild(p: ScanPass, ln: _Line | None, got: list[tuple[float, FacetCapture, float, float]],
-             keep_old: list[Waypoint], names: list[str], org: Any, st: FacetCaptureSettings) -> ScanPass:
-    """A pass whose capture waypoints are ``got`` (plus old captures kept), sorted along the line."""
+class _Layout(NamedTuple):
+    """A rebuilt pass's waypoints before geodetic conversion (internal): the captures sorted along the line
+    ``(s, xyz, heading, pitch, hua, target)``, the lead-in and run-past ``(xyz, heading, pitch, kind)`` and
+    every point in waypoint order, ENU metres (P, 3)."""
+
+    items: list[tuple[float, NDArray[np.float64], float, float, str, str | None]]
+    pre: list[tuple[NDArray[np.float64], float, float, str]]
+    post: list[tuple[NDArray[np.float64], float, float, str]]
+    pts: NDArray[np.float64]
+
+
+def _layout(ln: _Line | None, got: list[tuple[float, FacetCapture, float, float]], keep_old: list[Waypoint],
+            names: list[str], st: FacetCaptureSettings) -> _Layout:
+    """The capture waypoints of a pass: ``got`` (plus old captures kept), sorted along the line, with a lead-in
+    and a run-past."""
     assert ln is not None
-    speed = next((w.speed_m_s for w in p.waypoints if w.kind == "scan"), st.speed_m_s)
     items: list[tuple[float, NDArray[np.float64], float, float, str, str | None]] = []
     for s_, fc, head, pitch in got:
         items.append((s_, np.array(fc.camera), head, pitch, names[fc.hua], names[fc.target] if fc.target >= 0
                       else None))
-    old_pairs = dict(p.pairs)
     for w in keep_old:
         s_ = float(dot(np.array([w.x_m, w.y_m]) - ln.a[:2], ln.e))
-        items.append((s_, np.array([w.x_m, w.y_m, w.z_m]), w.heading_deg, w.gimbal_pitch_deg, w.hua or "",
-                      old_pairs.get(w.hua)))
+        items.append((s_, np.array([w.x_m, w.y_m, w.z_m]), w.heading_deg, w.gimbal_pitch_deg, w.hua or "", None))
     items.sort(key=lambda t: t[0])
-    s_all = np.array([t[0] for t in items])
-    xyz = [t[1] for t in items]
-    kinds: list[str] = ["scan"] * len(items)
     e3 = np.r_[ln.e, 0.0]
     pre: list[tuple[NDArray[np.float64], float, float, str]] = []
     if st.lead_in_m > 0:
-        pre.append((ln.a + (s_all[0] - st.lead_in_m) * e3, items[0][2], items[0][3], "lead_in"))
+        pre.append((ln.a + (items[0][0] - st.lead_in_m) * e3, items[0][2], items[0][3], "lead_in"))
     post: list[tuple[NDArray[np.float64], float, float, str]] = []
     if st.run_past_m > 0:
-        post.append((ln.a + (s_all[-1] + st.run_past_m) * e3, items[-1][2], items[-1][3], "run_past"))
-    pts = [t[0] for t in pre] + xyz + [t[0] for t in post]
-    lat, lon, hgt = enu_to_geodetic(np.array(pts, float), org)
+        post.append((ln.a + (items[-1][0] + st.run_past_m) * e3, items[-1][2], items[-1][3], "run_past"))
+    pts = np.array([t[0] for t in pre] + [t[1] for t in items] + [t[0] for t in post], float)
+    return _Layout(items, pre, post, pts)
+
+
+def _rebuild(p: ScanPass, ln: _Line | None, lay: _Layout, lat: NDArray[np.float64], lon: NDArray[np.float64],
+             hgt: NDArray[np.float64], st: FacetCaptureSettings) -> ScanPass:
+    """A pass whose capture waypoints are those of ``lay``, at the geodetic coordinates of ``lay.pts``."""
+    assert ln is not None
+    speed = next((w.speed_m_s for w in p.waypoints if w.kind == "scan"), st.speed_m_s)
+    old_pairs = dict(p.pairs)
     wps: list[Waypoint] = []
     q = 0
-    for x, hd, gp, kind in pre:
+    for x, hd, gp, kind in lay.pre:
         wps.append(_wp(x, lat[q], lon[q], hgt[q], hd, gp, speed, kind, False, None))
         q += 1
-    for (s_, x, hd, gp, hua, _), kind in zip(items, kinds, strict=True):
-        del s_
-        wps.append(_wp(x, lat[q], lon[q], hgt[q], hd, gp, speed, kind, True, hua))
+    for _, x, hd, gp, hua, _ in lay.items:
+        wps.append(_wp(x, lat[q], lon[q], hgt[q], hd, gp, speed, "scan", True, hua))
         q += 1
-    for x, hd, gp, kind in post:
+    for x, hd, gp, kind in lay.post:
         wps.append(_wp(x, lat[q], lon[q], hgt[q], hd, gp, speed, kind, False, None))
         q += 1
-    pairs = tuple((t[4], t[5] if t[5] is not None else dict(p.pairs).get(t[4], t[4])) for t in items)
+    pairs = tuple((t[4], t[5] if t[5] is not None else old_pairs.get(t[4], t[4])) for t in lay.items)
     issues = tuple(i for i in p.issues if not i.startswith("HUA not framed whole"))
     pitches = [w.gimbal_pitch_deg for w in wps if w.capture]
     return dataclasses.replace(p, pairs=pairs, waypoints=tuple(wps), predictions=(), issues=issues,
                                azimuth_deg=float(azimuth_deg(ln.e[0], ln.e[1])),
-                               gimbal_pitch_deg=float(np.median(pitches)) if pitches else p.gimbal_pitch_deg)
+                               gimbal_pitch_deg=statistics.median(pitches) if pitches else p.gimbal_pitch_deg)
 
 
 def _wp(x: NDArray[np.float64], lat: float, lon: float, h: float, heading: float, pitch: float, speed: float,
