@@ -68,6 +68,65 @@ def test_an_exception_in_a_worker_reaches_the_caller():
         _forked.map_pieces(job, 6, 2)
 
 
+@linux
+def test_started_pieces_run_while_the_caller_works(tmp_path):
+    """start() returns at once; the workers work on while this process does something else; results() gives
+    the serial values in order and stops them."""
+    import time
+
+    gate = tmp_path / "go"
+
+    def job(i: int) -> tuple[int, int]:
+        while not gate.exists():  # only once the caller has moved on
+            time.sleep(0.01)
+        return i, os.getpid()
+
+    started = _forked.start(job, 8, 2)
+    assert started.running
+    gate.touch()  # the caller's own work
+    got = started.results()
+    assert [i for i, _ in got] == list(range(8)) and all(pid != os.getpid() for _, pid in got)
+    assert not started.running
+
+
+def test_started_without_workers_runs_at_results():
+    seen = []
+    started = _forked.start(lambda i: seen.append(i) or i * 3, 4, 1)
+    assert not started.running and seen == []
+    assert started.results() == [0, 3, 6, 9] and seen == [0, 1, 2, 3]
+    started.close()  # nothing to stop
+
+
+@linux
+def test_a_killed_started_worker_loses_no_piece():
+    parent = os.getpid()
+
+    def job(i: int) -> int:
+        if os.getpid() != parent and i == 1:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return -i
+
+    started = _forked.start(job, 10, 2, what="traces")
+    with pytest.warns(RuntimeWarning, match=r"worker process died; the \d+ remaining traces run in this process"):
+        assert started.results() == [-i for i in range(10)]
+
+
+@linux
+def test_closing_started_workers_stops_them():
+    import time
+
+    started = _forked.start(lambda i: time.sleep(0.05) or i, 200, 2)
+    pids = [p.pid for p in started._pool._processes.values()]
+    t0 = time.perf_counter()
+    started.close()  # as a finally does after an error: the pieces not begun are dropped
+    assert time.perf_counter() - t0 < 2.0 and not started.running
+    for pid in pids:
+        with pytest.raises(OSError):
+            for _ in range(100):
+                os.kill(pid, 0)
+                time.sleep(0.01)
+
+
 @pytest.mark.parametrize("workers", [0, -1, _forked.MAX_WORKERS + 1, 1.5, True, "2"])
 def test_bad_worker_counts_are_refused(workers):
     with pytest.raises(PihimInputError, match="workers must be None or an integer"):

@@ -13,7 +13,9 @@ workers' memory grows with what they touch: a ``pihim plan`` of 100,000
 heliostats and its two workers held 6.9 GB together at their peak, 3.0 GB in
 one process (proportional set sizes, ``BENCHMARKS.md``). With one worker, or off Linux (``fork`` is
 unsafe on macOS and absent on Windows), the pieces run in this process, in
-order: the results do not depend on the number of workers.
+order: the results do not depend on the number of workers. :func:`start`
+hands pieces to workers that work on while the caller does something else
+(``pihim plan`` traces the facet report's captures during the route).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import os
 import sys
 import warnings
 from collections.abc import Callable, Iterator
-from typing import Any, TypeVar
+from typing import Any, Generic, TypeVar
 
 from pihim.errors import PihimInputError
 
@@ -167,6 +169,87 @@ def imap(job: Callable[[int], T], n: int, workers: int | None, *, what: str = "p
         while nxt in early:
             yield early.pop(nxt)
             nxt += 1
+
+
+class Started(Generic[T]):
+    """Pieces started in forked workers that work on while this process does something else (:func:`start`).
+
+    :meth:`results` waits for them (a dead worker's pieces then run here,
+    with the warning of :func:`imap_unordered`); :meth:`close` stops the
+    workers (pieces not begun are dropped). Without workers nothing runs
+    until :meth:`results`, which then runs the pieces here, in order.
+    """
+
+    def __init__(self, job: Callable[[int], T], n: int, workers: int | None, what: str) -> None:
+        check_workers(workers)
+        self._job, self._n, self._what = job, n, what
+        self._pool: Any = None
+        self._futures: list[Any] = []
+        if not can_fork(workers, n):
+            return
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        gc.freeze()  # as in imap_unordered: the parent's objects out of the collector's sight while workers live
+        try:
+            self._pool = ProcessPoolExecutor(min(default_workers() if workers is None else workers, n),
+                                             mp_context=multiprocessing.get_context("fork"),
+                                             initializer=_worker_setup, initargs=(job, os.getpid()))
+            self._futures = [self._pool.submit(_run_piece, i) for i in range(n)]
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def running(self) -> bool:
+        """Whether workers were started and not yet stopped."""
+        return self._pool is not None
+
+    def results(self) -> list[T]:
+        """``[job(0), ..., job(n - 1)]``; the workers are stopped when it returns."""
+        from concurrent.futures import as_completed
+        from concurrent.futures.process import BrokenProcessPool
+
+        out: list[Any] = [None] * self._n
+        done: set[int] = set()
+        if self._pool is not None:
+            try:
+                for fut in as_completed(self._futures):
+                    i, result = fut.result()
+                    out[i] = result
+                    done.add(i)
+            except BrokenProcessPool:
+                warnings.warn(f"a worker process died; the {self._n - len(done)} remaining {self._what} run in "
+                              "this process", RuntimeWarning, stacklevel=2)
+            finally:
+                self.close()
+        for i in range(self._n):
+            if i not in done:
+                out[i] = self._job(i)
+        return out
+
+    def close(self) -> None:
+        """Stop the workers (the pieces they began are finished first); nothing if none were started."""
+        if self._pool is None:
+            return
+        pool, self._pool = self._pool, None
+        try:
+            for fut in self._futures:
+                fut.cancel()
+            pool.shutdown(wait=True)
+        finally:
+            gc.unfreeze()
+
+
+def start(job: Callable[[int], T], n: int, workers: int | None, *, what: str = "pieces") -> Started[T]:
+    """Start ``job(0), ..., job(n - 1)`` in forked workers and return at once (:class:`Started`).
+
+    For work that can go on while this process does something else (the
+    facet report's tracing during the route in ``pihim plan``). Close it in
+    a ``finally`` (or collect it) before starting other workers: each
+    worker holds a copy of what it touched.
+    """
+    return Started(job, n, workers, what)
 
 
 def map_pieces(job: Callable[[int], T], n: int, workers: int | None, *, what: str = "pieces") -> list[T]:

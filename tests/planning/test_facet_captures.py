@@ -228,6 +228,29 @@ def test_planner_prediction_agrees_with_the_traced_report(plan10):
     assert traced["fraction"] > 0.95
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_traced_captures_give_the_same_report(plan10, workers, monkeypatch):
+    """The report from captures traced beforehand (trace_captures, in workers while the route runs in
+    pihim plan) equals the one traced on the spot, reordered and reversed passes included; captures missing
+    from the traced rows are traced on the spot."""
+    from pihim.planning import facets
+    from pihim.planning.route import reverse_pass
+
+    plan, field_, pose, _ = plan10
+    monkeypatch.setattr(facets, "_CHUNK", 64)  # several chunks: started in workers with workers=2
+    passes = [p for p in plan.passes if any(w.capture for w in p.waypoints)]
+    pending = facets.trace_captures(passes[::-1], pose, tower=field_.tower, workers=workers)  # another order
+    assert pending.running == (workers == 2)
+    traced = pending.result()
+    assert not pending.running
+    flown = [reverse_pass(p) if k % 2 else p for k, p in enumerate(passes)]
+    direct = facets.facet_coverage(flown, pose, tower=field_.tower)
+    assert facets.facet_coverage(flown, pose, tower=field_.tower, traced=traced) == direct
+    some = dict(list(traced.items())[::2])
+    assert facets.facet_coverage(flown, pose, tower=field_.tower, traced=some) == direct
+    assert sum(len(c.covered) for c in direct.values()) > 100
+
+
 def test_renderer_shows_the_backs_the_report_names(plan10):
     """Render a few captures at 1/8 resolution: every facet the report says shows heliostat T does show T's back
     (facets or structure) in the rendered image, after one mirror bounce."""

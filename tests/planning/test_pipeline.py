@@ -48,12 +48,21 @@ def test_workers_give_the_one_process_plan_and_files(field, tmp_path, monkeypatc
         return imap_unordered(job, n, workers, what=what)
 
     monkeypatch.setattr(_forked, "imap_unordered", spy)
+    start = _forked.start
+
+    def spy_start(job, n, workers, *, what="pieces"):
+        started = start(job, n, workers, what=what)
+        if started.running:
+            forked.append(what + " (started)")
+        return started
+
+    monkeypatch.setattr(_forked, "start", spy_start)
     assert pipeline.build_plan(field, WHEN, NSTTF, workers=1, facet_report=False).passes == one.passes
     assert forked == []
     two = pipeline.build_plan(field, WHEN, NSTTF, workers=2)
     lines = forked.count("chunks of line settings")
     assert lines >= 2 and forked[lines:] == ["flux samples", "groups of passes", "batches of HUAs",
-                                             "HUAs' own lines", "groups of passes", "chunks of captures"]
+                                             "HUAs' own lines", "chunks of captures (started)", "groups of passes"]
     assert len(one.flights) >= 2 and _without_timings(two) == _without_timings(one)
     files_2 = export_all(one, tmp_path / "two", field=field, workers=2)
     assert forked[lines + 6:] == ["files"]

@@ -33,7 +33,7 @@ single-target test without occlusion (one capture, one named target).
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -45,10 +45,11 @@ from pihim import _forked
 from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
 from pihim.field.kinematics import facet_corners
-from pihim.planning.model import ScanPass
+from pihim.planning.model import ScanPass, Waypoint
 from pihim.planning.sightlines import in_fov, segments_hit_box, tower_box
 
-__all__ = ["FacetCoverage", "coverage_summary", "facet_coverage", "facet_targets", "facets_showing_target"]
+__all__ = ["FacetCoverage", "PendingTrace", "capture_key", "coverage_summary", "facet_coverage", "facet_targets",
+           "facets_showing_target", "trace_captures"]
 
 
 @dataclass(frozen=True)
@@ -200,6 +201,17 @@ def _near(tree: cKDTree, xy: NDArray[np.float64], radius: NDArray[np.float64], s
 _CHUNK = 4096
 
 
+def _chunk_job(pose: Any, h: NDArray[np.int64], cam: NDArray[np.float64], head: NDArray[np.float64],
+               pitch: NDArray[np.float64], camera: CameraModel, samples: int, tower: Any,
+               reach_m: float) -> Callable[[int], NDArray[np.int64]]:
+    """:func:`facet_targets` of the ``i``-th chunk of :data:`_CHUNK` captures, as a job for :mod:`pihim._forked`."""
+    def chunk(i: int) -> NDArray[np.int64]:
+        sl = slice(i * _CHUNK, (i + 1) * _CHUNK)
+        return facet_targets(pose, h[sl], cam[sl], head[sl], pitch[sl], camera=camera, samples=samples,
+                             tower=tower, reach_m=reach_m)
+    return chunk
+
+
 def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_deg: ArrayLike,
                   pitch_deg: ArrayLike, *, camera: CameraModel | None = None, samples: int = 3,
                   tower: Any = None, reach_m: float = 60.0, workers: int | None = 1) -> NDArray[np.int64]:
@@ -254,11 +266,7 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
     if len(h) == 0:
         return out
     if len(h) > _CHUNK:  # captures are traced independently: in chunks, so that memory stays bounded
-        def chunk(i: int) -> NDArray[np.int64]:
-            sl = slice(i * _CHUNK, (i + 1) * _CHUNK)
-            return facet_targets(pose, h[sl], cam[sl], head[sl], pitch[sl], camera=camera, samples=samples,
-                                 tower=tower, reach_m=reach_m)
-
+        chunk = _chunk_job(pose, h, cam, head, pitch, camera, samples, tower, reach_m)
         for i, part in _forked.imap_unordered(chunk, -(-len(h) // _CHUNK), workers, what="chunks of captures"):
             out[i * _CHUNK:(i + 1) * _CHUNK] = part
         return out
@@ -338,8 +346,74 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
     return out
 
 
+CaptureKey = tuple[str, float, float, float, float, float]
+
+
+def capture_key(w: Waypoint) -> CaptureKey:
+    """What :func:`facet_targets` traces of a capture: its HUA, camera position, heading and pitch."""
+    return (str(w.hua), w.x_m, w.y_m, w.z_m, w.heading_deg, w.gimbal_pitch_deg)
+
+
+def _captures(passes: Sequence[ScanPass], names: dict[str, int]) -> list[tuple[int, int, Waypoint]]:
+    """(pass index, waypoint index, waypoint) of every capture naming its HUA, in plan order."""
+    refs: list[tuple[int, int, Waypoint]] = []
+    for p in passes:
+        for j, w in enumerate(p.waypoints):
+            if not w.capture or w.hua is None:
+                continue
+            if w.hua not in names:
+                raise PihimInputError(f"pass {p.index}: unknown heliostat {w.hua!r}")
+            refs.append((p.index, j, w))
+    return refs
+
+
+class PendingTrace:
+    """The tracing of captures started by :func:`trace_captures`: :meth:`result` (``{capture_key: row of
+    facet_targets}``) or :meth:`close` (in a ``finally``)."""
+
+    def __init__(self, keys: list[CaptureKey], started: _forked.Started[NDArray[np.int64]]) -> None:
+        self._keys, self._started = keys, started
+
+    def result(self) -> dict[CaptureKey, NDArray[np.int64]]:
+        parts = self._started.results()
+        rows = np.concatenate(parts) if parts else np.zeros((0, 0), np.int64)
+        return dict(zip(self._keys, rows, strict=True))
+
+    @property
+    def running(self) -> bool:
+        """Whether workers trace (else :meth:`result` traces, in this process)."""
+        return self._started.running
+
+    def close(self) -> None:
+        self._started.close()
+
+
+def trace_captures(passes: Sequence[ScanPass], pose: Any, *, camera: CameraModel | None = None, samples: int = 3,
+                   tower: Any = None, workers: int | None = 1) -> PendingTrace:
+    """Start tracing every capture of ``passes`` (:func:`facet_targets`) in forked workers and return at once.
+
+    ``pihim plan`` starts the facet report's tracing before the route: the
+    captures' positions and attitudes do not change when the route orders,
+    reverses or cuts the passes (only their indices do), so the workers
+    trace while the route is worked out, and :func:`facet_coverage` takes
+    the rows from ``result()``. Without workers the tracing runs in
+    ``result()``.
+    """
+    camera = camera or CameraModel()
+    names = {nm: k for k, nm in enumerate(pose.field.names)}
+    ws = [w for _, _, w in _captures(passes, names)]
+    h = np.array([names[str(w.hua)] for w in ws], dtype=np.int64)
+    cam = np.array([(w.x_m, w.y_m, w.z_m) for w in ws], dtype=float).reshape(-1, 3)
+    head = np.array([w.heading_deg for w in ws], dtype=float)
+    pitch = np.array([w.gimbal_pitch_deg for w in ws], dtype=float)
+    job = _chunk_job(pose, h, cam, head, pitch, camera, samples, tower, 60.0)
+    return PendingTrace([capture_key(w) for w in ws],
+                        _forked.start(job, -(-len(h) // _CHUNK), workers, what="chunks of captures"))
+
+
 def facet_coverage(passes: Sequence[ScanPass], pose: Any, *, camera: CameraModel | None = None,
-                   samples: int = 3, tower: Any = None, workers: int | None = 1) -> dict[str, FacetCoverage]:
+                   samples: int = 3, tower: Any = None, workers: int | None = 1,
+                   traced: dict[CaptureKey, NDArray[np.int64]] | None = None) -> dict[str, FacetCoverage]:
     """Facets of every imaged HUA that show a heliostat back in at least one capture (traced).
 
     Parameters
@@ -355,6 +429,10 @@ def facet_coverage(passes: Sequence[ScanPass], pose: Any, *, camera: CameraModel
         Blocks sight lines and reflected rays.
     workers : int or None
         Processes tracing side by side (:func:`facet_targets`).
+    traced : dict, optional
+        Rows of :func:`facet_targets` already traced, by :func:`capture_key`
+        (:func:`trace_captures` with the same camera, samples and tower);
+        captures not in it are traced here.
 
     Returns
     -------
@@ -366,23 +444,20 @@ def facet_coverage(passes: Sequence[ScanPass], pose: Any, *, camera: CameraModel
     """
     names = {nm: k for k, nm in enumerate(pose.field.names)}
     n_facets = pose.facet_centres.shape[1]
-    refs: list[tuple[int, int, str]] = []
-    for p in passes:
-        for j, w in enumerate(p.waypoints):
-            if not w.capture or w.hua is None:
-                continue
-            if w.hua not in names:
-                raise PihimInputError(f"pass {p.index}: unknown heliostat {w.hua!r}")
-            refs.append((p.index, j, w.hua))
-    wps = {(p.index, j): w for p in passes for j, w in enumerate(p.waypoints)}
-    cams = np.array([(wps[r[:2]].x_m, wps[r[:2]].y_m, wps[r[:2]].z_m) for r in refs]).reshape(-1, 3)
-    shows = facet_targets(pose, [names[r[2]] for r in refs], cams, [wps[r[:2]].heading_deg for r in refs],
-                          [wps[r[:2]].gimbal_pitch_deg for r in refs], camera=camera, samples=samples,
-                          tower=tower, workers=workers)
+    refs = _captures(passes, names)
+    known = traced or {}
+    todo = [k for k, (_, _, w) in enumerate(refs) if capture_key(w) not in known]
+    ws = [refs[k][2] for k in todo]
+    new = facet_targets(pose, [names[str(w.hua)] for w in ws], np.array([(w.x_m, w.y_m, w.z_m) for w in ws]),
+                        [w.heading_deg for w in ws], [w.gimbal_pitch_deg for w in ws], camera=camera,
+                        samples=samples, tower=tower, workers=workers)
+    fresh = dict(zip(todo, new, strict=True))
     by: dict[str, dict[int, tuple[int, int, str]]] = {}
     count: dict[str, int] = {}
     field_names = pose.field.names
-    for (pi, j, hua), row in zip(refs, shows, strict=True):
+    for k, (pi, j, w) in enumerate(refs):
+        hua = str(w.hua)
+        row = fresh[k] if k in fresh else known[capture_key(w)]
         got = by.setdefault(hua, {})
         count[hua] = count.get(hua, 0) + 1
         for f in np.flatnonzero(row >= 0).tolist():

@@ -178,23 +178,34 @@ def build_plan(
         scored = steady_headings(scored, pose, camera=camera)
     t_facets = _time.perf_counter()
     stage("route and flights")
-    home = home_waypoint(field, origin=site)
-    counter = None
-    if max_mission_items is not None:
-        from pihim.planning.export.qgc import count_mission_items
+    tracing = None
+    if facet_report:  # the report's tracing needs the captures, not the route: workers trace during the route
+        from pihim.planning.facets import trace_captures
 
-        opts = dict(mission_options or {})
-        counter = functools.partial(count_mission_items, **opts)
-        count_mission_items([home, home], **opts)  # bad options -> one-line error before the split
-    unflown: list[int] = []  # passes no flight from home reaches within a battery (a field kilometres wide; route)
-    if route is not False:
-        scored, flights = plan_flights(scored, home, origin=site, model=endurance, tower=field.tower,
-                                       max_mission_items=max_mission_items, count_items=counter,
-                                       settings=route if isinstance(route, RouteSettings) else RouteSettings(),
-                                       unflyable=unflown)
-    else:
-        flights = split_flights(scored, home, origin=site, model=endurance, tower=field.tower,
-                                max_mission_items=max_mission_items, count_items=counter)
+        tracing = trace_captures(scored, pose, camera=camera, tower=field.tower, workers=workers)
+    try:
+        home = home_waypoint(field, origin=site)
+        counter = None
+        if max_mission_items is not None:
+            from pihim.planning.export.qgc import count_mission_items
+
+            opts = dict(mission_options or {})
+            counter = functools.partial(count_mission_items, **opts)
+            count_mission_items([home, home], **opts)  # bad options -> one-line error before the split
+        unflown: list[int] = []  # passes no flight from home reaches within a battery (a field kilometres wide)
+        if route is not False:
+            scored, flights = plan_flights(scored, home, origin=site, model=endurance, tower=field.tower,
+                                           max_mission_items=max_mission_items, count_items=counter,
+                                           settings=route if isinstance(route, RouteSettings) else RouteSettings(),
+                                           unflyable=unflown)
+        else:
+            flights = split_flights(scored, home, origin=site, model=endurance, tower=field.tower,
+                                    max_mission_items=max_mission_items, count_items=counter)
+        # collected (its workers stopped) before the predictions start theirs; without workers it runs below
+        traced = tracing.result() if tracing is not None and tracing.running else None
+    finally:
+        if tracing is not None:
+            tracing.close()
     if facet_captures is not False or route is not False:  # new or reversed captures: predict them
         scored = score_passes(scored, pose, sun.vector, scene=scene, camera=camera, aim_point=aim, origin=site,
                               search=None, workers=workers)
@@ -234,7 +245,9 @@ def build_plan(
 
         stage("facet report")
         t_rep = _time.perf_counter()
-        per_hua = facet_coverage(scored, pose, camera=camera, tower=field.tower, workers=workers)
+        if traced is None and tracing is not None:
+            traced = tracing.result()
+        per_hua = facet_coverage(scored, pose, camera=camera, tower=field.tower, workers=workers, traced=traced)
         summary["facet_coverage"] = {
             **coverage_summary(per_hua),
             "per_hua": {h: {"covered": list(c.covered), "missing": list(c.missing), "captures": c.captures,
