@@ -180,20 +180,20 @@ class Started(Generic[T]):
     until :meth:`results`, which then runs the pieces here, in order.
     """
 
-    def __init__(self, job: Callable[[int], T], n: int, workers: int | None, what: str) -> None:
-        check_workers(workers)
+    def __init__(self, job: Callable[[int], T], n: int, background: int, what: str) -> None:
+        if isinstance(background, bool) or not isinstance(background, int) or not 0 <= background <= MAX_WORKERS:
+            raise PihimInputError(f"background workers must be an integer in [0, {MAX_WORKERS}], got {background!r}")
         self._job, self._n, self._what = job, n, what
         self._pool: Any = None
         self._futures: list[Any] = []
-        if not can_fork(workers, n):
+        if background == 0 or n == 0 or not sys.platform.startswith("linux"):
             return
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
         gc.freeze()  # as in imap_unordered: the parent's objects out of the collector's sight while workers live
         try:
-            self._pool = ProcessPoolExecutor(min(default_workers() if workers is None else workers, n),
-                                             mp_context=multiprocessing.get_context("fork"),
+            self._pool = ProcessPoolExecutor(min(background, n), mp_context=multiprocessing.get_context("fork"),
                                              initializer=_worker_setup, initargs=(job, os.getpid()))
             self._futures = [self._pool.submit(_run_piece, i) for i in range(n)]
         except BaseException:
@@ -241,15 +241,17 @@ class Started(Generic[T]):
             gc.unfreeze()
 
 
-def start(job: Callable[[int], T], n: int, workers: int | None, *, what: str = "pieces") -> Started[T]:
-    """Start ``job(0), ..., job(n - 1)`` in forked workers and return at once (:class:`Started`).
+def start(job: Callable[[int], T], n: int, background: int, *, what: str = "pieces") -> Started[T]:
+    """Start ``job(0), ..., job(n - 1)`` in ``background`` forked workers and return at once (:class:`Started`).
 
     For work that can go on while this process does something else (the
-    facet report's tracing during the route in ``pihim plan``). Close it in
-    a ``finally`` (or collect it) before starting other workers: each
-    worker holds a copy of what it touched.
+    facet report's tracing during the route in ``pihim plan``): give it the
+    CPUs this process leaves free (one worker, even, is worth forking here;
+    0: the pieces run in :meth:`Started.results`, here). Close it in a
+    ``finally`` (or collect it) before starting other workers: each worker
+    holds a copy of what it touched.
     """
-    return Started(job, n, workers, what)
+    return Started(job, n, background, what)
 
 
 def map_pieces(job: Callable[[int], T], n: int, workers: int | None, *, what: str = "pieces") -> list[T]:

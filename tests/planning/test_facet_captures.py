@@ -228,8 +228,8 @@ def test_planner_prediction_agrees_with_the_traced_report(plan10):
     assert traced["fraction"] > 0.95
 
 
-@pytest.mark.parametrize("workers", [1, 2])
-def test_traced_captures_give_the_same_report(plan10, workers, monkeypatch):
+@pytest.mark.parametrize("background", [0, 1, 2])
+def test_traced_captures_give_the_same_report(plan10, background, monkeypatch):
     """The report from captures traced beforehand (trace_captures, in workers while the route runs in
     pihim plan) equals the one traced on the spot, reordered and reversed passes included; captures missing
     from the traced rows are traced on the spot."""
@@ -237,10 +237,10 @@ def test_traced_captures_give_the_same_report(plan10, workers, monkeypatch):
     from pihim.planning.route import reverse_pass
 
     plan, field_, pose, _ = plan10
-    monkeypatch.setattr(facets, "_CHUNK", 64)  # several chunks: started in workers with workers=2
+    monkeypatch.setattr(facets, "_CHUNK", 64)  # several chunks
     passes = [p for p in plan.passes if any(w.capture for w in p.waypoints)]
-    pending = facets.trace_captures(passes[::-1], pose, tower=field_.tower, workers=workers)  # another order
-    assert pending.running == (workers == 2)
+    pending = facets.trace_captures(passes[::-1], pose, tower=field_.tower, background=background)  # another order
+    assert pending.running == (background > 0 and sys.platform.startswith("linux"))
     traced = pending.result()
     assert not pending.running
     flown = [reverse_pass(p) if k % 2 else p for k, p in enumerate(passes)]

@@ -594,6 +594,54 @@ def improve_sweep(order: NDArray, dirs: NDArray, pts: NDArray, out: NDArray, kee
 
 
 @njit(cache=True)
+def split_flights_dp(order: NDArray, pts: NDArray, out: NDArray, keep: NDArray, turn_cost: float, cos_turn: float,
+                     home_leg: NDArray, time_s: NDArray, items: NDArray, inner: NDArray, z_of: NDArray, home_z: float,
+                     transit_speed: float, climb_rate: float, descent_rate: float, overhead_s: float, limit_s: float,
+                     item_cap: float, base_items: int) -> NDArray:  # pragma: no cover - compiled
+    """The cuts of :func:`pihim.planning.route._split` (its docstring): ``cut[j]`` the start of the flight that
+    ends before position ``j`` in the cheapest split of positions ``0..j-1``. ``home_leg[e]`` is the leg
+    between home (at its altitude) and pass end ``e``; per pass: ``time_s``, ``items``, ``inner`` (its own
+    path length) and ``z_of`` (its highest altitude). The same operations in the same order as the Python
+    it replaces (ties kept by the first cut found)."""
+    n = order.shape[0]
+    best = np.full(n + 1, np.inf)
+    cut = np.zeros(n + 1, np.int64)
+    best[0] = 0.0
+    for i in range(n):
+        if not np.isfinite(best[i]):
+            continue
+        t_passes = 0.0
+        inside = 0.0
+        n_items = base_items
+        k0 = order[i]
+        f0, f1 = home_leg[2 * k0], home_leg[2 * k0 + 1]
+        z = -np.inf
+        for j in range(i, n):
+            k = order[j]
+            if j > i:
+                kp = order[j - 1]
+                g0 = min(f0 + transit(pts, out, 2 * kp + 1, 2 * k, keep, turn_cost, cos_turn),
+                         f1 + transit(pts, out, 2 * kp, 2 * k, keep, turn_cost, cos_turn))
+                g1 = min(f0 + transit(pts, out, 2 * kp + 1, 2 * k + 1, keep, turn_cost, cos_turn),
+                         f1 + transit(pts, out, 2 * kp, 2 * k + 1, keep, turn_cost, cos_turn))
+                f0, f1 = g0, g1
+            t_passes += time_s[k]
+            n_items += items[k]
+            inside += inner[k]
+            z = max(z, z_of[k])
+            leg = min(f0 + home_leg[2 * k + 1], f1 + home_leg[2 * k])
+            climb = max(z - home_z, 0.0)
+            t = t_passes + leg / transit_speed + climb / climb_rate + climb / descent_rate + overhead_s
+            if (t > limit_s or n_items > item_cap) and j > i:
+                break
+            c = best[i] + leg + 2.0 * climb + inside
+            if c < best[j + 1]:
+                best[j + 1] = c
+                cut[j + 1] = i
+    return cut
+
+
+@njit(cache=True)
 def _mode(vals: NDArray) -> int:  # pragma: no cover - compiled
     """The most frequent of ``vals`` (the least among equals); -1 for none."""
     if vals.shape[0] == 0:

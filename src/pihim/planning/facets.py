@@ -389,15 +389,16 @@ class PendingTrace:
 
 
 def trace_captures(passes: Sequence[ScanPass], pose: Any, *, camera: CameraModel | None = None, samples: int = 3,
-                   tower: Any = None, workers: int | None = 1) -> PendingTrace:
+                   tower: Any = None, background: int = 0) -> PendingTrace:
     """Start tracing every capture of ``passes`` (:func:`facet_targets`) in forked workers and return at once.
 
     ``pihim plan`` starts the facet report's tracing before the route: the
     captures' positions and attitudes do not change when the route orders,
-    reverses or cuts the passes (only their indices do), so the workers
-    trace while the route is worked out, and :func:`facet_coverage` takes
-    the rows from ``result()``. Without workers the tracing runs in
-    ``result()``.
+    reverses or cuts the passes (only their indices do), so ``background``
+    workers trace while the route is worked out
+    (:func:`pihim._forked.start`), and :func:`facet_coverage` takes the rows
+    from ``result()``. With ``background=0`` the tracing runs in
+    ``result()``, in this process.
     """
     camera = camera or CameraModel()
     names = {nm: k for k, nm in enumerate(pose.field.names)}
@@ -408,7 +409,7 @@ def trace_captures(passes: Sequence[ScanPass], pose: Any, *, camera: CameraModel
     pitch = np.array([w.gimbal_pitch_deg for w in ws], dtype=float)
     job = _chunk_job(pose, h, cam, head, pitch, camera, samples, tower, 60.0)
     return PendingTrace([capture_key(w) for w in ws],
-                        _forked.start(job, -(-len(h) // _CHUNK), workers, what="chunks of captures"))
+                        _forked.start(job, -(-len(h) // _CHUNK), background, what="chunks of captures"))
 
 
 def facet_coverage(passes: Sequence[ScanPass], pose: Any, *, camera: CameraModel | None = None,

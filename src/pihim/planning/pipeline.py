@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from pihim import _forked
 from pihim._forked import check_workers
 from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
@@ -179,10 +180,11 @@ def build_plan(
     t_facets = _time.perf_counter()
     stage("route and flights")
     tracing = None
-    if facet_report:  # the report's tracing needs the captures, not the route: workers trace during the route
-        from pihim.planning.facets import trace_captures
+    if facet_report:  # the report's tracing needs the captures, not the route: workers trace during the route,
+        from pihim.planning.facets import trace_captures  # on the CPUs the route (serial, here) leaves free
 
-        tracing = trace_captures(scored, pose, camera=camera, tower=field.tower, workers=workers)
+        n_workers = _forked.default_workers() if workers is None else workers
+        tracing = trace_captures(scored, pose, camera=camera, tower=field.tower, background=n_workers - 1)
     try:
         home = home_waypoint(field, origin=site)
         counter = None

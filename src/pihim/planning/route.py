@@ -418,39 +418,18 @@ def _split(order: list[int], costs: _Costs, pc: list[_PassCost], base_items: int
     (forward costs per direction of its last pass, home appended at the end).
     The flight's altitude for the climb is the highest pass altitude so far.
     """
+    from pihim.planning import _kernels
+
     n = len(order)
     limit = model.usable_s * (1.0 - st.time_margin)
-    best = [math.inf] * (n + 1)
-    cut = [0] * (n + 1)
-    best[0] = 0.0
     hz = float(costs.home[2])
-    for i in range(n):
-        if not math.isfinite(best[i]):
-            continue
-        t_passes = inner = 0.0
-        items = base_items
-        k0 = order[i]
-        fwd = [costs.h(2 * k0, hz), costs.h(2 * k0 + 1, hz)]  # horizontal part from home (climb added below)
-        z = -math.inf
-        for j in range(i, n):
-            k = order[j]
-            if j > i:
-                kp = order[j - 1]
-                fwd = [min(fwd[0] + costs.d(2 * kp + 1, 2 * k + o), fwd[1] + costs.d(2 * kp, 2 * k + o))
-                       for o in (0, 1)]
-            t_passes += pc[k].time_s
-            items += pc[k].items
-            inner += float(costs.inner[k])
-            z = max(z, float(z_of[k]))
-            transit = min(fwd[0] + costs.h(2 * k + 1, hz), fwd[1] + costs.h(2 * k, hz))
-            climb = max(z - hz, 0.0)
-            t = (t_passes + transit / model.transit_speed_m_s + climb / model.climb_rate_m_s
-                 + climb / model.descent_rate_m_s + model.takeoff_landing_s)
-            if (t > limit or items > item_cap) and j > i:
-                break
-            c = best[i] + transit + 2.0 * climb + inner
-            if c < best[j + 1]:
-                best[j + 1], cut[j + 1] = c, i
+    home_leg = np.array([costs.h(e, hz) for e in range(2 * costs.home_pass)], dtype=float)
+    cut = _kernels.split_flights_dp(
+        np.asarray(order, dtype=np.int64), costs.pts, costs.out, costs.keep, costs.turn_cost_m, _COS_TURN, home_leg,
+        np.array([c.time_s for c in pc], dtype=float), np.array([c.items for c in pc], dtype=np.int64),
+        np.asarray(costs.inner, dtype=float), np.asarray(z_of, dtype=float), hz, model.transit_speed_m_s,
+        model.climb_rate_m_s, model.descent_rate_m_s, model.takeoff_landing_s, limit, float(item_cap),
+        int(base_items)).tolist()
     out = []
     j = n
     while j > 0:
