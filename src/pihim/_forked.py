@@ -10,7 +10,7 @@ fork itself (nothing is pickled on the way in; only each piece's index is
 sent) and send back only the results. What a worker reads of the parent's
 Python objects it copies (their reference counts are written), so the
 workers' memory grows with what they touch: a ``pihim plan`` of 100,000
-heliostats and its two workers held 6.9 GB together at their peak, 3.0 GB in
+heliostats and its two workers held 6.9-7.2 GB together at their peak, 3.0 GB in
 one process (proportional set sizes, ``BENCHMARKS.md``). With one worker, or off Linux (``fork`` is
 unsafe on macOS and absent on Windows), the pieces run in this process, in
 order: the results do not depend on the number of workers. :func:`start`
