@@ -120,7 +120,7 @@ def test_closing_started_workers_stops_them():
     started = _forked.start(lambda i: time.sleep(0.05) or i, 200, 2)
     pids = [p.pid for p in started._pool._processes.values()]
     t0 = time.perf_counter()
-    started.close()  # as a finally does after an error: the pieces not begun are dropped
+    started.close()  # as a finally does after an error: the pieces begun finish, the others are dropped
     assert time.perf_counter() - t0 < 2.0 and not started.running
     for pid in pids:
         with pytest.raises(OSError):

@@ -128,35 +128,7 @@ def imap_unordered(job: Callable[[int], T], n: int, workers: int | None, *,
         for i in range(n):
             yield i, job(i)
         return
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-    from concurrent.futures.process import BrokenProcessPool
-
-    n_workers = min(default_workers() if workers is None else workers, n)
-    done: set[int] = set()
-    # the parent's objects out of the collector's sight while workers live: a collection in a worker would write
-    # to every object's header and copy every page of the parent's heap (gc.freeze's documented use)
-    gc.freeze()
-    try:
-        with ProcessPoolExecutor(n_workers, mp_context=multiprocessing.get_context("fork"),
-                                 initializer=_worker_setup, initargs=(job, os.getpid())) as pool:
-            futures = [pool.submit(_run_piece, i) for i in range(n)]
-            try:
-                for fut in as_completed(futures):
-                    i, result = fut.result()
-                    done.add(i)
-                    yield i, result
-            finally:
-                for fut in futures:
-                    fut.cancel()
-    except BrokenProcessPool:
-        warnings.warn(f"a worker process died; the {n - len(done)} remaining {what} run in this process",
-                      RuntimeWarning, stacklevel=3)
-    finally:
-        gc.unfreeze()
-    for i in range(n):
-        if i not in done:
-            yield i, job(i)
+    yield from Started(job, n, min(default_workers() if workers is None else workers, n), what).as_completed()
 
 
 def imap(job: Callable[[int], T], n: int, workers: int | None, *, what: str = "pieces") -> Iterator[T]:
@@ -205,31 +177,38 @@ class Started(Generic[T]):
         """Whether workers were started and not yet stopped."""
         return self._pool is not None
 
-    def results(self) -> list[T]:
-        """``[job(0), ..., job(n - 1)]``; the workers are stopped when it returns."""
+    def as_completed(self) -> Iterator[tuple[int, T]]:
+        """``(i, job(i))`` in order of completion, then the pieces a dead worker left (run here, with a
+        warning); the workers are stopped when it ends (or is closed early)."""
         from concurrent.futures import as_completed
         from concurrent.futures.process import BrokenProcessPool
 
-        out: list[Any] = [None] * self._n
         done: set[int] = set()
         if self._pool is not None:
             try:
                 for fut in as_completed(self._futures):
                     i, result = fut.result()
-                    out[i] = result
                     done.add(i)
+                    yield i, result
             except BrokenProcessPool:
                 warnings.warn(f"a worker process died; the {self._n - len(done)} remaining {self._what} run in "
-                              "this process", RuntimeWarning, stacklevel=2)
+                              "this process", RuntimeWarning, stacklevel=3)
             finally:
                 self.close()
         for i in range(self._n):
             if i not in done:
-                out[i] = self._job(i)
+                yield i, self._job(i)
+
+    def results(self) -> list[T]:
+        """``[job(0), ..., job(n - 1)]``; the workers are stopped when it returns."""
+        out: list[Any] = [None] * self._n
+        for i, result in self.as_completed():
+            out[i] = result
         return out
 
     def close(self) -> None:
-        """Stop the workers (the pieces they began are finished first); nothing if none were started."""
+        """Stop the workers (the pieces they began are finished first, those not begun dropped); nothing if
+        none were started."""
         if self._pool is None:
             return
         pool, self._pool = self._pool, None
