@@ -16,7 +16,7 @@ traces, for each point:
 * the camera ray reflected at ``q`` about the facet normal,
   ``r = d - 2 (d . n) n`` with ``d`` the unit vector from the camera to
   ``q`` (law of reflection), meeting first (nearest along ``r``, within
-  200 m) the mirror rectangle of another heliostat
+  :data:`REACH_M`, 60 m) the mirror rectangle of another heliostat
   (:meth:`~pihim.field.kinematics.FieldPose.mirror_outline`), *from behind*
   (``r . n_T > 0``), with the tower box not in between: the facet shows that
   heliostat's back, whose structure lies right behind its rectangle.
@@ -200,6 +200,9 @@ def _near(tree: cKDTree, xy: NDArray[np.float64], radius: NDArray[np.float64], s
 #: captures of a 30,000-heliostat field at once peaked at 4.8 GB).
 _CHUNK = 4096
 
+#: How far reflected rays are followed by default, metres (:func:`facet_targets`, :func:`trace_captures`).
+REACH_M = 60.0
+
 
 def _chunk_job(pose: Any, h: NDArray[np.int64], cam: NDArray[np.float64], head: NDArray[np.float64],
                pitch: NDArray[np.float64], camera: CameraModel, samples: int, tower: Any,
@@ -214,7 +217,7 @@ def _chunk_job(pose: Any, h: NDArray[np.int64], cam: NDArray[np.float64], head: 
 
 def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_deg: ArrayLike,
                   pitch_deg: ArrayLike, *, camera: CameraModel | None = None, samples: int = 3,
-                  tower: Any = None, reach_m: float = 60.0, workers: int | None = 1) -> NDArray[np.int64]:
+                  tower: Any = None, reach_m: float = REACH_M, workers: int | None = 1) -> NDArray[np.int64]:
     """The heliostat whose back each facet shows, per capture, traced ray by ray (module docstring).
 
     Parameters
@@ -407,7 +410,7 @@ def trace_captures(passes: Sequence[ScanPass], pose: Any, *, camera: CameraModel
     cam = np.array([(w.x_m, w.y_m, w.z_m) for w in ws], dtype=float).reshape(-1, 3)
     head = np.array([w.heading_deg for w in ws], dtype=float)
     pitch = np.array([w.gimbal_pitch_deg for w in ws], dtype=float)
-    job = _chunk_job(pose, h, cam, head, pitch, camera, samples, tower, 60.0)
+    job = _chunk_job(pose, h, cam, head, pitch, camera, samples, tower, REACH_M)
     return PendingTrace([capture_key(w) for w in ws],
                         _forked.start(job, -(-len(h) // _CHUNK), background, what="chunks of captures"))
 
