@@ -46,6 +46,11 @@ def default_workers() -> int:
     return max(1, min(cpus, DEFAULT_MAX_WORKERS))
 
 
+def worker_count(workers: int | None) -> int:
+    """The processes ``workers`` asks for: itself, or :func:`default_workers` for None."""
+    return default_workers() if workers is None else workers
+
+
 def check_workers(workers: Any, name: str = "workers") -> None:
     """Refuse anything but None or an integer in [1, :data:`MAX_WORKERS`] (one-line :class:`PihimInputError`)."""
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)
@@ -55,8 +60,7 @@ def check_workers(workers: Any, name: str = "workers") -> None:
 
 def can_fork(workers: int | None, n: int) -> bool:
     """Whether :func:`imap_unordered` would fork for ``n`` pieces and ``workers``."""
-    w = default_workers() if workers is None else workers
-    return min(w, n) > 1 and sys.platform.startswith("linux")
+    return min(worker_count(workers), n) > 1 and sys.platform.startswith("linux")
 
 
 def _worker_setup(job: Callable[[int], Any], parent_pid: int) -> None:
@@ -128,7 +132,7 @@ def imap_unordered(job: Callable[[int], T], n: int, workers: int | None, *,
         for i in range(n):
             yield i, job(i)
         return
-    yield from Started(job, n, min(default_workers() if workers is None else workers, n), what).as_completed()
+    yield from Started(job, n, min(worker_count(workers), n), what).as_completed()
 
 
 def imap(job: Callable[[int], T], n: int, workers: int | None, *, what: str = "pieces") -> Iterator[T]:

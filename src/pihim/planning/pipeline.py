@@ -183,8 +183,8 @@ def build_plan(
     if facet_report:  # the report's tracing needs the captures, not the route: workers trace during the route,
         from pihim.planning.facets import trace_captures  # on the CPUs the route (serial, here) leaves free
 
-        n_workers = _forked.default_workers() if workers is None else workers
-        tracing = trace_captures(scored, pose, camera=camera, tower=field.tower, background=n_workers - 1)
+        tracing = trace_captures(scored, pose, camera=camera, tower=field.tower,
+                                 background=_forked.worker_count(workers) - 1)
     try:
         home = home_waypoint(field, origin=site)
         counter = None
