@@ -1,6 +1,7 @@
 """Atomic writes, writer-named temporaries and the cleaning of stale ones (``pihim._atomic``)."""
 
 import os
+import stat
 import subprocess
 import sys
 import time
@@ -13,9 +14,12 @@ from pihim._atomic import (
     atomic_group,
     check_out_dir,
     clean_stale_temporaries,
+    output_target,
     temp_sibling,
     write_group,
+    write_text_atomic,
 )
+from pihim.errors import PihimInputError
 
 
 def _dead_pid() -> int:
@@ -89,3 +93,41 @@ def test_an_out_folder_on_a_read_only_file_system_is_named_so(tmp_path, monkeypa
     flags["f_flag"] = 0
     with pytest.raises(PihimInputError, match=r"cannot write in .* \(permission denied\)"):
         check_out_dir(tmp_path / "out")
+
+
+def test_outputs_never_replace_a_device_or_a_pipe(tmp_path):
+    """Renaming onto /dev/null or a FIFO would turn it into a regular file holding the output: refused."""
+    with pytest.raises(PihimInputError, match=r"^--out /dev/null: is a character device, not a regular file"):
+        output_target("/dev/null", option="--out")
+    fifo = tmp_path / "pipe.json"
+    os.mkfifo(fifo)
+    with pytest.raises(PihimInputError, match="pipe.json: is a named pipe"):
+        write_text_atomic(fifo, "{}")
+    with pytest.raises(PihimInputError, match="is a named pipe"), atomic_group([tmp_path / "a.json", fifo]) as tmps:
+        raise AssertionError("not reached")
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pipe.json"]  # no temporary, nothing else written
+    with pytest.raises(PihimInputError, match="is a directory"):
+        output_target(tmp_path)
+
+
+def test_outputs_follow_a_link_and_keep_it(tmp_path):
+    """A symbolic link to a file is followed: the file it names gets the output, the link stays a link."""
+    (tmp_path / "real").mkdir()
+    target = tmp_path / "real" / "out.json"
+    target.write_text("old")
+    link = tmp_path / "out.json"
+    link.symlink_to(target)
+    write_text_atomic(link, "new")
+    assert link.is_symlink() and target.read_text() == "new"
+    dangling = tmp_path / "later.json"
+    dangling.symlink_to(tmp_path / "real" / "later.json")
+    with atomic_group([dangling]) as (tmp,):
+        tmp.write_text("made")
+    assert dangling.is_symlink() and (tmp_path / "real" / "later.json").read_text() == "made"
+    fifo = tmp_path / "real" / "fifo"
+    os.mkfifo(fifo)
+    to_fifo = tmp_path / "to_fifo"
+    to_fifo.symlink_to(fifo)
+    with pytest.raises(PihimInputError, match=r"to_fifo: is a named pipe \(through the link, .*fifo\)"):
+        write_text_atomic(to_fifo, "x")

@@ -16,6 +16,7 @@ import json
 import os
 import re
 import socket
+import stat
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
@@ -165,10 +166,56 @@ def clean_stale_temporaries(directory: str | os.PathLike[str]) -> list[Path]:
     return removed
 
 
+def _kind(mode: int) -> str:
+    """What a file that is not a regular file is, in words (``stat`` mode bits)."""
+    for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISFIFO, "a named pipe"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def output_target(path: str | os.PathLike[str], *, option: str | None = None) -> Path:
+    """The file an output written to ``path`` replaces: ``path``, or the file its symbolic link points to.
+
+    Renaming a finished temporary onto ``path`` replaces whatever is there: a
+    device such as ``/dev/null`` or a named pipe would silently become a
+    regular file holding the output, and a symbolic link would be replaced
+    by the file instead of the file it names being updated. So a link is
+    followed (the output goes where it points, the link stays), and a path
+    that is, or leads to, anything but a regular file or nothing is refused.
+
+    Raises
+    ------
+    PihimInputError
+        ``path`` exists and is not a regular file (after following links);
+        the message starts with ``option`` (e.g. ``--out``) when given.
+    """
+    p = Path(path)
+    if p.is_symlink():
+        p = Path(os.path.realpath(p))
+    try:
+        mode = os.stat(p).st_mode
+    except FileNotFoundError:
+        return p
+    except OSError:  # cannot be looked at: the write reports it
+        return p
+    if stat.S_ISREG(mode):
+        return p
+    label = os.fspath(path) if option is None else f"{option} {os.fspath(path)}"
+    shown = "" if p == Path(path) else f" (through the link, {p})"
+    raise PihimInputError(f"{label}: is {_kind(mode)}{shown}, not a regular file; pihim writes its outputs only to "
+                          "regular files (give another file name)")
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; rename it onto ``path`` on success."""
-    final = Path(path)
+    """Yield a temporary path next to ``path``; rename it onto ``path`` on success.
+
+    A symbolic link at ``path`` is followed, and anything but a regular file
+    there is refused (:func:`output_target`).
+    """
+    final = output_target(path)
     final.parent.mkdir(parents=True, exist_ok=True)
     made: list[Path] = []
     try:
@@ -190,9 +237,10 @@ def atomic_group(paths: Sequence[str | os.PathLike[str]]) -> Iterator[list[Path]
     names appear within a few renames of each other; on any failure the
     temporaries and any file already renamed are removed. (A kill between two
     renames can still leave part of the group: mark completion with a file
-    written after the group when that matters.)
+    written after the group when that matters.) Each entry is checked, and
+    a link followed, as in :func:`atomic_path`.
     """
-    finals = [Path(p) for p in paths]
+    finals = [output_target(p) for p in paths]
     tmps: list[Path] = []
     done: list[Path] = []
     try:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import subprocess
 import sys
 from pathlib import Path
@@ -80,6 +81,31 @@ def test_out_that_cannot_be_created_is_refused_before_computing(argv, module, he
     monkeypatch.setattr(importlib.import_module(module), heavy, computed)
     assert main(argv) == 2
     assert "--out /proc/x: cannot create the directory" in _one_error_line(capsys.readouterr().err)
+
+
+@pytest.mark.parametrize("argv, module, heavy", [
+    (["calibrate-polarizer", "A.tiff", "B.tiff", "C.tiff", "D.tiff", "--angles", "0,45,90,135"],
+     "pihim.cli.calibrate", "read_frame"),
+    (["calibrate-camera", "A.png", "B.png", "C.png", "--grey", "--board", "9x6", "--square", "40"],
+     "pihim.cli.calibrate_camera", "read_grey"),
+    (["simulate", "--time", TIME, "--camera", "24,75,20", "--look-at", "24,95,5", "--size", "16x16"],
+     "pihim.render.simulate", "simulate_frame"),
+])
+def test_an_output_file_that_is_a_pipe_is_refused_before_computing(argv, module, heavy, tmp_path, capsys,
+                                                                   monkeypatch):
+    """Renaming the finished output onto a FIFO (or /dev/null) replaced it with a regular file (exit 0)."""
+    import importlib
+
+    def computed(*args, **kwargs):
+        raise AssertionError("the computation started although --out cannot be written")
+
+    monkeypatch.setattr(importlib.import_module(module), heavy, computed)
+    suffix = ".tiff" if argv[0] == "simulate" else ".json"
+    fifo = tmp_path / f"out{suffix}"
+    os.mkfifo(fifo)
+    assert main([*argv, "--out", str(fifo)]) == 2
+    assert f"--out {fifo}: is a named pipe, not a regular file" in _one_error_line(capsys.readouterr().err)
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and [p.name for p in tmp_path.iterdir()] == [fifo.name]
 
 
 def test_check_out_dir_tries_the_folder_and_leaves_nothing(tmp_path):

@@ -153,8 +153,9 @@ def write_report(store: Any, out_dir: str | Path, *, campaign: str | None = None
     texts: dict[Path, str] = {}
 
     def stage(fig: Any, final: Path) -> None:
-        from pihim._atomic import temp_sibling
+        from pihim._atomic import output_target, temp_sibling
 
+        final = output_target(final)
         final.parent.mkdir(parents=True, exist_ok=True)
         made: list[Path] = []
         try:

@@ -24,7 +24,7 @@ from pihim._atomic import clean_stale_temporaries, describe_os_error, write_json
 from pihim.camera import calibration
 from pihim.camera.frames import MAX_RAW_VALUE, read_frame
 from pihim.camera.layout import MosaicLayout
-from pihim.cli._common import check_not_an_input, check_out_dir
+from pihim.cli._common import check_not_an_input, check_out_dir, output_target
 from pihim.errors import PihimInputError
 from pihim.polarimetry.analyser import NOMINAL_ANGLES_DEG
 
@@ -181,6 +181,7 @@ def calibrate_polarizer(
     if out.is_dir():
         raise PihimInputError(f"--out {out}: cannot write the calibration: is a directory; give a JSON file name")
     check_out_dir(out.parent, option="--out")
+    output_target(out, option="--out")
     check_not_an_input(out, frames)
     raws = [read_frame(p, width=width, height=height, pixel_format=pixel_format) for p in frames]
     cal = calibration.calibrate_polarizer(

@@ -26,7 +26,7 @@ from pihim._atomic import clean_stale_temporaries, describe_os_error, write_json
 from pihim.camera.frames import read_frame
 from pihim.camera.layout import MosaicLayout
 from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
-from pihim.cli._common import check_not_an_input, check_out_dir
+from pihim.cli._common import check_not_an_input, check_out_dir, output_target
 from pihim.errors import PihimInputError
 
 if TYPE_CHECKING:  # the calibration module imports the renderer (scipy): loaded when the command runs
@@ -201,6 +201,7 @@ def calibrate_camera(
     if out.is_dir():
         raise PihimInputError(f"--out {out}: is a directory; give the JSON file to write")
     check_out_dir(out.parent, option="--out")
+    output_target(out, option="--out")
     check_not_an_input(out, images)
     mosaic_layout = None if grey else MosaicLayout.parse(layout)
 

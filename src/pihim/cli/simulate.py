@@ -20,7 +20,7 @@ from pihim._atomic import clean_stale_temporaries
 from pihim._inputs import load_json_file
 from pihim._resources import require_memory
 from pihim.camera.model import camera_for_size
-from pihim.cli._common import check_out_dir, emit_json, load_field_option, parse_point, stderr_console
+from pihim.cli._common import check_out_dir, emit_json, load_field_option, output_target, parse_point, stderr_console
 from pihim.errors import PihimInputError
 from pihim.sky.sun import parse_site
 
@@ -157,6 +157,8 @@ def simulate(
         if p.is_dir():
             raise PihimInputError(f"--out {out}: {p}, one of the files written beside it, is a directory")
     check_out_dir(out.parent, option="--out")
+    for p in (out, *paths.values()):
+        output_target(p, option="--out")
     request = parse_pose_request(hua, target, waypoint, camera, look_at, roll)
     width, height = parse_size(size)
     cam = camera_for_size(width, height)
