@@ -537,3 +537,17 @@ def test_ctrl_c_stops_the_run_quietly_exit_130(flight_copy, tmp_path) -> None:
     text = err.decode()
     assert proc.returncode == 130, text
     assert "Traceback" not in text and len(text.strip().splitlines()) <= 1, text
+
+
+def test_a_truncated_frame_read_by_a_worker_process_is_one_line(flight_copy, tmp_path) -> None:
+    """tifffile logged four lines of its own in the worker processes (the command line silences it in its own)."""
+    frames = read_frames_csv(flight_copy / "frames.csv")
+    path = flight_copy / frames[1].file
+    path.write_bytes(path.read_bytes()[:200])  # a header cut short
+    proc = _cli("campaign", "run", str(flight_copy), "--store", str(tmp_path / "c.sqlite"), "--stages", "select",
+                "--workers", "1", "--json")
+    out, err = proc.communicate(timeout=180)
+    assert proc.returncode == 2
+    assert json.loads(out)["counts"]["frames"]["skipped"] == 1
+    lines = err.decode().strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("pihim: error: 1 of 2 frames could not be read"), lines

@@ -268,12 +268,16 @@ def dask_setup(worker: Any) -> None:
     with a traceback. Nor may a worker print the lost heartbeat of a
     scheduler closing before it: the worker's dask logging is at CRITICAL
     (a frame's failure is recorded by the client; a dead worker fails the
-    run there). Called by dask in the worker's main thread.
+    run there). Called by dask in the worker's main thread. tifffile's own
+    log lines about a corrupt file are silenced as in the command line's
+    process: the frame's failure names the file in one line.
     """
+    import logging
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _silence_dask_logs()
+    logging.getLogger("tifffile").setLevel(logging.CRITICAL)
 
 
 def max_local_workers() -> int:
