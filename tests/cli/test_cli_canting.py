@@ -217,6 +217,16 @@ def test_heliostat_listed_twice_in_the_log(frame, tmp_path, capsys):
     assert "8E3 is listed twice (as '8e03')" in _bad(tmp_path, capsys, ["canting", str(frame), "--meta", str(meta)])
 
 
+def test_a_logged_heliostat_the_field_lacks_is_named(frame, tmp_path, capsys):
+    """The log's entry was complete but was called bad, "(need name, az_deg, el_deg)"; the field lacks 99E99."""
+    helio = json.loads(frame.with_suffix(".json").read_text())["log"]["heliostats"]
+    _, meta = _meta_with(frame, tmp_path, heliostats=[*helio, {"name": "99E99", "az_deg": 180.0, "el_deg": 45.0}])
+    err = _bad(tmp_path, capsys, ["canting", str(frame), "--meta", str(meta)])
+    assert "log 'heliostats': unknown heliostat '99E99': not among the" in err and "bad entry" not in err
+    _, meta = _meta_with(frame, tmp_path, heliostats=[*helio, {"name": "8E3", "az_deg": "south"}])
+    assert "bad entry" in _bad(tmp_path, capsys, ["canting", str(frame), "--meta", str(meta)])
+
+
 @pytest.mark.parametrize("z", [-5.0, 0.0])
 def test_aim_point_not_above_ground(frame, tmp_path, capsys, z):
     _, meta = _meta_with(frame, tmp_path, aim_point_m=[60.0, 8.8, z])

@@ -132,10 +132,14 @@ def logged_aim_and_drives(field: Any, log: Mapping[str, Any]) -> tuple[NDArray[n
     seen: dict[int, str] = {}
     for entry in helio:
         try:
-            i = field.index(str(entry["name"]))
+            name = str(entry["name"])
             a, e = float(entry["az_deg"]), float(entry["el_deg"])
         except (KeyError, TypeError, ValueError):
             raise PihimInputError(f"log 'heliostats': bad entry {entry!r} (need name, az_deg, el_deg)") from None
+        try:
+            i = field.index(name)
+        except PihimInputError as exc:  # a heliostat the field does not have (another --field than the log's?)
+            raise PihimInputError(f"log 'heliostats': {exc}") from None
         if not (math.isfinite(a) and math.isfinite(e)):
             raise PihimInputError(f"log 'heliostats': non-finite drive angles for {entry['name']}")
         if i in seen:  # two sets of drive angles for one heliostat: which one it had is unknown
