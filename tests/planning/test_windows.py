@@ -370,6 +370,22 @@ def test_cli_bad_input_one_line_exit_2(tmp_path, capsys, args, needle):
     assert not out.exists()
 
 
+def test_cli_refuses_a_day_the_planner_refused_throughout(tmp_path, capsys):
+    """--max-altitude 5 m (below every mirror + 5 m): every time was refused, yet the run said 'none' with exit 0."""
+    out = tmp_path / "w"
+    assert run_cli(["windows", "--date", "2021-05-13", "--step-min", "120", "--max-altitude", "5",
+                    "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "the planner refused all 6 times of the day; at 08:00: no feasible pass" in err
+    assert not out.exists()
+    # some times refused (the tracking mirrors' tops rise above 9.9 m at those): said, and the rest reported
+    assert run_cli(["windows", "--date", "2021-05-13", "--step-min", "120", "--max-altitude", "14.9",
+                    "--out", str(out)]) == 0
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 3 and lines[1] == ("the planner refused 4 of the 6 times (counted as nothing coverable; "
+                                            "--json lists why)")
+
+
 def test_cli_out_is_a_file(tmp_path, capsys):
     f = tmp_path / "file"
     f.write_text("x")

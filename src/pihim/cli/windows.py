@@ -96,6 +96,9 @@ def windows(
         sweep = sweep_day(day, site=site_obj, field=fld, aim_point=aim_point, step_min=step_min,
                           min_elevation_deg=min_elevation, max_altitude_m=max_altitude,
                           search=None if no_shift else ShiftSearch(), progress=tick, workers=workers)
+    if len(sweep) and len(sweep.planner_errors) == len(sweep):  # nothing planned: no windows to report
+        when, why = sweep.planner_errors[0]
+        raise PihimInputError(f"the planner refused all {len(sweep)} times of the day; at {when[11:16]}: {why}")
     make_out_dir(out)
     csv_path = write_windows_csv(sweep, out / "windows.csv")
     png_path = write_windows_png(sweep, out / "windows.png", threshold=threshold, relative=relative)
@@ -133,7 +136,7 @@ def _hhmm(iso: str) -> str:
 
 
 def _human_summary(summary: dict[str, Any], out: Path) -> str:
-    """Two lines: the favourable windows and the best time, and what was written where."""
+    """The windows and the best time, the times the planner refused (if any), and what was written where."""
     level = 100 * summary["threshold_fraction"]
     wins = ", ".join(f"{_hhmm(w['start'])}-{_hhmm(w['end'])}" for w in summary["windows"]) or "none"
     best = summary["best"]
@@ -141,6 +144,9 @@ def _human_summary(summary: dict[str, Any], out: Path) -> str:
     paper = summary.get("paper_agreement")
     covered = None if not paper else paper.get("paper_covered")
     paper_text = "" if covered is None else f"; {100 * covered:.0f} % of the paper's windows favourable here"
+    refused = len(summary.get("planner_errors") or ())
+    refused_text = "" if not refused else (f"\nthe planner refused {refused} of the {summary['n_times']} times "
+                                           "(counted as nothing coverable; --json lists why)")
     return (f"pihim windows {summary['date']}: {summary['n_times']} times scored; favourable (coverage >= "
             f"{level:.0f} % of {summary['n_heliostats']} heliostats with a usable image): {wins}{best_text}"
-            f"{paper_text}\nwrote windows.csv and windows.png to {out}")
+            f"{paper_text}{refused_text}\nwrote windows.csv and windows.png to {out}")
