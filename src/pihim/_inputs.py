@@ -12,6 +12,7 @@ import json
 import math
 import os
 import stat
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +43,34 @@ def check_regular_file(path: str | os.PathLike[str], what: str = "file") -> os.s
     if not stat.S_ISREG(st.st_mode):
         raise PihimInputError(f"{label}: not a regular file (a FIFO, device or socket); give a {what}")
     return st
+
+
+def check_distinct(paths: Sequence[str | os.PathLike[str]], what: str = "file") -> None:
+    """Refuse an input file given twice (another spelling or a link to it included).
+
+    For inputs that count as independent measurements (calibration views,
+    frames combined into one estimate): the same file twice would be counted
+    twice. Compared by device and inode; paths that cannot be looked at are
+    left to the reader's own error.
+
+    Raises
+    ------
+    PihimInputError
+        ``"<path>: given twice; give each <what> once"`` (or ``"<path> and
+        <path>: the same file; ..."`` for two spellings of one file).
+    """
+    seen: dict[tuple[int, int], str] = {}
+    for p in paths:
+        try:
+            st = os.stat(p)
+        except (OSError, ValueError):
+            continue
+        key = (st.st_dev, st.st_ino)
+        if key in seen:
+            first, again = seen[key], os.fspath(p)
+            where = f"{again}: given twice" if first == again else f"{first} and {again}: the same file"
+            raise PihimInputError(f"{where}; give each {what} once")
+        seen[key] = os.fspath(p)
 
 
 def read_text_file(path: str | os.PathLike[str], what: str = "file", *, max_bytes: int = MAX_TEXT_BYTES) -> str:

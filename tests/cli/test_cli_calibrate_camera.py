@@ -149,18 +149,22 @@ def test_rejected_view_is_reported(raw_tiffs, tmp_path, capsys):
 def _bad_cases(raw, tmp):
     blank = tmp / "blank.tiff"
     tifffile.imwrite(blank, np.zeros((682, 816), dtype=np.uint16))
+    blank2 = tmp / "blank2.tiff"
+    tifffile.imwrite(blank2, np.zeros((682, 816), dtype=np.uint16))
     small = tmp / "small.tiff"
     tifffile.imwrite(small, np.zeros((340, 408), dtype=np.uint16))
     grey = tmp / "grey.png"
     cv2.imwrite(str(grey), np.zeros((100, 120, 3), np.uint8))
     three = list(map(str, raw[:3]))
+    link = tmp / "link.tiff"
+    link.symlink_to(three[0])
     return {
         "missing file": ([str(tmp / "nope.tiff"), *three, *ARGS], "nope.tiff: no such file"),
         "bad board": ([*three, "--board", "9", "--square", "25"], "--board: expected inner corners"),
         "small board": ([*three, "--board", "2x6", "--square", "25"], "at least 3x3"),
         "square board": ([*three, "--board", "7x7", "--square", "25"], "is square"),
         "bad square": ([*three, "--board", "9x6", "--square", "-5"], "--square must be a positive number"),
-        "no board": ([str(blank), str(blank), *ARGS], "no image with a detectable 9x6 chessboard among 2"),
+        "no board": ([str(blank), str(blank2), *ARGS], "no image with a detectable 9x6 chessboard among 2"),
         "too few views": ([*three[:2], str(blank), *ARGS], "only 2 usable view(s)"),
         "sizes differ": ([*three, str(small), *ARGS], "images have different sizes"),
         "binning without grey": ([*three, *ARGS, "--binning", "2"], "--binning applies to --grey"),
@@ -169,12 +173,16 @@ def _bad_cases(raw, tmp):
         "colour grey image": ([str(grey), *ARGS, "--grey"], "expected a single-channel grey image"),
         "bad demosaic": ([*three, *ARGS, "--demosaic", "bilinear"], "--demosaic must be one of"),
         "out is a directory": ([*three, *ARGS], "is a directory"),
+        # one view three times fitted k3 = +717 from "three views" (the same file, however spelt)
+        "one view twice": ([*three, three[0], *ARGS], f"{three[0]}: given twice; give each view once"),
+        "one view by two names": ([*three, str(link), *ARGS], f"{three[0]} and {link}: the same file"),
     }
 
 
 @pytest.mark.parametrize("case", ["missing file", "bad board", "small board", "square board", "bad square",
                                   "no board", "too few views", "sizes differ", "binning without grey", "huge binning", "a folder",
-                                  "colour grey image", "bad demosaic", "out is a directory"])
+                                  "colour grey image", "bad demosaic", "out is a directory", "one view twice",
+                                  "one view by two names"])
 def test_bad_input_is_one_line_exit_2_and_no_file(raw_tiffs, tmp_path, capsys, case):
     argv, message = _bad_cases(raw_tiffs, tmp_path)[case]
     out = tmp_path / "o" if case == "out is a directory" else tmp_path / "o" / "camera.json"

@@ -217,6 +217,15 @@ def test_heliostat_listed_twice_in_the_log(frame, tmp_path, capsys):
     assert "8E3 is listed twice (as '8e03')" in _bad(tmp_path, capsys, ["canting", str(frame), "--meta", str(meta)])
 
 
+def test_a_frame_given_twice_is_refused(frame, tmp_path, capsys):
+    """The same frame twice was combined as '2 frame(s)', its facets counted twice."""
+    link = tmp_path / "again.tiff"
+    link.symlink_to(frame)
+    shutil.copy(frame.with_suffix(".json"), tmp_path / "again.json")
+    assert f"{frame}: given twice; give each frame once" in _bad(tmp_path, capsys, ["canting", str(frame), str(frame)])
+    assert f"{frame} and {link}: the same file" in _bad(tmp_path, capsys, ["canting", str(frame), str(link)])
+
+
 def test_a_logged_heliostat_the_field_lacks_is_named(frame, tmp_path, capsys):
     """The log's entry was complete but was called bad, "(need name, az_deg, el_deg)"; the field lacks 99E99."""
     helio = json.loads(frame.with_suffix(".json").read_text())["log"]["heliostats"]

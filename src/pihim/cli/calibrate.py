@@ -21,6 +21,7 @@ from rich.console import Console
 from rich.table import Table
 
 from pihim._atomic import clean_stale_temporaries, describe_os_error, write_json_atomic
+from pihim._inputs import check_distinct
 from pihim.camera import calibration
 from pihim.camera.frames import MAX_RAW_VALUE, read_frame
 from pihim.camera.layout import MosaicLayout
@@ -183,6 +184,7 @@ def calibrate_polarizer(
     check_out_dir(out.parent, option="--out")
     output_target(out, option="--out")
     check_not_an_input(out, frames)
+    check_distinct(frames, "frame")  # one frame at two polarizer angles is a mistake
     raws = [read_frame(p, width=width, height=height, pixel_format=pixel_format) for p in frames]
     cal = calibration.calibrate_polarizer(
         raws,

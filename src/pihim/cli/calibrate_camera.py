@@ -23,6 +23,7 @@ from rich.console import Console
 from rich.table import Table
 
 from pihim._atomic import clean_stale_temporaries, describe_os_error, write_json_atomic
+from pihim._inputs import check_distinct
 from pihim.camera.frames import read_frame
 from pihim.camera.layout import MosaicLayout
 from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
@@ -203,6 +204,7 @@ def calibrate_camera(
     check_out_dir(out.parent, option="--out")
     output_target(out, option="--out")
     check_not_an_input(out, images)
+    check_distinct(images, "view")  # one view twice is not two views of the board: it skews the fit
     mosaic_layout = None if grey else MosaicLayout.parse(layout)
 
     arrays: list[NDArray] = []

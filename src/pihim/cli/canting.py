@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from pihim._atomic import describe_os_error
+from pihim._inputs import check_distinct
 from pihim.camera.frames import RAW_SUFFIXES, read_frame
 from pihim.camera.model import CameraModel
 from pihim.cli._common import check_out_dir, emit_json, load_field_option, report_error, stderr_console
@@ -65,6 +66,7 @@ def canting(
     for frame in frames:
         if not frame.is_file():
             read_frame(frame)  # the reader's own one-line error (missing, a directory, ...)
+    check_distinct(frames, "frame")  # a frame given twice would count twice in the combined estimate
     metas = _meta_for(frames, meta)
     fld = load_field_option(field, facets)
     logs = []
