@@ -308,6 +308,23 @@ def check_not_an_input(out: str | os.PathLike, inputs: Iterable[str | os.PathLik
             raise PihimInputError(f"{option} {out}: is the input {os.fspath(q)}; writing it would replace that input")
 
 
+def missing_dirs(out: str | os.PathLike) -> list[Path]:
+    """The directories that making ``out`` (with its parents) would create, deepest first (absolute paths)."""
+    missing: list[Path] = []
+    for q in (Path(out).absolute(), *Path(out).absolute().parents):
+        if q.exists():
+            break
+        missing.append(q)
+    return missing
+
+
+def remove_empty_dirs(dirs: Iterable[Path]) -> None:
+    """Remove those of ``dirs`` (deepest first) that are empty: an output folder a run made and left unused."""
+    for q in dirs:
+        with contextlib.suppress(OSError):
+            q.rmdir()
+
+
 def check_out_dir(out: str | os.PathLike, *, option: str = "--out") -> None:
     """Refuse an output directory that cannot be one, before any work is done.
 
@@ -320,16 +337,11 @@ def check_out_dir(out: str | os.PathLike, *, option: str = "--out") -> None:
     p = Path(out)
     if p.exists() and not p.is_dir():
         raise PihimInputError(f"{option} {out}: exists and is not a directory")
-    missing: list[Path] = []
-    existing = None
-    for q in (p.absolute(), *p.absolute().parents):
-        if q.exists():
-            if not q.is_dir():
-                raise PihimInputError(f"{option} {out}: {q} is not a directory")
-            existing = q
-            break
-        missing.append(q)
-    if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
+    missing = missing_dirs(p)
+    existing = missing[-1].parent if missing else p.absolute()  # the nearest ancestor there is
+    if not existing.is_dir():
+        raise PihimInputError(f"{option} {out}: {existing} is not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
         why = "permission denied"
         with contextlib.suppress(OSError, AttributeError):
             if os.statvfs(existing).f_flag & os.ST_RDONLY:
@@ -342,9 +354,7 @@ def check_out_dir(out: str | os.PathLike, *, option: str = "--out") -> None:
     except OSError as exc:
         raise PihimInputError(f"{option} {out}: cannot create the directory ({exc.strerror or exc})") from None
     finally:
-        for q in missing:  # deepest first; a folder another process filled meanwhile is not empty and stays
-            with contextlib.suppress(OSError):
-                q.rmdir()
+        remove_empty_dirs(missing)  # a folder another process filled meanwhile is not empty and stays
 
 
 def make_out_dir(out: str | os.PathLike, *, option: str = "--out") -> Path:

@@ -325,6 +325,17 @@ def test_export_cli(flight_copy, tmp_path) -> None:
         assert len(list(csv.DictReader(fh))) == 2
 
 
+
+def test_export_without_pyarrow_leaves_no_folder(flight_copy, tmp_path, capsys, monkeypatch) -> None:
+    store = tmp_path / "c.sqlite"
+    _prime_store(flight_copy, store)
+    monkeypatch.setitem(sys.modules, "pyarrow", None)  # import pyarrow raises ImportError
+    out = tmp_path / "e" / "parquet"
+    assert main(["campaign", "export", str(store), "--out", str(out), "--format", "parquet"]) == 2
+    assert "Parquet export needs pyarrow" in capsys.readouterr().err
+    assert not (tmp_path / "e").exists()
+
+
 def test_frames_csv_times_are_utc(flight_copy) -> None:
     frames = read_frames_csv(flight_copy / "frames.csv")
     assert format_utc(frames[0].time_utc_s).startswith("2021-05-13T19:00")  # 13:00 MDT = 19:00 UTC

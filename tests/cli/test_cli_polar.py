@@ -253,9 +253,10 @@ def test_corrupt_png_is_one_line(tmp_path, capfd):
     data[i + 10 : i + 30] = bytes(20)  # corrupt the compressed data, keep the chunk structure
     bad = tmp_path / "bad.png"
     bad.write_bytes(bytes(data))
-    assert main(["polar", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert main(["polar", str(bad), "--out", str(tmp_path / "o" / "deeper")]) == 2
     err = capfd.readouterr().err.strip().splitlines()  # file descriptor 2: libpng writes there itself
     assert len(err) == 1 and err[0].startswith("pihim: error:") and "bad.png" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.png"]  # the --out folders it made are gone again
 
 
 def test_dark_level_above_every_value_warns_and_says_so_in_json(frame, tmp_path, capsys):

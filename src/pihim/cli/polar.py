@@ -49,7 +49,7 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from pihim._atomic import atomic_group, write_json_atomic
+from pihim._atomic import atomic_group, missing_dirs, remove_empty_dirs, write_json_atomic
 from pihim._resources import format_bytes, memory_error_message, require_memory
 from pihim.camera.frames import MAX_RAW_VALUE, normalize_pixel_format, read_frame
 from pihim.camera.layout import MosaicLayout
@@ -569,6 +569,7 @@ def polar(
     names = output_names(batch)
     _warn_renamed(batch, names)
     inputs = {fid: p for p in batch if (fid := _file_id(p)) is not None}
+    made = missing_dirs(out)
     out_dir = make_out_dir(out)
     fingerprint = json.loads(json.dumps(options.fingerprint()))
     run = _Batch(options, out_dir, json_out=json_out, n_frames=len(batch))
@@ -588,6 +589,7 @@ def polar(
     finally:
         if run.frozen:
             gc.unfreeze()  # a caller in the same process (tests, a notebook) gets its collector back whole
+        remove_empty_dirs(made)  # every frame refused: no empty --out left behind
     if json_out:
         if run.resumed:  # the records say the rest (one per frame, "resumed": true for the skipped ones)
             print(f"pihim: {run.resumed} of {len(batch)} frames were already done in {out_dir} and were skipped "
