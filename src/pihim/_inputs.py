@@ -22,16 +22,17 @@ from pihim.errors import PihimInputError
 MAX_TEXT_BYTES = 256 << 20
 
 
-def check_regular_file(path: str | os.PathLike[str], what: str = "file") -> os.stat_result:
+def check_regular_file(path: str | os.PathLike[str], what: str = "file", *, option: str | None = None) -> os.stat_result:
     """``os.stat`` of ``path``, refusing anything but an existing regular file (symlinks followed).
 
     Raises
     ------
     PihimInputError
         ``"<path>: no such file"``, ``"<path>: is a directory, not a <what>"``,
-        ``"<path>: not a regular file (a FIFO, device or socket); give a <what>"``.
+        ``"<path>: not a regular file (a FIFO, device or socket); give a <what>"``;
+        with ``option`` (e.g. ``"--plan"``) the message starts ``"<option> <path>: "``.
     """
-    label = os.fspath(path)
+    label = os.fspath(path) if option is None else f"{option} {os.fspath(path)}"
     try:
         st = os.stat(path)
     except FileNotFoundError:

@@ -108,6 +108,39 @@ def test_an_output_file_that_is_a_pipe_is_refused_before_computing(argv, module,
     assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and [p.name for p in tmp_path.iterdir()] == [fifo.name]
 
 
+@pytest.mark.parametrize("argv, needle", [
+    (["simulate", "--time", TIME, "--waypoint", "{fifo}:0", "--out", "{out}/f.tiff"], "--waypoint {fifo}: not a regular"),
+    (["simulate", "--time", TIME, "--waypoint", "{dir}:0", "--out", "{out}/f.tiff"],
+     "--waypoint {dir}: is a directory, not a plan.json file"),
+    (["plan", "--time", TIME, "--field", "{fifo}", "--out", "{out}"], "--field {fifo}: not a regular file"),
+    (["plan", "--time", TIME, "--field", "{csv}", "--facets", "{fifo}", "--out", "{out}"], "--facets {fifo}: not a regular"),
+    (["live", "--source", "synthetic", "--plan", "{fifo}", "--waypoint", "0"], "--plan {fifo}: not a regular file"),
+    (["simulate-flight", "{fifo}", "--out", "{out}"], "{fifo}: not a regular file (a FIFO, device or socket); give a plan"),
+    (["campaign", "report", "{fifo}", "--out", "{out}"], "{fifo}: not a regular file (a FIFO, device or socket), not a "),
+])
+def test_a_pipe_or_a_folder_given_for_an_input_file_is_named_so(argv, needle, tmp_path, capsys):
+    """A FIFO was reported as 'no such file' (or as 'an empty file' for a campaign store)."""
+    fifo = tmp_path / "in.fifo"
+    os.mkfifo(fifo)
+    csv = tmp_path / "field.csv"
+    csv.write_text("name,x,y,z\n")
+    names = {"fifo": fifo, "dir": tmp_path, "csv": csv, "out": tmp_path / "out"}
+    assert main([a.format(**names) for a in argv]) == 2
+    assert needle.format(**names) in _one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "out").exists()
+
+
+def test_non_finite_polarizer_angles_and_analyser_entries_are_named(tmp_path, capsys):
+    """'no finite angles' was said of 0,30,60,nan; a NaN analyser entry was 'must be a finite 4x3 array, got (4, 3)'."""
+    frames = [str(_frame(tmp_path / f"p{k}.tiff")) for k in range(4)]
+    assert main(["calibrate-polarizer", *frames, "--angles", "0,30,60,nan", "--out", str(tmp_path / "c.json")]) == 2
+    assert "--angles: nan in '0,30,60,nan' is not a finite angle" in _one_error_line(capsys.readouterr().err)
+    cal = tmp_path / "cal.json"
+    cal.write_text('{"matrix": [[0.5, 0.5, 0], [0.5, 0, 0.5], [0.5, -0.5, 0], [0.5, 0, 1e309]]}')
+    assert main(["polar", frames[0], "--calibration", str(cal), "--out", str(tmp_path / "o")]) == 2
+    assert "analyser matrix must be finite; entry [3][2] is inf" in _one_error_line(capsys.readouterr().err)
+
+
 def test_check_out_dir_tries_the_folder_and_leaves_nothing(tmp_path):
     check_out_dir(tmp_path / "a" / "b" / "c")
     assert list(tmp_path.iterdir()) == []  # created to be sure it can be, then removed again

@@ -207,6 +207,8 @@ class CampaignStore:
         create = create and not readonly
         if self.path.is_dir():
             raise PihimInputError(f"{self.path}: is a directory, not a campaign store")
+        if self.path.exists() and not self.path.is_file():
+            raise PihimInputError(f"{self.path}: not a regular file (a FIFO, device or socket), not a campaign store")
         if not self.path.exists():
             if not create:
                 raise PihimInputError(f"{self.path}: no such campaign store")

@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from pihim._atomic import check_not_an_input, check_out_dir, make_out_dir, output_target  # noqa: F401 - the commands import them from here
+from pihim._inputs import check_regular_file
 from pihim.camera.layout import MosaicLayout
 from pihim.errors import PihimInputError
 
@@ -84,10 +85,11 @@ def load_field_option(spec: str, facets: "Path | None", *, nsttf_tower: bool = T
             raise PihimInputError("--facets needs --field HELIOSTATS.csv (the nsttf-like field has its own facets)")
         return nsttf_like_field()
     path = Path(key)
-    if not path.is_file():
+    if not path.exists():
         raise PihimInputError(f"--field {spec!r}: neither 'nsttf-like' nor an existing heliostat CSV file")
-    if facets is not None and not Path(facets).is_file():
-        raise PihimInputError(f"--facets {facets}: no such file")
+    check_regular_file(path, "heliostat CSV file", option="--field")
+    if facets is not None:
+        check_regular_file(facets, "facet CSV file", option="--facets")
     return load_field(path, facets, tower=NSTTF_TOWER if nsttf_tower else None)
 
 

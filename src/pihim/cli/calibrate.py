@@ -71,8 +71,11 @@ def parse_angles(text: str, *, max_count: int = MAX_ANGLES) -> list[float]:
         ) from None
     if count is not None and not count - 1e-9 <= max_count:
         raise PihimInputError(f"--angles {text!r} gives {count:.3g} angles; at most {max_count} (one per frame)")
-    if not vals or not all(math.isfinite(v) for v in vals):
-        raise PihimInputError(f"--angles: no finite angles in {text!r}")
+    if not vals:
+        raise PihimInputError(f"--angles: no angles in {text!r}")
+    bad = next((v for v in vals if not math.isfinite(v)), None)
+    if bad is not None:
+        raise PihimInputError(f"--angles: {bad!r} in {text!r} is not a finite angle")
     if max(abs(v) for v in vals) > MAX_ANGLE_DEG:
         raise PihimInputError(f"--angles: polarizer angles must be within +-{MAX_ANGLE_DEG:g} deg, got {text!r}")
     return vals

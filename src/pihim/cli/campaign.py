@@ -44,16 +44,19 @@ def _bars(enabled: bool) -> Iterator[Any]:
 
 
 def _field_spec(field: str, facets: Path | None) -> tuple[str, str | None]:
+    from pihim._inputs import check_regular_file
+
     key = field.strip()
     if key.lower() in ("nsttf-like", "nsttf"):
         if facets is not None:
             raise PihimInputError("--facets needs --field HELIOSTATS.csv (the nsttf-like field has its own facets)")
         return ("nsttf-like", None)
     p = Path(key)
-    if not p.is_file():
+    if not p.exists():
         raise PihimInputError(f"--field {field!r}: neither 'nsttf-like' nor an existing heliostat CSV file")
-    if facets is not None and not facets.is_file():
-        raise PihimInputError(f"--facets {facets}: no such file")
+    check_regular_file(p, "heliostat CSV file", option="--field")
+    if facets is not None:
+        check_regular_file(facets, "facet CSV file", option="--facets")
     from pihim.cli._common import load_field_option
 
     load_field_option(field, facets)  # one-line error now for a malformed field
@@ -78,6 +81,7 @@ def simulate_flight(
     """Render the frames a flight of a plan would record, with its log and the truth beside it."""
     import math
 
+    from pihim._inputs import check_regular_file
     from pihim.cli._common import check_out_dir
     from pihim.cli.simulate import parse_size
 
@@ -101,8 +105,9 @@ def simulate_flight(
         raise PihimInputError(f"--seed must be >= 0, got {seed}")
     if plan.is_dir():
         raise PihimInputError(f"{plan}: a folder; give its plan.json ({plan / 'plan.json'})")
-    if not plan.is_file():
+    if not plan.exists():
         raise PihimInputError(f"{plan}: no such plan file")
+    check_regular_file(plan, "plan.json file")
     w, h = parse_size(size)
     if out.exists() and (out / "flight.json").exists():
         raise PihimInputError(f"--out {out}: already holds a flight (flight.json); choose a new directory")

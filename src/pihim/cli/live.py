@@ -98,6 +98,7 @@ def live(
     json_out: Annotated[bool, typer.Option("--json", help="Print a session summary as JSON on exit.")] = False,
 ) -> None:
     """Live view in the browser: S0 / DoLP / AoP at 15 fps, adaptive exposure, raw capture."""
+    from pihim._inputs import check_regular_file
     from pihim.camera.frames import MAX_RAW_VALUE
     from pihim.cli._common import check_out_dir, emit_json, load_field_option, parse_layout
 
@@ -134,8 +135,8 @@ def live(
         raise PihimInputError(f"--seed must be an integer in 0..2**32-1, got {seed}")
     if (plan is None) != (waypoint is None):
         raise PihimInputError("--plan and --waypoint go together")
-    if plan is not None and not plan.is_file():
-        raise PihimInputError(f"--plan {plan}: no such file")
+    if plan is not None:
+        check_regular_file(plan, "plan.json file", option="--plan")
     syn_size = _parse_size(size)
     mosaic_layout = parse_layout(layout)
     check_out_dir(captures, option="--captures")

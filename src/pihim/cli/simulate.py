@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from pihim._atomic import clean_stale_temporaries
-from pihim._inputs import load_json_file
+from pihim._inputs import check_regular_file, load_json_file
 from pihim._resources import require_memory
 from pihim.camera.model import camera_for_size
 from pihim.cli._common import check_out_dir, emit_json, load_field_option, output_target, parse_point, stderr_console
@@ -87,8 +87,7 @@ def parse_pose_request(hua: str | None, target: str | None, waypoint: str | None
             raise PihimInputError(f"--waypoint index must be an integer >= 0, got {idx!r}") from None
         if index < 0:
             raise PihimInputError(f"--waypoint index must be an integer >= 0, got {index}")
-        if not Path(path).is_file():
-            raise PihimInputError(f"--waypoint {path}: no such file")
+        check_regular_file(path, "plan.json file", option="--waypoint")
         load_json_file(path, "plan file")  # malformed or too deeply nested: one line now, not a traceback later
         return WaypointPose(path, index)
     if camera is None or look_at is None:

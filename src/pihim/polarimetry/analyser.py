@@ -68,8 +68,11 @@ class AnalyserMatrix:
 
     def __post_init__(self) -> None:
         m = np.array(self.matrix, dtype=np.float64)
-        if m.shape != (4, 3) or not np.all(np.isfinite(m)):
+        if m.shape != (4, 3):
             raise PihimInputError(f"analyser matrix must be a finite 4x3 array, got shape {m.shape}")
+        if not np.all(np.isfinite(m)):
+            row, col = (int(i) for i in np.argwhere(~np.isfinite(m))[0])
+            raise PihimInputError(f"analyser matrix must be finite; entry [{row}][{col}] is {float(m[row, col])!r}")
         if np.linalg.matrix_rank(m) < 3:
             raise PihimInputError("analyser matrix is rank deficient: Stokes cannot be recovered")
         t = 2.0 * m[:, 0]
