@@ -44,6 +44,9 @@ def test_ground_maps_written(tmp_path, capsys):
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--mirror", "bronze"], "mirror"),
         # issue 10: validated before anything is computed or written (--seed -1 used to fail after four PNGs)
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--monte-carlo", "--seed", "-1"], "--seed"),
+        # the Monte Carlo options without --monte-carlo were silently ignored
+        (["--sun-zenith", "30", "--sun-azimuth", "0", "--facets", "100"], "--facets set the monte carlo ground map"),
+        (["--sun-zenith", "30", "--sun-azimuth", "0", "--seed", "3"], "--seed set the monte carlo ground map: add --mon"),
         # requests too large for the machine are refused with the estimate (used to be MemoryError)
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--resolution", "0.001"], "needs about 32.4 tb of memory"),
         (["--sun-zenith", "30", "--sun-azimuth", "0", "--monte-carlo", "--facets", "1000000000000"],

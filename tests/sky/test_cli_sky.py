@@ -83,6 +83,9 @@ def test_time_and_site_berry(tmp_path, capsys):
         # issue 10: out-of-range numbers
         (["--time", "2024-06-21T10:00:00-06:00", "--site", "0,0,1e300"], "site height"),
         (["--time", "9999-06-21T10:00:00-06:00"], "outside the years"),
+        # an option the model does not use is refused, not silently ignored
+        (["--sun-zenith", "30", "--sun-azimuth", "10", "--neutral-separation", "20"],
+         "--neutral-separation applies to --model berry"),
     ],
 )
 def test_bad_input_exits_2_with_one_line_and_no_files(tmp_path, capsys, args, needle):

@@ -50,6 +50,8 @@ SCHEMA_ID = "pihim.ground/1"
 #: grows by 877 B per direction (0.5 and 0.25 deg grids, ``benchmarks/memory_estimates_quality.py``);
 #: with a 15 % margin.
 MAP_BYTES_PER_DIRECTION = 1000
+#: Monte Carlo microfacets without ``--facets``.
+MC_DEFAULT_FACETS = 100_000
 #: Peak bytes per Monte Carlo microfacet: 634 B measured the same way (1e6 and 3e6 facets), with a 15 % margin.
 MC_BYTES_PER_FACET = 730
 AOP_REFERENCE = (
@@ -123,8 +125,8 @@ def ground(
     mirror_normal_azimuth: Annotated[float, typer.Option(help="Mirror normal azimuth, deg clockwise from North.")] = 180.0,
     resolution: Annotated[float, typer.Option(help="Map grid step, deg (must divide 90).")] = 1.0,
     monte_carlo: Annotated[bool, typer.Option("--monte-carlo", help="Also run the paper's Monte Carlo ground map.")] = False,
-    facets: Annotated[int, typer.Option(help="Monte Carlo microfacets.")] = 100_000,
-    seed: Annotated[int, typer.Option(help="Monte Carlo seed.")] = 0,
+    facets: Annotated[int | None, typer.Option(help="Monte Carlo microfacets (with --monte-carlo; default 100000).", show_default=False)] = None,
+    seed: Annotated[int | None, typer.Option(help="Monte Carlo seed (with --monte-carlo; default 0).", show_default=False)] = None,
     json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
 ) -> int:
     """Ground and mirror-reflected-ground AoP/DoLP maps over camera directions (paper Fig. 5c-d)."""
@@ -138,6 +140,11 @@ def ground(
     normal_azimuth = 0.0 if normal_azimuth >= 360.0 else normal_azimuth  # a tiny negative rounds up to 360.0
     if not (math.isfinite(resolution) and resolution > 0 and abs(90.0 / resolution - round(90.0 / resolution)) < 1e-9):
         raise PihimInputError(f"--resolution must divide 90 deg, got {resolution:g}")
+    if not monte_carlo and (facets is not None or seed is not None):
+        given = " and ".join(o for o, v in (("--facets", facets), ("--seed", seed)) if v is not None)
+        raise PihimInputError(f"{given} set the Monte Carlo ground map: add --monte-carlo")
+    facets = MC_DEFAULT_FACETS if facets is None else facets
+    seed = 0 if seed is None else seed
     if facets < 1:
         raise PihimInputError(f"--facets must be >= 1, got {facets}")
     if seed < 0:

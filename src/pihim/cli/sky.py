@@ -171,7 +171,7 @@ def sky(
     sun_azimuth: Annotated[float | None, typer.Option(help="Sun azimuth, deg clockwise from North.")] = None,
     model: Annotated[str, typer.Option(help="Sky polarization model: rayleigh or berry.")] = "rayleigh",
     dmax: Annotated[float, typer.Option(help="Maximum DoLP (90 deg from the sun), in [0, 1].")] = 0.8,
-    neutral_separation: Annotated[float, typer.Option(help="Berry: neutral points' distance from sun, deg.")] = 15.0,
+    neutral_separation: Annotated[float | None, typer.Option(help="With --model berry: neutral points' distance from the sun, deg (default 15).", show_default=False)] = None,
     radiance: Annotated[str, typer.Option(help="S0 model: cie-clear (CIE type 12) or uniform.")] = "cie-clear",
     resolution: Annotated[float, typer.Option(help="Grid step in zenith and azimuth, deg (must divide 90).")] = 0.5,
     json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
@@ -182,7 +182,11 @@ def sky(
     --sun-azimuth. AoP is relative to the local meridian as seen from the
     ground (see the .npz's aop_reference).
     """
-    sky_model = SkyModel(kind=model, dmax=dmax, neutral_point_separation_deg=neutral_separation, radiance=radiance)  # type: ignore[arg-type]
+    separation = 15.0 if neutral_separation is None else neutral_separation
+    sky_model = SkyModel(kind=model, dmax=dmax, neutral_point_separation_deg=separation, radiance=radiance)  # type: ignore[arg-type]
+    if neutral_separation is not None and sky_model.kind != "berry":
+        raise PihimInputError(f"--neutral-separation applies to --model berry (the {sky_model.kind} sky's only "
+                              "neutral points are the sun and the antisun)")
     nz = _grid_size(resolution)
     require_memory(4 * nz * nz * SKY_BYTES_PER_DIRECTION, f"--resolution {resolution:g} ({4 * nz * nz:,} directions)")
     sun, when = resolve_sun(time, site, sun_zenith, sun_azimuth)
