@@ -50,7 +50,10 @@ def test_json_roundtrip(tmp_path):
 
 @pytest.mark.parametrize(
     "content, match",
-    [("{", "not a readable"), ("{}", "no 'matrix'"), ('{"matrix": [[1,2]]}', "4x3"), ('{"matrix": "x"}', "numeric")],
+    [("{", "not a readable"), ("{}", "no 'matrix'"), ('{"matrix": [[1,2]]}', "4x3"), ('{"matrix": "x"}', "numeric"),
+     # true was read as 1 (a matrix of the ideal analyser's shape otherwise)
+     ('{"matrix": [[0.5, 0.5, 0], [0.5, 0, 0.5], [0.5, -0.5, 0], [0.5, 0, true]]}', "holds true or false"),
+     ('{"matrix": [[0.5, 0.5, 0], [0.5, 0, 0.5], [0.5, -0.5, 0], [0.5, 0, NaN]]}', r"entry \[3\]\[2\] is nan")],
 )
 def test_bad_calibration_files(tmp_path, content, match):
     p = tmp_path / "bad.json"

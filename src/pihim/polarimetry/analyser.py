@@ -187,8 +187,11 @@ class AnalyserMatrix:
         """Inverse of :meth:`to_dict`; only ``matrix`` is required."""
         if not isinstance(obj, dict) or "matrix" not in obj:
             raise PihimInputError("calibration JSON has no 'matrix' entry")
+        rows = obj["matrix"]
+        if isinstance(rows, list) and any(isinstance(v, bool) for row in rows if isinstance(row, list) for v in row):
+            raise PihimInputError("calibration 'matrix' is not numeric: it holds true or false")
         try:
-            m = np.asarray(obj["matrix"], dtype=float)
+            m = np.asarray(rows, dtype=float)
         except (TypeError, ValueError) as exc:
             raise PihimInputError(f"calibration 'matrix' is not numeric: {exc}") from None
         return cls(m)
