@@ -78,6 +78,8 @@ def _nan_capture_x(doc) -> None:
      r"flights\[0\]\.waypoints\[0\] has no 'heading_deg'"),
     # refused by the first frame, after the folders were made: they go again
     (lambda d: d.update(time_iso="2021-05-13T23:00:00-06:00"), "the sun is below the horizon"),
+    # the file was not named
+    (lambda d: d.update(time_iso="garbage"), r"plan\.json: time_iso: time 'garbage' is not an ISO 8601 date-time"),
     (lambda d: [q.update(target="99E99") for p in d["passes"] for q in p.get("predictions", [])],
      "unknown heliostat '99E99'"),
     # an overflow in the timeline once (an internal error)

@@ -429,6 +429,17 @@ def test_an_empty_frame_is_skipped_like_a_truncated_one(flight_copy, tmp_path, c
 def test_a_bad_sensor_in_flight_json_is_refused_before_the_store(flight_copy, tmp_path, capsys, sensor, needle):
     doc = json.loads((flight_copy / "flight.json").read_text())
     doc["sensor"] = sensor
+    _refused_before_the_store(flight_copy, doc, tmp_path, capsys, needle)
+
+
+def test_a_bad_camera_in_flight_json_names_the_file(flight_copy, tmp_path, capsys):
+    """'a camera description must be a mapping, got str' did not say which file."""
+    doc = json.loads((flight_copy / "flight.json").read_text())
+    doc["camera"] = "triton"
+    _refused_before_the_store(flight_copy, doc, tmp_path, capsys, "a camera description must be a mapping, got str")
+
+
+def _refused_before_the_store(flight_copy, doc, tmp_path, capsys, needle):
     (flight_copy / "flight.json").write_text(json.dumps(doc))
     store = tmp_path / "c.sqlite"
     assert main(["campaign", "run", str(flight_copy), "--store", str(store), "--workers", "1"]) == 2

@@ -149,7 +149,10 @@ def test_bad_input_one_line_exit_2_nothing_written(frame, tmp_path, capsys):
                                  (("sensor", "model", "analyser"), [1, 2], "analyser must be an object"),
                                  (("sensor", "model", "analyser"), {"m": 1}, "analyser: calibration JSON has no"),
                                  (("sensor",), [], "'sensor' must be an object, got list"),
-                                 (("sensor", "model"), 0, "'sensor.model' must be an object, got int")):
+                                 (("sensor", "model"), 0, "'sensor.model' must be an object, got int"),
+                                 # named the file only when the frame was decoded ("bit depth 99 does not fit")
+                                 (("sensor", "model", "bit_depth"), 99, "bad.json: log sensor bit_depth must be an "
+                                                                       "integer from 1 to 16, got 99")):
         bad = json.loads(frame.with_suffix(".json").read_text())
         node = bad["log"]
         for key in where[:-1]:

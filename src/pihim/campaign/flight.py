@@ -125,10 +125,10 @@ def load_flight(directory: str | os.PathLike[str], *, name: str | None = None) -
     settings = load_json_file(meta, "flight.json")
     if not isinstance(settings, dict) or settings.get("schema") != FLIGHT_SCHEMA_ID:
         raise PihimInputError(f"{meta}: not a {FLIGHT_SCHEMA_ID} document")
-    CameraModel.from_dict(settings.get("camera") or {})  # one-line error now if malformed
     from pihim.inspection.pipeline import sensor_settings
 
-    try:  # the sensor too, not frame by frame after the store is written
+    try:  # the camera and the sensor now, not frame by frame after the store is written
+        CameraModel.from_dict(settings.get("camera") or {})
         sensor_settings({"sensor": settings.get("sensor")})
     except PihimInputError as exc:
         raise PihimInputError(f"{meta}: {exc}") from None
@@ -269,6 +269,12 @@ def load_plan(plan_path: str | os.PathLike[str], flight: int = 1) -> dict[str, A
             raise PihimInputError(f"{plan}: the plan has no {key!r} list")
     if not isinstance(doc.get("time_iso"), str):
         raise PihimInputError(f"{plan}: the plan has no 'time_iso'")
+    from pihim.sky.sun import parse_time
+
+    try:
+        parse_time(doc["time_iso"])
+    except PihimInputError as exc:
+        raise PihimInputError(f"{plan}: time_iso: {exc}") from None
     aim = doc.get("aim_point")
     if not isinstance(aim, list) or len(aim) != 3:
         raise PihimInputError(f"{plan}: 'aim_point' must be a list of 3 numbers (ENU m)")

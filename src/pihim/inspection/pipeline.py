@@ -190,8 +190,8 @@ def sensor_settings(log: Mapping[str, Any]) -> dict[str, Any]:
     if isinstance(dark, bool) or not isinstance(dark, (int, float)) \
             or not (math.isfinite(dark) and 0 <= dark <= MAX_RAW_VALUE):
         raise PihimInputError(f"log sensor dark_level_dn must be a raw level in [0, {MAX_RAW_VALUE}], got {dark!r}")
-    if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int)):
-        raise PihimInputError(f"log sensor bit_depth must be an integer, got {bits!r}")
+    if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int) or not 1 <= bits <= 16):
+        raise PihimInputError(f"log sensor bit_depth must be an integer from 1 to 16, got {bits!r}")
     return {"layout": layout, "analyser": analyser, "dark_level": float(dark), "bit_depth": bits}
 
 
