@@ -46,7 +46,8 @@ def _wait(cond, timeout, what):
 def _start(source: str, captures: Path) -> tuple[str, subprocess.Popen]:
     """``pihim live --source SOURCE`` on a free port, in its own process; returns its URL and process."""
     env = {**os.environ, "PYTHONPATH": str(Path(pihim.__file__).resolve().parents[1])}  # the pihim imported here
-    cmd = [sys.executable, "-m", "pihim", "live", "--source", source, "--size", "640x512", "--port", "0",
+    size = ["--size", "640x512"] if source == "synthetic" else []  # a folder's frames have their own size
+    cmd = [sys.executable, "-m", "pihim", "live", "--source", source, *size, "--port", "0",
            "--captures", str(captures), "--duration", "120", "--json", "--fps", "15"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)
     line = proc.stderr.readline()  # "pihim live: ... at http://127.0.0.1:PORT/ (Ctrl-C to stop)"

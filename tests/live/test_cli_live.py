@@ -40,8 +40,12 @@ def no_serving(monkeypatch):
     (["--field", "/nonexistent/pihim-fuzz/nope.csv"], "--field", "nope.csv"),
     (["--max-gain-db", "1e308"], "--max-gain-db", "at most 100 dB"),
     (["--host", "x" * 64 + ".invalid"], "--host xxx", "cannot resolve"),  # (a 64-letter label fails without DNS)
+    # options of other sources were silently ignored
+    (["--pixel-format", "mono8"], "--pixel-format", "does not apply to a synthetic source"),
+    (["--width", "10", "--height", "8"], "--width and --height", "do not apply to a synthetic source"),
 ], ids=["exposure-huge", "max-exposure-huge", "exposure-above-max", "exposure-above-default-max", "bit-depth-0",
-        "bit-depth-17", "dark-level-at-full-scale", "dark-level-huge", "field-missing", "max-gain-huge", "host-unresolvable"])
+        "bit-depth-17", "dark-level-at-full-scale", "dark-level-huge", "field-missing", "max-gain-huge", "host-unresolvable",
+        "pixel-format-synthetic", "raw-size-synthetic"])
 def test_bad_option_is_one_line_exit_2(tmp_path, capsys, no_serving, options, named, says):
     captures, record = tmp_path / "captures", tmp_path / "rec"
     rc = main([*BASE, "--captures", str(captures), "--record", str(record), *options])

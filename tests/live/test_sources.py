@@ -16,6 +16,7 @@ from pihim.live.sources import (
     FrameError,
     GenICamSource,
     SyntheticSource,
+    check_source_options,
     open_source,
 )
 
@@ -96,6 +97,20 @@ def test_folder_sidecar_exposure_travels(frame_folder):
     f = src.read()
     assert f.settings == ExposureSettings(250.0, 3.0)
     assert src.read().settings is None
+
+
+@pytest.mark.parametrize(("spec", "options", "says"), [
+    ("synthetic", {"pixel_format": "mono8"}, "--pixel-format does not apply to a synthetic source"),
+    ("synthetic:flight", {"size": (64, 48)}, "--size does not apply to a rendered flight"),
+    ("frames", {"size": (64, 48)}, "--size does not apply to a folder or a camera"),
+    ("genicam", {"width": 8, "bit_depth": 12}, "--width and --bit-depth do not apply to a GenICam camera"),
+    ("frames", {"pixel_format": "Bogus"}, "unknown pixel format 'Bogus'"),  # was 'applies only to .raw' for TIFFs
+])
+def test_options_of_another_source_are_refused(spec, options, says):
+    with pytest.raises(PihimInputError, match=says):
+        open_source(spec, **options)
+    with pytest.raises(PihimInputError, match=says):
+        check_source_options(spec, **options)
 
 
 def test_synthetic_source_responds_to_exposure():

@@ -138,6 +138,10 @@ def live(
     if plan is not None:
         check_regular_file(plan, "plan.json file", option="--plan")
     syn_size = _parse_size(size)
+    from pihim.live.sources import check_source_options
+
+    check_source_options(source, size=syn_size, pixel_format=pixel_format, width=width, height=height,
+                         bit_depth=bit_depth)
     mosaic_layout = parse_layout(layout)
     check_out_dir(captures, option="--captures")
     if record is not None:

@@ -69,6 +69,7 @@ __all__ = [
     "RenderedSource",
     "SourceLost",
     "SyntheticSource",
+    "check_source_options",
     "open_source",
 ]
 
@@ -898,6 +899,8 @@ def open_source(spec: str, *, fps: float = 15.0, size: tuple[int, int] | None = 
         GenICam producer and pixel format (``pixel_format`` also applies to
         ``.raw`` files with ``width`` and ``height``).
     """
+    check_source_options(spec, size=size, pixel_format=pixel_format, width=width, height=height,
+                         bit_depth=bit_depth)
     text = spec.strip()
     low = text.lower()
     if low == "synthetic":
@@ -908,3 +911,40 @@ def open_source(spec: str, *, fps: float = 15.0, size: tuple[int, int] | None = 
         serial = text.split(":", 1)[1].strip() if ":" in text else None
         return GenICamSource(serial or None, cti=cti, fps=fps, pixel_format=pixel_format)
     return FolderSource(text, fps, width=width, height=height, pixel_format=pixel_format, bit_depth=bit_depth)
+
+
+def check_source_options(spec: str, *, size: tuple[int, int] | None = None, pixel_format: str | None = None,
+                         width: int | None = None, height: int | None = None, bit_depth: int | None = None) -> None:
+    """Refuse options that do not apply to the source ``spec`` names (they were silently ignored), and an unknown
+    pixel format, before anything is opened (:func:`open_source` calls it too).
+
+    ``size`` sizes synthetic scenes only; ``width``, ``height`` and ``bit_depth``
+    describe a folder's ``.raw`` frames; ``pixel_format`` applies to those and to
+    a GenICam camera.
+
+    Raises
+    ------
+    PihimInputError
+        ``"--width does not apply to a synthetic source"`` and the like.
+    """
+    low = spec.strip().lower()
+    raw_options = {"--width": width, "--height": height, "--bit-depth": bit_depth}
+    if low == "synthetic" or low.startswith("synthetic:"):
+        _refuse_unused({"--pixel-format": pixel_format, **raw_options}, "a synthetic source")
+        if low != "synthetic":
+            _refuse_unused({"--size": size}, "a rendered flight (its frames have their own size)")
+        return
+    _refuse_unused({"--size": size}, "a folder or a camera (it sizes synthetic frames)")
+    if pixel_format is not None:
+        from pihim.camera.frames import normalize_pixel_format
+
+        normalize_pixel_format(pixel_format)  # an unknown name is said as such, whatever the source
+    if low == "genicam" or low.startswith("genicam:"):
+        _refuse_unused(raw_options, "a GenICam camera (its pixel format decides)")
+
+
+def _refuse_unused(options: dict[str, Any], source: str) -> None:
+    """One line naming the options given that do not apply to ``source`` (they were silently ignored)."""
+    given = [name for name, value in options.items() if value is not None]
+    if given:
+        raise PihimInputError(f"{' and '.join(given)} {'does' if len(given) == 1 else 'do'} not apply to {source}")
