@@ -183,3 +183,37 @@ def test_supersample_default_is_the_renderer_default():
     from pihim.render.frame import RenderSettings
 
     assert DEFAULT_SUPERSAMPLE == RenderSettings().supersample
+
+
+def _one_waypoint_plan(tmp_path, site=(34.962276, -106.509606)):
+    """A plan.json of one capture waypoint (x, y, z = 24, 75, 20 m, looking North and down) made at TIME."""
+    wp = {"x_m": 24.0, "y_m": 75.0, "z_m": 20.0, "heading_deg": 0.0, "gimbal_pitch_deg": -45.0, "capture": True,
+          "hua": "8E3"}
+    plan = {"schema": "pihim.plan/1", "time_iso": TIME, "site": {"latitude_deg": site[0], "longitude_deg": site[1]},
+            "passes": [{"waypoints": [wp], "predictions": [{"hua": "8E3", "target": "7E3", "waypoint_index": 0}]}]}
+    path = tmp_path / "plan.json"
+    path.write_text(json.dumps(plan))
+    return path
+
+
+def test_a_waypoint_renders_at_the_plans_time_unless_told(tmp_path, capsys):
+    """--time was required with --waypoint, and a time other than the plan's went unsaid."""
+    plan = _one_waypoint_plan(tmp_path)
+    out = tmp_path / "a.tiff"
+    assert main(["simulate", "--waypoint", f"{plan}:0", "--size", "16x16", "--out", str(out), "--json"]) == 0
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["time"] == "2021-05-13T13:00:00-06:00" and "note" not in cap.err
+    assert main(["simulate", "--waypoint", f"{plan}:0", "--time", "2021-05-13T14:00-06:00", "--size", "16x16",
+                 "--out", str(tmp_path / "b.tiff"), "--json"]) == 0
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["time"] == "2021-05-13T14:00:00-06:00"
+    assert cap.err.strip() == ("pihim simulate: note: --time 2021-05-13T14:00-06:00 is not the time the plan was "
+                               "made for (2021-05-13T13:00-06:00); the field tracks the sun of --time")
+    assert main(["simulate", "--hua", "8E3", "--target", "7E3", "--size", "16x16", "--out", str(out)]) == 2
+    assert "--time is required (with --waypoint" in capsys.readouterr().err
+
+
+def test_a_waypoint_of_a_plan_made_elsewhere_is_noted(tmp_path, capsys):
+    plan = _one_waypoint_plan(tmp_path, site=(37.1, -2.36))
+    assert main(["simulate", "--waypoint", f"{plan}:0", "--size", "16x16", "--out", str(tmp_path / "a.tiff")]) == 0
+    assert "note: the plan was made for a site at 37.1, -2.36 deg, not --site" in capsys.readouterr().err

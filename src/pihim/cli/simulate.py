@@ -22,7 +22,7 @@ from pihim._resources import require_memory
 from pihim.camera.model import camera_for_size
 from pihim.cli._common import check_out_dir, emit_json, load_field_option, output_target, parse_point, stderr_console
 from pihim.errors import PihimInputError
-from pihim.sky.sun import parse_site
+from pihim.sky.sun import Site, parse_site, parse_time
 
 if TYPE_CHECKING:
     from pihim.render.simulate import PoseRequest
@@ -120,9 +120,46 @@ def _render_progress(enabled: bool) -> Iterator[Callable[[int, int], Any] | None
         yield update
 
 
+def _time_for(request: PoseRequest, time: str | None, site: Site) -> str:
+    """``--time``, or the time a ``--waypoint`` plan was made for; a note on stderr when they (or the sites) differ.
+
+    Rendering a waypoint at another time is legitimate (how would the same
+    flight look an hour later?) but the field then tracks another sun than the
+    one the waypoint was planned for, so it is said; so is a ``--site`` other
+    than the plan's.
+    """
+    from pihim.render.simulate import WaypointPose
+
+    planned = None
+    if isinstance(request, WaypointPose):
+        doc = load_json_file(request.plan_path, "plan file")
+        doc = doc if isinstance(doc, dict) else {}
+        planned = doc.get("time_iso")
+        where = doc.get("site") if isinstance(doc.get("site"), dict) else {}
+        lat, lon = where.get("latitude_deg"), where.get("longitude_deg")
+        if isinstance(lat, (int, float)) and isinstance(lon, (int, float)) \
+                and max(abs(lat - site.latitude_deg), abs(lon - site.longitude_deg)) > 1e-6:
+            print(f"pihim simulate: note: the plan was made for a site at {lat:g}, {lon:g} deg, not --site "
+                  f"({site.latitude_deg:g}, {site.longitude_deg:g} deg)", file=sys.stderr)
+        if planned is not None:
+            try:
+                parse_time(planned)
+            except (PihimInputError, TypeError):
+                raise PihimInputError(f"{request.plan_path}: time_iso {planned!r} is not an ISO 8601 time with a "
+                                      "UTC offset") from None
+    if time is None:
+        if planned is None:
+            raise PihimInputError("--time is required (with --waypoint, the plan's time_iso is the default)")
+        return planned
+    if planned is not None and parse_time(time) != parse_time(planned):
+        print(f"pihim simulate: note: --time {time} is not the time the plan was made for ({planned}); the field "
+              "tracks the sun of --time", file=sys.stderr)
+    return time
+
+
 def simulate(
-    time: Annotated[str, typer.Option("--time", help="ISO 8601 time with UTC offset, e.g. 2021-05-13T13:00-06:00.")],
     out: Annotated[Path, typer.Option("--out", help="Raw frame to write, FRAME.tiff (FRAME.json etc. beside it).")],
+    time: Annotated[str | None, typer.Option("--time", help="ISO 8601 time with UTC offset, e.g. 2021-05-13T13:00-06:00; with --waypoint default the plan's.", show_default=False)] = None,
     field: Annotated[str, typer.Option("--field", help="nsttf-like (default) or an OpenCSP heliostat CSV.")] = "nsttf-like",
     facets: Annotated[Path | None, typer.Option(help="OpenCSP facet-centroid CSV (with --field CSV).")] = None,
     site: Annotated[str, typer.Option(help="nsttf (default) or LAT,LON,H (deg, deg, ellipsoidal m).")] = "nsttf",
@@ -163,6 +200,7 @@ def simulate(
     cam = camera_for_size(width, height)
     settings = RenderSettings(supersample=supersample)
     site_obj = parse_site(site)
+    time = _time_for(request, time, site_obj)
     aim_point = parse_point(aim, name="--aim")  # None: the --waypoint plan's aim point, else UFACET's
     fld = load_field_option(field, facets, nsttf_tower=site.strip().lower() == "nsttf")
     nsttf_like = field.strip().lower() in ("nsttf-like", "nsttf")
