@@ -309,3 +309,14 @@ def test_default_mirror_is_second_surface_silvered_glass():
     assert r0 == pytest.approx(0.9680, abs=5e-4)  # the closed form of test_second_surface_reflectance_at_normal_incidence
     assert abs(float(FresnelMirror().mueller(1.0)[0, 0]) - r0) > 5e-3
     assert abs(float(IdealMirror().mueller(1.0)[0, 0]) - r0) > 5e-3
+
+
+@pytest.mark.parametrize("fn", [fresnel_amplitudes, fresnel_reflection_mueller, fresnel_transmission_mueller])
+def test_fresnel_functions_refuse_a_cosine_out_of_range(fn):
+    """45.0 (degrees passed for a cosine) was clipped to 1 and gave the normal-incidence answer; -0.5 gave R = 1."""
+    for bad in (45.0, -0.5, [0.2, 1.5]):
+        with pytest.raises(PihimInputError, match="cos_i must lie in"):
+            fn(bad)
+    # a rounding error's worth outside [0, 1] is the edge of the range, not a mistake
+    np.testing.assert_array_equal(np.asarray(fn(1.0 + 1e-12)), np.asarray(fn(1.0)))
+    np.testing.assert_array_equal(np.asarray(fn(-1e-12)), np.asarray(fn(0.0)))

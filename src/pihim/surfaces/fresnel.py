@@ -23,6 +23,20 @@ from pihim.errors import PihimInputError
 from pihim.polarimetry.reflection import mueller_from_amplitudes
 
 
+def _as_cos(cos_i: ArrayLike) -> NDArray[np.float64]:
+    """``cos_i`` as a float array in [0, 1] (NaN kept; clearly out-of-range values refused).
+
+    Rounding may put a cosine computed from unit vectors a hair outside
+    [0, 1]; it is clipped. A value beyond 1e-9 of the range is a mistake (an
+    angle in degrees, a cosine of the wrong sign) and is refused.
+    """
+    c = np.asarray(cos_i, dtype=float)
+    bad = np.isfinite(c) & ((c < -1e-9) | (c > 1.0 + 1e-9))
+    if np.any(bad):
+        raise PihimInputError(f"cos_i must lie in [0, 1], got values such as {c[bad].ravel()[0]:g}")
+    return np.clip(c, 0.0, 1.0)
+
+
 def _cos_transmitted(cos_i: NDArray, n1: NDArray, n2: NDArray) -> NDArray[np.complex128]:
     """Complex cosine of the refraction angle (branch with a decaying transmitted wave)."""
     ratio2 = (n1 / n2) ** 2
@@ -59,7 +73,8 @@ def fresnel_amplitudes(
     Parameters
     ----------
     cos_i : array_like
-        Cosine of the angle of incidence, in [0, 1].
+        Cosine of the angle of incidence, in [0, 1] (a rounding error's worth
+        outside is clipped; more is refused).
     n1, n2 : array_like (complex allowed)
         Refractive index ``n + i k`` of the incidence medium and of the
         reflecting medium: ``n >= 0``, ``k >= 0`` (absorbing media), not 0.
@@ -70,8 +85,9 @@ def fresnel_amplitudes(
         An index with ``k < 0`` (the ``n - i k`` form, e.g. mitsuba's: pass
         its complex conjugate), a negative real part or 0. With ``k < 0`` the
         formulae give a wave growing into the medium and reflectances above 1.
+        A ``cos_i`` outside [0, 1] (an angle in degrees passed by mistake).
     """
-    cos_i = np.clip(np.asarray(cos_i, float), 0.0, 1.0)
+    cos_i = _as_cos(cos_i)
     n1 = np.asarray(n1, dtype=complex)
     n2 = np.asarray(n2, dtype=complex)
     _check_indices(n1, n2)
@@ -151,7 +167,8 @@ def fresnel_transmission_amplitudes(
     Parameters
     ----------
     cos_i : array_like
-        Cosine of the angle of incidence in medium 1, in [0, 1] (clipped).
+        Cosine of the angle of incidence in medium 1, in [0, 1] (a rounding error's worth outside is
+        clipped; more is refused).
     n1, n2 : array_like (complex allowed)
         Refractive indices of the incidence medium and of the medium entered.
         Beyond the critical angle (``n1 > n2``) the amplitudes describe the
@@ -168,7 +185,7 @@ def fresnel_transmission_amplitudes(
     .. [1] M. Born, E. Wolf, *Principles of Optics*, 7th ed., 1999,
        sec. 1.5.2, eqs. (20) and (21).
     """
-    cos_i = np.clip(np.asarray(cos_i, float), 0.0, 1.0)
+    cos_i = _as_cos(cos_i)
     n1 = np.asarray(n1, dtype=complex)
     n2 = np.asarray(n2, dtype=complex)
     cos_t = _cos_transmitted(cos_i, n1, n2)
@@ -198,7 +215,8 @@ def fresnel_transmission_mueller(cos_i: ArrayLike, n1: ArrayLike = 1.0, n2: Arra
     Parameters
     ----------
     cos_i : array_like
-        Cosine of the angle of incidence in medium 1, in [0, 1] (clipped).
+        Cosine of the angle of incidence in medium 1, in [0, 1] (a rounding error's worth outside is
+        clipped; more is refused).
     n1, n2 : array_like
         Real refractive indices (non-absorbing media; absorption in a slab is
         handled separately with Beer-Lambert, see
@@ -221,7 +239,7 @@ def fresnel_transmission_mueller(cos_i: ArrayLike, n1: ArrayLike = 1.0, n2: Arra
     for name, n in (("n1", n1c), ("n2", n2c)):
         if np.any(n.imag != 0.0) or np.any(~(n.real > 0.0)):
             raise PihimInputError(f"fresnel_transmission_mueller needs real positive indices, got {name}={n}")
-    cos_i = np.clip(np.asarray(cos_i, float), 0.0, 1.0)
+    cos_i = _as_cos(cos_i)
     cos_t = _cos_transmitted(cos_i, n1c, n2c)
     # sqrt(eta) * t without dividing by cos_i (stable at grazing incidence):
     # sqrt(eta) * 2 n1 cos_i = 2 sqrt(n1 cos_i Re(n2 cos_t))

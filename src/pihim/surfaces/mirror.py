@@ -76,6 +76,7 @@ from numpy.typing import ArrayLike, NDArray
 from pihim.errors import PihimInputError
 from pihim.polarimetry.reflection import reflect_stokes
 from pihim.surfaces.fresnel import (
+    _as_cos,
     fresnel_amplitudes,
     fresnel_reflection_mueller,
     fresnel_transmission_mueller,
@@ -104,15 +105,6 @@ GLASS_ABSORPTION_LOW_IRON_550_PER_MM = 4.0 * math.pi * 4.632e-8 / (DESIGN_WAVELE
 GLASS_THICKNESS_MM = 4.0
 
 MirrorName = Literal["second-surface", "ideal", "fresnel"]
-
-
-def _as_cos(cos_i: ArrayLike) -> NDArray[np.float64]:
-    """``cos_i`` as a float array in [0, 1] (NaN kept; clearly out-of-range values refused)."""
-    c = np.asarray(cos_i, dtype=float)
-    bad = np.isfinite(c) & ((c < -1e-9) | (c > 1.0 + 1e-9))
-    if np.any(bad):
-        raise PihimInputError(f"cos_i must lie in [0, 1], got values such as {c[bad].ravel()[0]:g}")
-    return np.clip(c, 0.0, 1.0)
 
 
 def _real_param(name: str, value: Any, *, minimum: float, strict: bool = False) -> float:
