@@ -5,6 +5,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from pihim.errors import PihimInputError
 from pihim.polarimetry import (
     aop_deg,
     aop_difference_deg,
@@ -69,3 +70,19 @@ def test_aop_difference_axial_vs_raw():
     assert d.min() >= 0.0 and d.max() <= 90.0
     # symmetric
     assert np.allclose(d, d.T)
+
+
+def test_stokes_from_dolp_aop_refuses_light_that_cannot_be():
+    """A DoLP of 1.5 or a negative intensity gave unphysical Stokes vectors without a word."""
+    for s0, p in ((1.0, 1.5), (1.0, -0.1), (-1.0, 0.5), ([1.0, 2.0], [0.5, 1.2])):
+        with pytest.raises(PihimInputError):
+            stokes_from_dolp_aop(s0, p, 30.0)
+    s0, s1, s2 = stokes_from_dolp_aop(2.0, 1.0 + 1e-12, 30.0)  # computed DoLPs may round a hair above 1
+    assert s0 == 2.0 and np.hypot(s1, s2) == pytest.approx(2.0)
+
+
+def test_raw_aop_difference_takes_angles_modulo_180():
+    """aop_raw_difference_deg(350, 10) returned 340, outside its documented [0, 180)."""
+    np.testing.assert_allclose(aop_raw_difference_deg([350.0, -10.0, 170.0, 0.0], [10.0, 10.0, 10.0, 179.0]),
+                               [160.0, 160.0, 160.0, 179.0])
+    assert aop_raw_difference_deg(-1e-20, 10.0) == 10.0  # np.mod(-1e-20, 180) rounds to 180

@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from pihim.errors import PihimInputError
+
 
 def dolp(s0: ArrayLike, s1: ArrayLike, s2: ArrayLike) -> NDArray[np.floating]:
     """Degree of linear polarization, ``sqrt(S1^2 + S2^2) / S0`` (paper eq. 3).
@@ -52,9 +54,21 @@ def aop_deg(s1: ArrayLike, s2: ArrayLike) -> NDArray[np.floating]:
 def stokes_from_dolp_aop(
     s0: ArrayLike, dolp_: ArrayLike, aop_deg_: ArrayLike
 ) -> tuple[NDArray[np.floating], NDArray[np.floating], NDArray[np.floating]]:
-    """Build ``(S0, S1, S2)`` from intensity, DoLP and AoP in degrees."""
+    """Build ``(S0, S1, S2)`` from intensity, DoLP and AoP in degrees.
+
+    Raises
+    ------
+    PihimInputError
+        A negative intensity or a DoLP outside [0, 1] (beyond 1e-9 of it):
+        no light has them (NaN passes through, as a missing value).
+    """
     s0 = np.asarray(s0, dtype=float)
     p = np.asarray(dolp_, dtype=float)
+    if np.any(s0 < 0):
+        raise PihimInputError(f"s0 must be >= 0 (an intensity), got values such as {s0[s0 < 0].ravel()[0]:g}")
+    bad = (p < -1e-9) | (p > 1.0 + 1e-9)
+    if np.any(bad):
+        raise PihimInputError(f"dolp must lie in [0, 1], got values such as {p[bad].ravel()[0]:g}")
     two_a = 2.0 * np.radians(aop_deg_)
     s1 = s0 * p * np.cos(two_a)
     s2 = s0 * p * np.sin(two_a)
@@ -95,6 +109,10 @@ def aop_raw_difference_deg(aop_a_deg: ArrayLike, aop_b_deg: ArrayLike) -> NDArra
     """Raw absolute AoP difference ``|a - b|`` of angles in [0, 180), in [0, 180).
 
     This is how the paper's Table 1 reports differences (values above 90 deg
-    occur); prefer :func:`aop_difference_deg` for thresholds.
+    occur); prefer :func:`aop_difference_deg` for thresholds. Angles outside
+    [0, 180) are first taken modulo 180 (AoP's period): 350 deg is 170 deg.
     """
-    return np.abs(np.asarray(aop_a_deg, dtype=float) - np.asarray(aop_b_deg, dtype=float))
+    a = np.mod(np.asarray(aop_a_deg, dtype=float), 180.0)
+    b = np.mod(np.asarray(aop_b_deg, dtype=float), 180.0)
+    a, b = np.where(a >= 180.0, 0.0, a), np.where(b >= 180.0, 0.0, b)  # np.mod(-1e-20, 180) rounds to 180
+    return np.abs(a - b)
