@@ -266,3 +266,19 @@ def test_bad_exposure_and_expose_inputs():
     for kw in ({"percentile": 0.0}, {"percentile": 101.0}, {"headroom": 0.0}):
         with pytest.raises(PihimInputError):
             choose_exposure(*s, sensor, **kw)
+
+
+@pytest.mark.parametrize(("kwargs", "says"), [
+    ({"s0": np.full((4, 4), np.nan)}, "must be finite to be quantised"),  # was an all-zero mosaic and a warning
+    ({"dark_level": np.nan}, "dark_level must be a finite number >= 0"),  # was zeros too
+    ({"read_noise_dn": -5.0}, "read_noise_dn must be"),  # was silently no noise
+    ({"bit_depth": 12.5}, "bit_depth must be an integer"),
+    ({"layout": "imx250mzr"}, "layout must be a MosaicLayout"),  # was an AttributeError
+    ({"electrons_per_dn": np.nan}, "electrons_per_dn must be a finite number > 0"),
+])
+def test_mosaic_from_stokes_refuses_what_it_used_to_turn_into_zeros(kwargs, says):
+    args = {"s0": np.full((4, 4), 100.0), "s1": 0.0, "s2": 0.0, **kwargs}
+    with pytest.raises(PihimInputError, match=says):
+        mosaic_from_stokes(args.pop("s0"), args.pop("s1"), args.pop("s2"), **args)
+    # the float mosaic keeps a NaN where the scene has one (nothing is quantised)
+    assert np.isnan(mosaic_from_stokes(np.full((4, 4), np.nan), 0.0, 0.0, bit_depth=None)).all()
