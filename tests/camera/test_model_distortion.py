@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pihim.camera import CameraModel
+from pihim.camera.model import camera_for_size
 from pihim.errors import PihimInputError
 
 # the brief's "real lens" distortion, tangential terms included
@@ -255,3 +256,14 @@ def test_from_dict_refuses_inconsistent_or_incomplete():
         CameraModel.from_dict({**d, "distortion": {"k4": 0.1}})
     with pytest.raises(PihimInputError, match="5 coefficients"):
         CameraModel.from_dict({**d, "distortion": [0.1, 0.2]})
+
+
+@pytest.mark.parametrize("size", [float("nan"), 3.5, "100", True])
+def test_the_sensor_size_is_a_whole_number_of_pixels(size):
+    """width_px=nan was accepted (cx_px nan, every projection nan), 3.5 too; '100' was a TypeError."""
+    with pytest.raises(PihimInputError, match="width_px must be a whole number of pixels"):
+        CameraModel(width_px=size)
+    with pytest.raises(PihimInputError, match="whole number of pixels"):
+        camera_for_size(size, 10)
+    cam = CameraModel(width_px=1224.0, height_px=np.int64(1024))  # whole numbers from a JSON file or numpy
+    assert type(cam.width_px) is int and type(cam.height_px) is int and cam.width_px == 1224

@@ -71,6 +71,8 @@ class CameraModel:
     pixel_aspect: float = 1.0
 
     def __post_init__(self) -> None:
+        for name in ("width_px", "height_px"):
+            object.__setattr__(self, name, _whole_pixels(name, getattr(self, name)))
         if self.width_px < 2 or self.height_px < 2:
             raise PihimInputError("camera sensor must be at least 2x2 pixels")
         if not (self.pixel_size_um > 0 and self.focal_length_mm > 0):
@@ -429,6 +431,14 @@ class CameraModel:
                    principal_point_px=pp, distortion=coeffs, pixel_aspect=aspect, **extra)  # type: ignore[arg-type]
 
 
+def _whole_pixels(name: str, v: Any) -> int:
+    """A sensor dimension as an int: 1224 or 1224.0 (from a JSON file) are whole, NaN, 3.5, '100' and True not."""
+    whole = isinstance(v, (int, np.integer)) or (isinstance(v, (float, np.floating)) and float(v).is_integer())
+    if isinstance(v, bool) or not whole:
+        raise PihimInputError(f"camera {name} must be a whole number of pixels, got {v!r}")
+    return int(v)
+
+
 def camera_for_size(width: int, height: int) -> CameraModel:
     """The default camera (Triton + 35 mm) at another pixel count, with the same horizontal field of view.
 
@@ -440,6 +450,7 @@ def camera_for_size(width: int, height: int) -> CameraModel:
     width, height : int
         Frame size, pixels.
     """
+    width, height = _whole_pixels("width_px", width), _whole_pixels("height_px", height)
     full = CameraModel()
     if (width, height) == (full.width_px, full.height_px):
         return full
