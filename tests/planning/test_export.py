@@ -841,10 +841,10 @@ def test_waypoints_files_read_by_pymavlink(plan, tmp_path):
             assert got == pytest.approx([0.0 if v is None else v for v in it["params"]], abs=1e-6)
 
 
-def _nan_latitude_plan(plan: Plan) -> Plan:
+def _nan_latitude_plan(plan: Plan, **change) -> Plan:
     p1 = plan.passes[1]
     wps = list(p1.waypoints)
-    wps[2] = replace(wps[2], latitude_deg=math.nan)
+    wps[2] = replace(wps[2], **(change or {"latitude_deg": math.nan}))
     return replace(plan, passes=(plan.passes[0], replace(p1, waypoints=tuple(wps)), plan.passes[2]))
 
 
@@ -861,7 +861,12 @@ WRITERS = [
 @pytest.mark.parametrize(("name", "writer"), WRITERS)
 def test_bad_plans_raise_one_line_errors_and_write_nothing(plan, tmp_path, name, writer):
     for bad, pattern in ((replace(plan, passes=()), "no scan passes"),
-                         (_nan_latitude_plan(plan), "pass 1 waypoint 2: latitude_deg is nan")):
+                         (_nan_latitude_plan(plan), "pass 1 waypoint 2: latitude_deg is nan"),
+                         # outside plan.schema.json's ranges: were written (a plan.json its own schema refuses)
+                         (_nan_latitude_plan(plan, heading_deg=400.0), r"heading_deg 400.0 is outside \[0, 360\)"),
+                         (_nan_latitude_plan(plan, gimbal_pitch_deg=-120.0), r"-120.0 is outside \[-90, 90\]"),
+                         (replace(plan, passes=(replace(plan.passes[0], gimbal_pitch_deg=95.0), *plan.passes[1:])),
+                          r"pass \d+ \(#0\): gimbal_pitch_deg 95.0 is outside")):
         with pytest.raises(PihimInputError, match=pattern) as exc:
             writer(bad, tmp_path / name)
         assert "\n" not in str(exc.value)

@@ -49,7 +49,8 @@ def check_waypoint(w: Any, where: str) -> None:
     """Raise a one-line :class:`PihimInputError` unless ``w`` is a usable waypoint.
 
     Every numeric field must be finite, latitude within +/-90 deg, longitude
-    within +/-180 deg and the speed non-negative.
+    within +/-180 deg, the speed non-negative, the heading in [0, 360) and
+    the gimbal pitch in [-90, 90] deg (the ranges of ``plan.schema.json``).
     """
     if not isinstance(w, Waypoint):
         raise PihimInputError(f"{where}: expected a Waypoint, got {type(w).__name__}")
@@ -63,6 +64,10 @@ def check_waypoint(w: Any, where: str) -> None:
         raise PihimInputError(f"{where}: longitude_deg {w.longitude_deg!r} is outside [-180, 180]")
     if w.speed_m_s < 0:
         raise PihimInputError(f"{where}: speed_m_s {w.speed_m_s!r} is negative")
+    if not 0.0 <= w.heading_deg < 360.0:  # plan.schema.json, and what every autopilot format takes
+        raise PihimInputError(f"{where}: heading_deg {w.heading_deg!r} is outside [0, 360)")
+    if not -90.0 <= w.gimbal_pitch_deg <= 90.0:
+        raise PihimInputError(f"{where}: gimbal_pitch_deg {w.gimbal_pitch_deg!r} is outside [-90, 90]")
 
 
 def check_plan(plan: Any) -> Plan:
@@ -91,6 +96,8 @@ def check_plan(plan: Any) -> Plan:
     for k, p in enumerate(plan.passes):
         if not p.waypoints:
             raise PihimInputError(f"pass {p.index} (#{k}) has no waypoints")
+        if not -90.0 <= p.gimbal_pitch_deg <= 90.0:
+            raise PihimInputError(f"pass {p.index} (#{k}): gimbal_pitch_deg {p.gimbal_pitch_deg!r} is outside [-90, 90]")
         for j, w in enumerate(p.waypoints):
             check_waypoint(w, f"pass {p.index} waypoint {j}")
     for f in plan.flights:
