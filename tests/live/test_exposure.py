@@ -215,3 +215,16 @@ def test_params_validation():
         ExposureSettings(-1.0)
     with pytest.raises(PihimInputError):
         ExposureSettings(10.0, -3.0)
+
+
+def test_a_cap_or_a_percentile_out_of_range_is_refused():
+    """A cap of -5 us commanded the shortest exposure at full gain (NaN was ignored); percentile 150 reported
+    a level above full scale."""
+    for cap in (-5.0, 0.0, math.nan):
+        with pytest.raises(PihimInputError, match="exposure_cap_us must be a positive number"):
+            next_exposure(_stats(0.5, 0.3), ExposureSettings(1000.0), exposure_cap_us=cap)
+    raw = np.full((8, 8), 1000, np.uint16)
+    for q in (150.0, -1.0, math.nan):
+        with pytest.raises(PihimInputError, match="percentile must be in"):
+            region_stats(raw, percentile=q)
+    assert region_stats(raw, percentile=100.0).p_hi_dn == 1000

@@ -333,6 +333,8 @@ def region_stats(
     sat = float(full if saturation_level is None else saturation_level)
     if not 0 <= dark_level < full:
         raise PihimInputError(f"dark level must be in [0, {full}), got {dark_level:g}")
+    if not 0.0 <= percentile <= 100.0:  # (NaN fails too) 150 reported a level above full scale
+        raise PihimInputError(f"percentile must be in [0, 100], got {percentile!r}")
     from pihim.live import _kernels
 
     if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
@@ -442,6 +444,8 @@ def next_exposure(
     -------
     ExposureDecision
     """
+    if exposure_cap_us is not None and not exposure_cap_us > 0:  # (NaN fails too) -5 commanded the minimum at full gain
+        raise PihimInputError(f"exposure_cap_us must be a positive number of microseconds, got {exposure_cap_us!r}")
     if state.hold_frames > 0:
         return ExposureDecision(current, ExposureState(state.hold_frames - 1), False, "hold")
     if stats.count == 0:
