@@ -192,8 +192,11 @@ def test_success_rate_over_a_set(frame):
     assert rate.rate == pytest.approx(0.75)
     assert rate.to_dict()["success_rate"] == pytest.approx(0.75)
     assert np.isnan(success_rate([], "AoP").rate)
-    with pytest.raises(KeyError):
+    with pytest.raises(PihimInputError, match="no result for image type 'AoP'"):  # was a bare KeyError
         success_rate([{"S0": True}], "AoP")
+    with pytest.raises(PihimInputError, match="a verdict must be an EdgeSuccess or a bool, got 'False'"):
+        success_rate([{"S0": "False"}], "S0")  # bool("False") counted as a success
+    assert success_rate([{"S0": np.bool_(False)}], "S0").unsuccessful == 1
 
 
 def test_bad_arguments(frame):

@@ -545,14 +545,28 @@ def success_rate(frames: Iterable[FrameScore | Mapping[str, Any]] | Sequence[Any
         :class:`EdgeSuccess` (or a bool verdict).
     image_type : str
         ``"S0"``, ``"DoLP"``, ``"AoP"`` or ``"combined"`` (case-insensitive).
+
+    Raises
+    ------
+    PihimInputError
+        A frame without a result for ``image_type``, or a verdict that is
+        neither an :class:`EdgeSuccess` nor a bool.
     """
     ok = bad = 0
     for frame in frames:
         results = frame.results if isinstance(frame, FrameScore) else frame
         if not isinstance(results, Mapping):
             raise PihimInputError(f"frames must be FrameScore objects or mappings, got {type(frame).__name__}")
-        verdict = results[_image_type_key(results, image_type)]
-        passed = verdict.success if isinstance(verdict, EdgeSuccess) else bool(verdict)
+        try:
+            verdict = results[_image_type_key(results, image_type)]
+        except KeyError as exc:
+            raise PihimInputError(str(exc.args[0])) from None
+        if isinstance(verdict, EdgeSuccess):
+            passed = verdict.success
+        elif isinstance(verdict, (bool, np.bool_)):
+            passed = bool(verdict)
+        else:  # bool("False") is True: a verdict read from text would count as a success
+            raise PihimInputError(f"a verdict must be an EdgeSuccess or a bool, got {verdict!r}")
         ok += int(passed)
         bad += int(not passed)
     return SuccessRate(str(image_type), ok, bad)
