@@ -411,3 +411,20 @@ def test_with_drive_matches_tracking_at_the_tracked_angles_and_moves_otherwise()
     np.testing.assert_allclose(up.normals, np.tile([0.0, 0.0, 1.0], (len(field), 1)), atol=1e-12)
     np.testing.assert_allclose(up.mirror_centres[:, 2], field.pivots[:, 2] + field.spec.pivot_offset_m)
     np.testing.assert_allclose(up.facet_normals_local, pose.facet_normals_local)
+
+
+def test_track_field_refuses_a_sun_below_the_horizon_and_shapes_it_cannot_use():
+    """A sun below the horizon gave mirrors facing the ground; wrong shapes were numpy broadcasting errors."""
+    field = nsttf_like_field()
+    for sun, says in (([0.3, -0.4, -0.2], "not above the horizon"), ([0.3, -0.4, 0.0], "not above the horizon"),
+                      ([[0.0, 0.0, 1.0]] * 2, r"one direction, shape \(3,\)"), ([0.0, 1.0], "3 components")):
+        with pytest.raises(PihimInputError, match=says):
+            track_field(field, sun)
+    with pytest.raises(PihimInputError, match=r"canting_focal_length_m must be one focal length or one per"):
+        track_field(field, [0.0, 0.0, 1.0], canting_focal_length_m=np.ones(5))
+    with pytest.raises(PihimInputError, match="aim_point must be one point or one per heliostat"):
+        track_field(field, [0.0, 0.0, 1.0], np.ones((5, 3)))
+    with pytest.raises(PihimInputError, match="field must be a pihim.field.Field"):
+        track_field(None, [0.0, 0.0, 1.0])
+    flat = track_field(field, [0.0, 0.0, 1.0], canting_focal_length_m=np.inf)  # inf: flat facets
+    np.testing.assert_allclose(flat.facet_normals_local[..., 2], 1.0)

@@ -761,14 +761,33 @@ def track_field(
     Returns
     -------
     FieldPose
+
+    Raises
+    ------
+    PihimInputError
+        Not a field; a sun direction that is not one finite 3-vector above
+        the horizon; an aim point or focal lengths of the wrong shape.
     """
-    pivots = field.pivots  # type: ignore[attr-defined]
-    spec = field.spec  # type: ignore[attr-defined]
-    aim = field.default_aim_point if aim_point is None else _vec3("aim_point", aim_point)  # type: ignore[attr-defined]
-    normals, centres = tracking_normals(pivots, sun_dir, aim, spec.pivot_offset_m)
+    if not (hasattr(field, "pivots") and hasattr(field, "spec")):
+        raise PihimInputError(f"field must be a pihim.field.Field, got {type(field).__name__}")
+    pivots = field.pivots
+    spec = field.spec
+    sun = _vec3("sun_dir", sun_dir)
+    if sun.shape != (3,):
+        raise PihimInputError(f"sun_dir must be one direction, shape (3,), got shape {sun.shape}")
+    if sun[2] <= 0:  # the mirrors would face the ground (track_at and build_plan refuse such times too)
+        raise PihimInputError(f"the sun is not above the horizon (sun_dir z = {sun[2]:g}): heliostats do not track it")
+    aim = field.default_aim_point if aim_point is None else _vec3("aim_point", aim_point)
+    if aim.ndim == 2 and len(aim) != len(pivots):
+        raise PihimInputError(f"aim_point must be one point or one per heliostat ({len(pivots)}), got {len(aim)}")
+    normals, centres = tracking_normals(pivots, sun, aim, spec.pivot_offset_m)
     rot = heliostat_rotation(normals)
     if canting_focal_length_m is not None:
-        f = np.broadcast_to(np.asarray(canting_focal_length_m, dtype=float), (len(pivots),))
+        f = np.asarray(canting_focal_length_m, dtype=float)
+        if f.ndim > 1 or (f.ndim == 1 and len(f) != len(pivots)):
+            raise PihimInputError(f"canting_focal_length_m must be one focal length or one per heliostat "
+                                  f"({len(pivots)}), got shape {f.shape}")  # (its values: design_facet_normals)
+        f = np.broadcast_to(f, (len(pivots),))
     else:
         f = focal_lengths(pivots, aim if canting_aim_point is None else canting_aim_point)
     local = design_facet_normals(spec.facet_centroids, f)
