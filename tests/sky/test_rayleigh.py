@@ -118,3 +118,11 @@ def test_bad_inputs():
         rayleigh_stokes(np.zeros((2, 3)), SUN)
     with pytest.raises(PihimInputError):
         rayleigh_stokes(v[:, :2], SUN)
+
+
+def test_rayleigh_dolp_refuses_a_maximum_beyond_one():
+    """rayleigh_dolp(90, dmax=2) returned 2.0 (SkyModel refused dmax > 1, the function did not)."""
+    for dmax in (2.0, -0.1, float("nan")):
+        with pytest.raises(PihimInputError, match=r"dmax must lie in \[0, 1\]"):
+            rayleigh_dolp(90.0, dmax)
+    assert rayleigh_dolp(90.0, 1.0) == pytest.approx(1.0)

@@ -203,3 +203,13 @@ def test_from_angles_folds_azimuth_into_0_360(azimuth, folded):
     pos = SunPosition.from_angles(30.0, azimuth)
     assert 0.0 <= float(pos.azimuth_deg) < 360.0
     assert float(pos.azimuth_deg) == pytest.approx(folded, abs=1e-12)
+
+
+def test_direction_angles_out_of_their_domain_are_refused():
+    """Zenith 200 was accepted and came back as (160, 180); a zero vector came back as (0, 0)."""
+    for zen in (200.0, -1.0, [10.0, 181.0]):
+        with pytest.raises(PihimInputError, match=r"zenith_deg must lie in \[0, 180\]"):
+            direction_from_angles(zen, 0.0)
+    with pytest.raises(PihimInputError, match="a zero vector has no direction"):
+        angles_from_direction([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
+    np.testing.assert_allclose(direction_from_angles(180.0, 0.0), [0.0, 0.0, -1.0], atol=1e-15)  # the nadir is fine

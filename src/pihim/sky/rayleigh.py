@@ -59,7 +59,13 @@ __all__ = [
 
 
 def rayleigh_dolp(scattering_angle_deg: ArrayLike, dmax: float = 1.0) -> NDArray[np.float64]:
-    """Rayleigh single-scattering DoLP ``dmax sin^2 g / (1 + cos^2 g)`` for scattering angles in degrees."""
+    """Rayleigh single-scattering DoLP ``dmax sin^2 g / (1 + cos^2 g)`` for scattering angles in degrees.
+
+    ``dmax`` (the DoLP at 90 deg from the sun) must lie in [0, 1], as in
+    :class:`pihim.sky.model.SkyModel`.
+    """
+    if not 0.0 <= dmax <= 1.0:
+        raise PihimInputError(f"dmax must lie in [0, 1], got {dmax!r}")
     g_rad = np.radians(np.asarray(scattering_angle_deg, dtype=float))
     c2 = np.cos(g_rad) ** 2
     return dmax * (1.0 - c2) / (1.0 + c2)

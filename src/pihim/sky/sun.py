@@ -253,8 +253,14 @@ def direction_from_angles(zenith_deg: ArrayLike, azimuth_deg: ArrayLike) -> NDAr
     """Unit ENU vectors ``(..., 3)`` from zenith and azimuth (deg, azimuth clockwise from North).
 
     ``x = sin Z sin A`` (East), ``y = sin Z cos A`` (North), ``z = cos Z`` (Up).
+    The zenith angle must lie in [0, 180] deg (any azimuth is taken modulo
+    360): outside it, :func:`angles_from_direction` would not give it back.
     """
-    z_rad = np.radians(np.asarray(zenith_deg, dtype=float))
+    zen = np.asarray(zenith_deg, dtype=float)
+    out = (zen < 0.0) | (zen > 180.0)
+    if np.any(out):
+        raise PihimInputError(f"zenith_deg must lie in [0, 180], got values such as {zen[out].ravel()[0]:g}")
+    z_rad = np.radians(zen)
     a_rad = np.radians(np.asarray(azimuth_deg, dtype=float))
     z_rad, a_rad = np.broadcast_arrays(z_rad, a_rad)
     sz = np.sin(z_rad)
@@ -271,6 +277,8 @@ def angles_from_direction(v: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np
     if v.shape[-1:] != (3,):
         raise PihimInputError(f"directions need 3 components on the last axis, got shape {v.shape}")
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    if np.any((x == 0) & (y == 0) & (z == 0)):
+        raise PihimInputError("a zero vector has no direction (angles_from_direction)")
     zen = np.degrees(np.arctan2(np.hypot(x, y), z))
     az = np.mod(np.degrees(np.arctan2(x, y)), 360.0)
     az = np.where(az >= 360.0, 0.0, az)
