@@ -428,3 +428,15 @@ def test_track_field_refuses_a_sun_below_the_horizon_and_shapes_it_cannot_use():
         track_field(None, [0.0, 0.0, 1.0])
     flat = track_field(field, [0.0, 0.0, 1.0], canting_focal_length_m=np.inf)  # inf: flat facets
     np.testing.assert_allclose(flat.facet_normals_local[..., 2], 1.0)
+
+
+def test_zero_and_non_unit_normals_are_refused():
+    """A zero normal gave NaN drive angles and rotations; reflect() returned the direction unchanged for a zero
+    normal and tripled it for [0, 0, 2]."""
+    for fn in (drive_angles, heliostat_rotation):
+        with pytest.raises(PihimInputError, match="normals must be non-zero vectors"):
+            fn([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
+    for n in ([0.0, 0.0, 0.0], [0.0, 0.0, 2.0]):
+        with pytest.raises(PihimInputError, match="normals must be unit vectors"):
+            reflect([0.0, 0.0, -1.0], n)
+    np.testing.assert_allclose(reflect([0.0, 0.0, -1.0], [0.0, 0.0, 1.0]), [0.0, 0.0, 1.0])

@@ -314,7 +314,17 @@ def _one_line(exc: pytest.ExceptionInfo) -> str:
 
 
 def test_sun_below_the_horizon_is_refused() -> None:
-    night = track_field(FIELD, np.array([0.0, -0.9, -0.2]), AIM)
+    from dataclasses import replace
+
+    from pihim.field.kinematics import tracking_normals
+
+    night_sun = np.array([0.0, -0.9, -0.2])
+    with pytest.raises(PihimInputError, match="the sun is not above the horizon"):
+        track_field(FIELD, night_sun, AIM)
+    # a pose tracking a sun below the horizon, made by hand: the planner sees it from the normals
+    day = track_field(FIELD, np.array([0.0, -0.9, 0.4]), AIM)
+    normals, centres = tracking_normals(FIELD.pivots, night_sun, AIM, FIELD.spec.pivot_offset_m)
+    night = replace(day, normals=normals, mirror_centres=centres)
     with pytest.raises(PihimInputError, match="below the horizon") as e:
         plan_passes(FIELD, night, aim_point=AIM, origin=ORIGIN)
     _one_line(e)

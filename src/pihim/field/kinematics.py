@@ -74,7 +74,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from pihim.errors import PihimInputError
-from pihim.polarimetry.frames import dot, normalize
+from pihim.polarimetry.frames import dot
 
 __all__ = [
     "BackStructure",
@@ -115,14 +115,33 @@ def _vec3(name: str, a: ArrayLike) -> NDArray[np.float64]:
     return v
 
 
+def _unit(name: str, a: ArrayLike) -> NDArray[np.float64]:
+    """Finite non-zero 3-vectors (last axis), normalised; a zero vector has no direction (it gave NaN)."""
+    v = _vec3(name, a)
+    length = np.linalg.norm(v, axis=-1, keepdims=True)  # as polarimetry.frames.normalize: the same bits
+    if np.any(length == 0.0):
+        raise PihimInputError(f"{name} must be non-zero vectors (a zero vector has no direction)")
+    return v / length
+
+
 def _norm(v: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.sqrt(np.einsum("...i,...i->...", v, v))
 
 
 def reflect(directions: ArrayLike, normals: ArrayLike) -> NDArray[np.float64]:
-    """Specular reflection ``d - 2 (d . n) n`` of propagation directions (``n`` unit)."""
-    d = np.asarray(directions, dtype=float)
-    n = np.asarray(normals, dtype=float)
+    """Specular reflection ``d - 2 (d . n) n`` of propagation directions (``n`` unit).
+
+    Raises
+    ------
+    PihimInputError
+        Vectors without 3 components or not finite, or normals that are not
+        unit vectors (within 1e-6): the formula needs them so (a zero normal
+        returned the direction unchanged, ``[0, 0, 2]`` tripled it).
+    """
+    d = _vec3("directions", directions)
+    n = _vec3("normals", normals)
+    if np.any(np.abs(_norm(n) - 1.0) > 1e-6):
+        raise PihimInputError("normals must be unit vectors (normalize them first)")
     return d - 2.0 * dot(d, n)[..., None] * n
 
 
@@ -269,7 +288,7 @@ def drive_angles(normals: ArrayLike, *, vertical_azimuth_deg: float = 180.0) -> 
         ``(azimuth_deg, elevation_deg)`` arrays of shape (...); ``.back_*``
         give the back of the mirror.
     """
-    n = normalize(_vec3("normals", normals))
+    n = _unit("normals", normals)
     horiz = np.hypot(n[..., 0], n[..., 1])
     az = np.mod(np.degrees(np.arctan2(n[..., 0], n[..., 1])), 360.0)
     az = np.where(horiz < _VERTICAL_EPS, float(vertical_azimuth_deg) % 360.0, az)
@@ -311,7 +330,7 @@ def heliostat_rotation(normals: ArrayLike, *, vertical_azimuth_deg: float = 180.
     ndarray, shape (..., 3, 3)
         Rotation matrices (orthonormal, det +1).
     """
-    n = normalize(_vec3("normals", normals))
+    n = _unit("normals", normals)
     x = np.stack([-n[..., 1], n[..., 0], np.zeros(n.shape[:-1])], axis=-1)
     h = np.hypot(x[..., 0], x[..., 1])
     weak = h < _VERTICAL_EPS
@@ -472,8 +491,8 @@ def canting_deviation(
     -------
     az_mrad, el_mrad : ndarray, shape (...)
     """
-    d = normalize(_vec3("design_normals", design_normals))
-    a = normalize(_vec3("actual_normals", actual_normals))
+    d = _unit("design_normals", design_normals)
+    a = _unit("actual_normals", actual_normals)
     d, a = np.broadcast_arrays(d, a)
     phi = np.arctan2(a[..., 0], a[..., 2])
     rho = np.hypot(a[..., 0], a[..., 2])
@@ -492,7 +511,7 @@ def canting_angles(facet_normals: ArrayLike) -> tuple[NDArray[np.float64], NDArr
     Equal to ``canting_deviation((0, 0, 1), n)``: ``az = atan2(n_x, n_z)``,
     ``el = asin(n_y)``.
     """
-    n = normalize(_vec3("facet_normals", facet_normals))
+    n = _unit("facet_normals", facet_normals)
     return np.arctan2(n[..., 0], n[..., 2]) * 1e3, np.arctan2(n[..., 1], np.hypot(n[..., 0], n[..., 2])) * 1e3
 
 
@@ -503,7 +522,7 @@ def facet_rotations(facet_normals: ArrayLike) -> NDArray[np.float64]:
     (:func:`canting_angles`): ``R_y(az) R_x(-el)``, so ``z`` = the facet
     normal, ``x = (n_z, 0, -n_x) / hypot(n_x, n_z)`` and ``y = z x x``.
     """
-    n = normalize(_vec3("facet_normals", facet_normals))
+    n = _unit("facet_normals", facet_normals)
     h = np.hypot(n[..., 0], n[..., 2])
     x = np.stack([n[..., 2] / h, np.zeros(h.shape), -n[..., 0] / h], axis=-1)
     return np.stack([x, np.cross(n, x), n], axis=-1)
