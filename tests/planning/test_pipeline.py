@@ -85,3 +85,13 @@ def test_a_flight_over_the_item_limit_is_named_in_flight_order_with_workers(fiel
 def test_bad_worker_counts_are_refused_before_planning(field, workers):
     with pytest.raises(PihimInputError, match="workers"):
         pipeline.build_plan(field, WHEN, NSTTF, workers=workers)
+
+
+def test_time_and_site_as_text_and_a_site_that_is_none_of_them(field):
+    """site='nsttf' was refused as a bad 'origin' (sun_position takes it); a text time was an AttributeError."""
+    plan = pipeline.build_plan(field, "2021-05-13T10:00-06:00", "nsttf", facet_report=False)
+    assert plan.time_iso == WHEN.isoformat() and plan.site == NSTTF.as_dict()
+    with pytest.raises(PihimInputError, match="site must be a pihim.sky.sun.Site, 'nsttf' or 'LAT,LON,H', got 3"):
+        pipeline.build_plan(field, WHEN, 3)
+    with pytest.raises(PihimInputError, match="no UTC offset"):
+        pipeline.build_plan(field, "2021-05-13T13:00", NSTTF)

@@ -84,7 +84,8 @@ class GeodeticOrigin:
                               ("height_m", self.height_m, math.inf)):
             if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v) \
                     or abs(v) > lim:
-                raise PihimInputError(f"GeodeticOrigin.{label} must be a finite number within +/-{lim:g}, got {v!r}")
+                within = "" if math.isinf(lim) else f" within +/-{lim:g}"
+                raise PihimInputError(f"GeodeticOrigin.{label} must be a finite number{within}, got {v!r}")
             object.__setattr__(self, label, float(v))
 
 

@@ -35,7 +35,7 @@ from pihim.planning.facet_captures import FacetCaptureSettings, plan_facet_captu
 from pihim.planning.route import RouteSettings, plan_flights, turns
 from pihim.planning.scoring import ScoringModel, ShiftSearch, build_scene, coverage, score_passes
 from pihim.planning.ufacet import MAX_ALTITUDE_LIMIT_M, home_waypoint, plan_ufacet, track_at
-from pihim.sky.sun import Site
+from pihim.sky.sun import Site, parse_site, parse_time
 
 
 def _record(obj: Any) -> dict[str, Any]:
@@ -49,8 +49,8 @@ def _record(obj: Any) -> dict[str, Any]:
 
 def build_plan(
     field: Any,
-    time: datetime,
-    site: Site,
+    time: datetime | str,
+    site: Site | str,
     *,
     aim_point: ArrayLike | None = None,
     max_altitude_m: float = 25.0,
@@ -74,10 +74,12 @@ def build_plan(
     Parameters
     ----------
     field : pihim.field.Field
-    time : datetime
-        Timezone-aware instant.
-    site : Site
-        Where the field's origin is (sun position and WGS84 conversion).
+    time : datetime or str
+        Timezone-aware instant (or ISO 8601 text with a UTC offset).
+    site : Site or str
+        Where the field's origin is (sun position and WGS84 conversion); a
+        string is read by :func:`pihim.sky.sun.parse_site` (``"nsttf"``,
+        ``"LAT,LON,H"``).
     aim_point : array_like, optional
         ENU aim point of the tracking heliostats; the field's tower target if omitted.
     max_altitude_m : float
@@ -138,6 +140,11 @@ def build_plan(
         With ``summary`` holding counts, coverage, throughput, the fleet estimate and timings.
     """
     t0 = _time.perf_counter()
+    time = parse_time(time)  # an ISO 8601 string too; a naive time is refused
+    if isinstance(site, str):  # "nsttf" or "LAT,LON,H", as sun_position takes it
+        site = parse_site(site)
+    if not isinstance(site, Site):
+        raise PihimInputError(f"site must be a pihim.sky.sun.Site, 'nsttf' or 'LAT,LON,H', got {site!r}")
     if not (math.isfinite(max_altitude_m) and 0 < max_altitude_m <= MAX_ALTITUDE_LIMIT_M):
         raise PihimInputError(f"maximum altitude must be in (0, {MAX_ALTITUDE_LIMIT_M:g}] m, got {max_altitude_m:g}")
     aim = np.asarray(field.default_aim_point if aim_point is None else aim_point, dtype=float)
