@@ -364,6 +364,13 @@ def test_bad_numbers_are_refused(kwargs) -> None:
         plan_passes(FIELD, POSE, aim_point=AIM, origin=ORIGIN, **kwargs)
 
 
+@pytest.mark.parametrize("label", ["flux_check", "extra_passes"])
+def test_switches_are_true_or_false(label) -> None:
+    """flux_check="no" was taken for True."""
+    with pytest.raises(PihimInputError, match=f"UfacetSettings.{label} must be True or False, got 'no'"):
+        UfacetSettings(**{label: "no"})
+
+
 def test_origin_is_required() -> None:
     with pytest.raises(TypeError):
         plan_passes(FIELD, POSE, aim_point=AIM)  # type: ignore[call-arg]

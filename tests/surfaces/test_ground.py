@@ -547,6 +547,9 @@ def test_paper_defaults():
         ({"diffuse_albedo": 1.5}, "diffuse_albedo"),
         ({"sun_irradiance": -5.0}, "sun_irradiance"),
         ({"density": "gaussian"}, "density"),
+        # truthy values were taken at their word: True as 1 deg, "no" as True
+        ({"sigma_deg": True}, "sigma_deg"),
+        ({"include_shadowing": "no"}, "include_shadowing must be True or False"),
     ],
 )
 def test_invalid_model_parameters(kwargs, match):

@@ -318,6 +318,9 @@ class UfacetSettings:
             raise PihimInputError("gimbal pitch limits must satisfy -90 <= min < max <= 90 deg")
         if not 0 <= self.corner_inset < 1 or self.tower_clearance_m < 0:
             raise PihimInputError("corner_inset must be in [0, 1) and tower_clearance_m >= 0")
+        for label in ("extra_passes", "flux_check"):  # "no" would be taken for True
+            if not isinstance(getattr(self, label), (bool, np.bool_)):
+                raise PihimInputError(f"UfacetSettings.{label} must be True or False, got {getattr(self, label)!r}")
 
 
 @dataclass(frozen=True)

@@ -616,8 +616,10 @@ class GroundModel:
 
     def __post_init__(self) -> None:
         s = self.sigma_deg
-        if not (isinstance(s, (int, float)) and math.isfinite(s) and 0.0 < s <= 90.0):
+        if isinstance(s, bool) or not (isinstance(s, (int, float)) and math.isfinite(s) and 0.0 < s <= 90.0):
             raise PihimInputError(f"sigma_deg must be in (0, 90] deg, got {s!r}")
+        if not isinstance(self.include_shadowing, (bool, np.bool_)):  # "no" would be taken for True
+            raise PihimInputError(f"include_shadowing must be True or False, got {self.include_shadowing!r}")
         n = self.refractive_index
         if not (isinstance(n, (int, float)) and math.isfinite(n) and n > 1.0):
             raise PihimInputError(f"refractive_index must be a real number > 1, got {n!r}")
