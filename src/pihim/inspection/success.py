@@ -341,8 +341,8 @@ def scenario_mask(labels: ArrayLike, heliostat: int, background: str = "sky", *,
     Parameters
     ----------
     labels : array_like of int, shape (H, W, >= 4)
-        Label image of the frame (channels ``kind``, ``direct_heliostat``,
-        ``direct_facet``, ``end_kind``; :data:`pihim.render.frame.LABEL_CHANNELS`).
+        Label image of the frame (channels ``direct_kind``, ``direct_heliostat``,
+        ``direct_facet``, ``seen_kind``, ...; :data:`pihim.render.frame.LABEL_CHANNELS`).
     heliostat : int
         Label index of the heliostat.
     background : {"sky", "ground"}
