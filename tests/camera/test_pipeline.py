@@ -194,3 +194,16 @@ def test_out_writes_into_preallocated_arrays(demosaic):
         assert np.array_equal(getattr(again, name), getattr(fresh, name), equal_nan=True)
     with pytest.raises(PihimInputError, match=r"out.s0 must be a writeable C-contiguous float32 array of shape"):
         polar_image(m1[:, :-2], demosaic=demosaic, out=buf)
+
+
+@pytest.mark.parametrize(("kwargs", "says"), [
+    ({"layout": "imx250mzr"}, "layout must be a MosaicLayout"),  # was an AttributeError
+    ({"analyser": np.tile([0.5, 0.5, 0.0], (4, 1))}, "analyser must be an AnalyserMatrix"),  # "truth value ambiguous"
+    ({"dark_level": "5"}, "dark_level must be a number, got '5'"),  # TypeError
+    ({"bit_depth": "12"}, "bit_depth must be a number"),
+    ({"bit_depth": True}, "bit_depth must be a number, got True"),  # said "True-bit"
+])
+def test_arguments_of_the_wrong_kind_are_named(kwargs, says):
+    raw = np.full((4, 4), 100, np.uint16)
+    with pytest.raises(PihimInputError, match=says):
+        polar_image(raw, **kwargs)

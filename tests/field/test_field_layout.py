@@ -407,3 +407,11 @@ def test_fifo_field_file_refused(tmp_path: Path) -> None:
     os.mkfifo(p)
     with pytest.raises(PihimInputError, match="not a regular file"):
         load_field(p)
+
+
+def test_one_name_given_for_several_is_one_heliostat():
+    """indices("5E1") read the characters "5", "E", "1" (and said "'5' is not a heliostat name")."""
+    field = nsttf_like_field()
+    np.testing.assert_array_equal(field.indices("5E1"), [field.index("5E1")])
+    np.testing.assert_array_equal(field.indices(["5E1", "8W3"]), [field.index("5E1"), field.index("8W3")])
+    assert field.subset("5E1").names == ("5E1",)

@@ -272,6 +272,15 @@ def polar_image(
     check_mosaic_shape(raw)
     if demosaic not in DEMOSAIC_METHODS:
         raise PihimInputError(f"unknown demosaic method {demosaic!r}; choose one of {', '.join(DEMOSAIC_METHODS)}")
+    if not isinstance(layout, MosaicLayout):
+        raise PihimInputError(f"layout must be a MosaicLayout (MosaicLayout.parse('imx250mzr')), got {layout!r}")
+    if analyser is not None and not isinstance(analyser, AnalyserMatrix):
+        raise PihimInputError(f"analyser must be an AnalyserMatrix (AnalyserMatrix(matrix) for a 4x3 array), "
+                              f"got {type(analyser).__name__}")
+    for name, value in (("dark_level", dark_level), ("bit_depth", bit_depth), ("saturation_level", saturation_level)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float, np.integer,
+                                                                                     np.floating))):
+            raise PihimInputError(f"{name} must be a number, got {value!r}")
     if raw.dtype.kind == "f":
         depth = None
         sat = np.inf if saturation_level is None else float(saturation_level)

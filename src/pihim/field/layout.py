@@ -583,7 +583,13 @@ class Field:
             ) from None
 
     def indices(self, names: Iterable[str]) -> NDArray[np.int64]:
-        """Array indices of several heliostats (see :meth:`index`)."""
+        """Array indices of several heliostats (see :meth:`index`); one name alone is one heliostat.
+
+        (A string is itself iterable: ``"5E1"`` was read as the names
+        ``"5"``, ``"E"`` and ``"1"``.)
+        """
+        if isinstance(names, str):
+            names = [names]
         return np.array([self.index(n) for n in names], dtype=np.int64)
 
     def _heliostat_at(self, i: int) -> Heliostat:
