@@ -351,3 +351,17 @@ def test_ulog_header_layout() -> None:
     assert struct.unpack("<HB", b[16:19]) == (40, ord("B"))
     enu = geodetic_to_enu(ORIGIN.latitude_deg, ORIGIN.longitude_deg, ORIGIN.height_m, ORIGIN)
     np.testing.assert_allclose(enu, 0.0, atol=1e-9)
+
+
+def test_gps_times_and_attitudes_that_cannot_be_are_refused() -> None:
+    """NaN raised 'cannot convert float NaN to integer' or scipy's 'zero norm quaternions'; a week's worth of
+    milliseconds and more was accepted."""
+    for week, ms in ((math.nan, 0.0), (2160, math.inf), (2160, 604_800_000.0), (-1, 0.0), (2160, -5.0)):
+        with pytest.raises(PihimInputError, match="GPS week"):
+            gps_to_utc(week, ms)
+    with pytest.raises(PihimInputError, match="UTC time must be a finite number"):
+        utc_to_gps(math.nan)
+    with pytest.raises(PihimInputError, match="angles must be finite"):
+        camera_pose_from_attitude([0.0, 0.0, 30.0], 0.0, math.nan, 90.0)
+    week, ms = utc_to_gps(1.62e9)
+    assert gps_to_utc(week, ms) == pytest.approx(1.62e9, abs=1e-3)

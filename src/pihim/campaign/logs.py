@@ -171,8 +171,20 @@ def _leap(utc_s: float) -> int:
 
 
 def gps_to_utc(week: ArrayLike, ms_of_week: ArrayLike) -> NDArray[np.float64]:
-    """GPS week and milliseconds of week to UTC seconds since the Unix epoch (leap seconds removed)."""
-    gps = _GPS_EPOCH + np.asarray(week, float) * _WEEK_S + np.asarray(ms_of_week, float) * 1e-3
+    """GPS week and milliseconds of week to UTC seconds since the Unix epoch (leap seconds removed).
+
+    Raises
+    ------
+    PihimInputError
+        A week or millisecond count that is not finite, negative, or (the
+        milliseconds) a week or more.
+    """
+    w, ms = np.asarray(week, float), np.asarray(ms_of_week, float)
+    if not (np.all(np.isfinite(w)) and np.all(np.isfinite(ms))):
+        raise PihimInputError("GPS week and milliseconds of week must be finite numbers")
+    if np.any(w < 0) or np.any(ms < 0) or np.any(ms >= _WEEK_S * 1e3):
+        raise PihimInputError(f"GPS week must be >= 0 and milliseconds of week in [0, {_WEEK_S * 1e3:.0f})")
+    gps = _GPS_EPOCH + w * _WEEK_S + ms * 1e-3
     approx = np.atleast_1d(gps)
     leaps = np.array([_leap(float(t) - 18.0) for t in approx])
     return (approx - leaps).reshape(np.shape(gps))
@@ -180,6 +192,8 @@ def gps_to_utc(week: ArrayLike, ms_of_week: ArrayLike) -> NDArray[np.float64]:
 
 def utc_to_gps(utc_s: float) -> tuple[int, int]:
     """UTC seconds since the Unix epoch to ``(GPS week, milliseconds of week)`` (inverse of :func:`gps_to_utc`)."""
+    if not math.isfinite(float(utc_s)):
+        raise PihimInputError(f"UTC time must be a finite number of seconds, got {utc_s!r}")
     g = float(utc_s) + _leap(float(utc_s)) - _GPS_EPOCH
     week = int(g // _WEEK_S)
     return week, int(round((g - week * _WEEK_S) * 1e3))
@@ -241,6 +255,9 @@ def camera_pose_from_attitude(position_enu: ArrayLike, roll_deg: float, pitch_de
     With ``mode="earth"`` the vehicle's angles do not enter; with
     ``"stabilized"`` only its yaw does.
     """
+    angles = (roll_deg, pitch_deg, yaw_deg, gimbal_pitch_deg, gimbal_yaw_deg, gimbal_roll_deg)
+    if not all(np.all(np.isfinite(np.asarray(a, float))) for a in angles):  # scipy said "zero norm quaternions"
+        raise PihimInputError("attitude and gimbal angles must be finite numbers of degrees")
     rot = camera_rotation(_euler(yaw_deg, pitch_deg, roll_deg), _euler(gimbal_yaw_deg, gimbal_pitch_deg,
                                                                         gimbal_roll_deg), mode)
     return _pose_from_ned(np.asarray(position_enu, float), rot)
