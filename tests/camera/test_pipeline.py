@@ -207,3 +207,11 @@ def test_arguments_of_the_wrong_kind_are_named(kwargs, says):
     raw = np.full((4, 4), 100, np.uint16)
     with pytest.raises(PihimInputError, match=says):
         polar_image(raw, **kwargs)
+
+
+@pytest.mark.parametrize(("bits", "shift"), [(0, 0), (17, 0), (12, -1), (12, 5), (True, 0), (12.0, 0)])
+def test_a_bit_depth_that_fits_no_16_bit_word_is_refused(bits, shift):
+    """BitDepth(0) and BitDepth(12, shift=-1) were accepted."""
+    with pytest.raises(PihimInputError, match="BitDepth|do not fit a 16-bit word"):
+        BitDepth(bits, shift=shift)
+    assert BitDepth(12, shift=4).full_scale == 4095

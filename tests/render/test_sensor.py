@@ -282,3 +282,10 @@ def test_mosaic_from_stokes_refuses_what_it_used_to_turn_into_zeros(kwargs, says
         mosaic_from_stokes(args.pop("s0"), args.pop("s1"), args.pop("s2"), **args)
     # the float mosaic keeps a NaN where the scene has one (nothing is quantised)
     assert np.isnan(mosaic_from_stokes(np.full((4, 4), np.nan), 0.0, 0.0, bit_depth=None)).all()
+
+
+@pytest.mark.parametrize(("name", "value"), [("percentile", 200.0), ("percentile", -1.0), ("clipped_fraction", 1.5)])
+def test_an_exposure_record_out_of_range_is_refused(name, value):
+    """Exposure(1, percentile=200) was accepted."""
+    with pytest.raises(PihimInputError, match=f"{name} must be in"):
+        Exposure(1.0, **{name: value})

@@ -38,6 +38,13 @@ class BitDepth:
     bits: int
     shift: int = 0
 
+    def __post_init__(self) -> None:
+        for name, value, lo, hi in (("bits", self.bits, 1, 16), ("shift", self.shift, 0, 15)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not lo <= value <= hi:
+                raise PihimInputError(f"BitDepth.{name} must be an integer in {lo}..{hi}, got {value!r}")
+        if self.bits + self.shift > 16:
+            raise PihimInputError(f"{self.bits} bits shifted by {self.shift} do not fit a 16-bit word")
+
     @property
     def full_scale(self) -> int:
         """Largest raw value after the shift, ``2**bits - 1``."""

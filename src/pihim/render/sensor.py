@@ -197,6 +197,10 @@ class Exposure:
             v = getattr(self, name)
             if v is not None:
                 object.__setattr__(self, name, finite_number(v, name))
+        for name, hi in (("percentile", 100.0), ("clipped_fraction", 1.0)):
+            v = getattr(self, name)
+            if v is not None and not 0.0 <= v <= hi:
+                raise PihimInputError(f"{name} must be in [0, {hi:g}], got {v!r}")
 
     def describe(self) -> dict[str, Any]:
         """JSON-ready summary."""
