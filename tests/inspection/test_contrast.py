@@ -117,3 +117,10 @@ def test_bad_roi_input():
         roi_pair_contrast(np.zeros((2, 2, 2)), (1.0, 1.0), (1.0, 0.0))
     empty = roi_pair_contrast(img, (-500.0, -500.0), (1.0, 0.0), size=(10, 10))
     assert empty.n_a == empty.n_b == 0 and math.isnan(empty.mean_a) and math.isnan(empty.contrast)
+
+
+def test_michelson_refuses_negative_means():
+    """michelson_contrast(-1, 0.5) returned 3, outside the [0, 1] it documents."""
+    with pytest.raises(PihimInputError, match="non-negative means, got -1 and 0.5"):
+        michelson_contrast(-1.0, 0.5)
+    assert michelson_contrast(1.0, 0.5) == pytest.approx(1 / 3)

@@ -525,3 +525,12 @@ def test_scoring_defaults_to_the_second_surface_mirror():
     mirror = ScoringModel().mirror
     assert isinstance(mirror, SecondSurfaceMirror)
     assert float(mirror.mueller(1.0)[0, 0]) == pytest.approx(0.9680, abs=5e-4)  # glass + silver at 550 nm
+
+
+def test_min_safe_altitude_is_the_planners_and_refuses_a_margin_under_5_m(pose):
+    """A margin of -50 m gave an altitude below the mirrors; ufacet.minimum_safe_altitude refused it."""
+    from pihim.planning.ufacet import minimum_safe_altitude
+
+    assert min_safe_altitude_m(pose) == minimum_safe_altitude(pose)[0]
+    with pytest.raises(PihimInputError, match="safety_margin_m must be at least 5 m"):
+        min_safe_altitude_m(pose, -50.0)

@@ -538,8 +538,14 @@ def build_scene(pose: Any, sun_dir: ArrayLike, model: ScoringModel | None = None
 
 
 def min_safe_altitude_m(pose: Any, margin_m: float = SAFETY_MARGIN_M) -> float:
-    """Highest mirror corner of the tracked field plus ``margin_m`` (paper: 5 m), metres above the origin."""
-    return float(np.max(np.asarray(pose.mirror_outline())[..., 2])) + float(margin_m)
+    """Highest mirror corner of the tracked field plus ``margin_m`` (paper: 5 m), metres above the origin.
+
+    :func:`pihim.planning.ufacet.minimum_safe_altitude`'s first value: a margin
+    under 5 m (or negative, which put the camera below the mirrors) is refused.
+    """
+    from pihim.planning.ufacet import minimum_safe_altitude
+
+    return minimum_safe_altitude(pose, margin_m)[0]
 
 
 # --------------------------------------------------------------------------- predictions
