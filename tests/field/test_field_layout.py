@@ -415,3 +415,13 @@ def test_one_name_given_for_several_is_one_heliostat():
     np.testing.assert_array_equal(field.indices("5E1"), [field.index("5E1")])
     np.testing.assert_array_equal(field.indices(["5E1", "8W3"]), [field.index("5E1"), field.index("8W3")])
     assert field.subset("5E1").names == ("5E1",)
+
+
+@pytest.mark.parametrize(("args", "says"), [((5, 5, -1.2, 1.2), "facet_width_m must be a finite number > 0"),
+                                            ((5, 5, 1.2, 1.2, -1.0), "gap_m must be a finite number >= 0"),
+                                            ((2.5, 5, 1.2, 1.2), "rows must be a positive integer"),
+                                            ((5, 0, 1.2, 1.2), "cols must be a positive integer")])
+def test_a_facet_grid_that_cannot_be_built_is_refused(args, says):
+    """Negative sizes and gaps (overlapping facets) were accepted; rows=2.5 was a TypeError."""
+    with pytest.raises(PihimInputError, match=says):
+        grid_facet_centroids(*args)

@@ -69,3 +69,11 @@ def test_monotonic_properties():
     near = cie_relative_radiance(direction_from_angles(45.0, 95.0), sun)
     anti = cie_relative_radiance(direction_from_angles(45.0, 270.0), sun)
     assert near > 1.0 > anti
+
+
+@pytest.mark.parametrize("sky_type", [12.5, True, 0, 16, "12"])
+def test_a_cie_sky_type_is_one_of_the_fifteen(sky_type):
+    """12.5 was read as 12 and True as 1."""
+    with pytest.raises(PihimInputError, match="CIE sky type must be an integer 1-15"):
+        cie_parameters(sky_type)
+    assert cie_parameters(np.int64(12)) == CIE_SKY_TYPES[12]

@@ -205,7 +205,20 @@ def grid_facet_centroids(
     Returns
     -------
     ndarray, shape (rows * cols, 3)
+
+    Raises
+    ------
+    PihimInputError
+        Rows or columns that are not positive integers, a facet size that is
+        not positive, a negative gap (overlapping facets).
     """
+    for name, n in (("rows", rows), ("cols", cols)):
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise PihimInputError(f"{name} must be a positive integer, got {n!r}")
+    for name, v, strict in (("facet_width_m", facet_width_m, True), ("facet_height_m", facet_height_m, True),
+                            ("gap_m", gap_m, False)):
+        if not (math.isfinite(v) and (v > 0 if strict else v >= 0)):
+            raise PihimInputError(f"{name} must be a finite number {'>' if strict else '>='} 0 m, got {v!r}")
     xs = (np.arange(cols) - (cols - 1) / 2.0) * (facet_width_m + gap_m)
     ys = ((rows - 1) / 2.0 - np.arange(rows)) * (facet_height_m + gap_m)
     yy, xx = np.meshgrid(ys, xs, indexing="ij")

@@ -79,10 +79,9 @@ CLEAR_SKY_TYPE = 12
 
 def cie_parameters(sky_type: int) -> tuple[float, float, float, float, float]:
     """``(a, b, c, d, e)`` of CIE standard general sky ``sky_type`` (1-15)."""
-    try:
-        return CIE_SKY_TYPES[int(sky_type)]
-    except (KeyError, TypeError, ValueError):
-        raise PihimInputError(f"CIE sky type must be an integer 1-15, got {sky_type!r}") from None
+    if isinstance(sky_type, bool) or not isinstance(sky_type, (int, np.integer)) or sky_type not in CIE_SKY_TYPES:
+        raise PihimInputError(f"CIE sky type must be an integer 1-15, got {sky_type!r}")  # (12.5 was read as 12)
+    return CIE_SKY_TYPES[int(sky_type)]
 
 
 def gradation(zenith_deg: ArrayLike, a: float, b: float) -> NDArray[np.float64]:
