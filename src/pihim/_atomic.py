@@ -196,9 +196,7 @@ def output_target(path: str | os.PathLike[str], *, option: str | None = None) ->
         p = Path(os.path.realpath(p))
     try:
         mode = os.stat(p).st_mode
-    except FileNotFoundError:
-        return p
-    except OSError:  # cannot be looked at: the write reports it
+    except OSError:  # nothing there yet (or it cannot be looked at: the write reports it)
         return p
     if stat.S_ISREG(mode):
         return p

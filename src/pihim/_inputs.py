@@ -22,7 +22,8 @@ from pihim.errors import PihimInputError
 MAX_TEXT_BYTES = 256 << 20
 
 
-def check_regular_file(path: str | os.PathLike[str], what: str = "file", *, option: str | None = None) -> os.stat_result:
+def check_regular_file(path: str | os.PathLike[str], what: str = "file", *,
+                       option: str | None = None) -> os.stat_result:
     """``os.stat`` of ``path``, refusing anything but an existing regular file (symlinks followed).
 
     Raises

@@ -87,8 +87,7 @@ def parse_pose_request(hua: str | None, target: str | None, waypoint: str | None
             raise PihimInputError(f"--waypoint index must be an integer >= 0, got {idx!r}") from None
         if index < 0:
             raise PihimInputError(f"--waypoint index must be an integer >= 0, got {index}")
-        check_regular_file(path, "plan.json file", option="--waypoint")
-        load_json_file(path, "plan file")  # malformed or too deeply nested: one line now, not a traceback later
+        check_regular_file(path, "plan.json file", option="--waypoint")  # its content: _time_for reads it
         return WaypointPose(path, index)
     if camera is None or look_at is None:
         raise PihimInputError("--camera and --look-at go together (--roll needs them)")
@@ -131,7 +130,7 @@ def _time_for(request: PoseRequest, time: str | None, site: Site) -> str:
     from pihim.render.simulate import WaypointPose
 
     planned = None
-    if isinstance(request, WaypointPose):
+    if isinstance(request, WaypointPose):  # malformed or too deeply nested: one line now, not a traceback later
         doc = load_json_file(request.plan_path, "plan file")
         doc = doc if isinstance(doc, dict) else {}
         planned = doc.get("time_iso")

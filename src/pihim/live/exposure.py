@@ -444,7 +444,8 @@ def next_exposure(
     -------
     ExposureDecision
     """
-    if exposure_cap_us is not None and not exposure_cap_us > 0:  # (NaN fails too) -5 commanded the minimum at full gain
+    # (NaN fails too) a cap of -5 us commanded the minimum exposure at full gain
+    if exposure_cap_us is not None and not exposure_cap_us > 0:
         raise PihimInputError(f"exposure_cap_us must be a positive number of microseconds, got {exposure_cap_us!r}")
     if state.hold_frames > 0:
         return ExposureDecision(current, ExposureState(state.hold_frames - 1), False, "hold")

@@ -97,7 +97,8 @@ def check_plan(plan: Any) -> Plan:
         if not p.waypoints:
             raise PihimInputError(f"pass {p.index} (#{k}) has no waypoints")
         if not -90.0 <= p.gimbal_pitch_deg <= 90.0:
-            raise PihimInputError(f"pass {p.index} (#{k}): gimbal_pitch_deg {p.gimbal_pitch_deg!r} is outside [-90, 90]")
+            raise PihimInputError(
+                f"pass {p.index} (#{k}): gimbal_pitch_deg {p.gimbal_pitch_deg!r} is outside [-90, 90]")
         for j, w in enumerate(p.waypoints):
             check_waypoint(w, f"pass {p.index} waypoint {j}")
     for f in plan.flights:
