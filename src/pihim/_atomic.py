@@ -329,8 +329,10 @@ def check_out_dir(out: str | os.PathLike, *, option: str = "--out") -> None:
     ``out`` must be a directory or not exist yet; its nearest existing
     ancestor must be a writable directory; and a missing ``out`` must be
     creatable: it is created and removed again at once (so that, say,
-    ``--out /proc/x`` is refused before a long computation, not after it).
-    Nothing is left behind (see :func:`make_out_dir`).
+    ``--out /proc/x`` is refused before a long computation, not after it);
+    an existing ``out`` must take a file (one is created and removed: the
+    permission bits do not tell, e.g. for root under ``/sys``). Nothing is
+    left behind (see :func:`make_out_dir`).
     """
     p = Path(out)
     if p.exists() and not p.is_dir():
@@ -346,6 +348,12 @@ def check_out_dir(out: str | os.PathLike, *, option: str = "--out") -> None:
                 why = "a read-only file system"
         raise PihimInputError(f"{option} {out}: cannot write in {existing} ({why})")
     if not missing:
+        try:  # access() answers from the mode bits: as root, /sys or a read-only mount looked writable
+            probe = temp_sibling(p / "write-probe")  # named as a temporary: a killed run's is cleaned later
+        except OSError as exc:
+            raise PihimInputError(f"{option} {out}: cannot write in {p} ({describe_os_error(exc)})") from None
+        with contextlib.suppress(OSError):
+            probe.unlink()
         return
     try:
         p.mkdir(parents=True, exist_ok=True)

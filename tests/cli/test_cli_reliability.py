@@ -149,6 +149,23 @@ def test_check_out_dir_tries_the_folder_and_leaves_nothing(tmp_path):
         check_out_dir(tmp_path / "f" / "sub")
 
 
+def test_check_out_dir_tries_a_file_in_an_existing_folder(tmp_path, monkeypatch):
+    """As root, --out /sys passed (access() said writable) and the run failed after computing, naming its temporary."""
+    import errno
+
+    from pihim import _atomic
+
+    check_out_dir(tmp_path)
+    assert list(tmp_path.iterdir()) == []  # the probe is gone again
+
+    def refuse(path, register=None):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(_atomic, "temp_sibling", refuse)
+    with pytest.raises(PihimInputError, match=r"--out .*: cannot write in .* \(Read-only file system\)"):
+        check_out_dir(tmp_path)
+
+
 @pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0, reason="root may write anywhere")
 def test_check_out_dir_refuses_a_folder_it_cannot_write(tmp_path):
     ro = tmp_path / "ro"
