@@ -207,6 +207,9 @@ def test_arguments_of_the_wrong_kind_are_named(kwargs, says):
     raw = np.full((4, 4), 100, np.uint16)
     with pytest.raises(PihimInputError, match=says):
         polar_image(raw, **kwargs)
+    assert polar_image(raw, bit_depth=12.0).bit_depth == BitDepth(12)  # a whole float is its number of bits
+    with pytest.raises(PihimInputError, match="bit_depth must be a whole number of bits, got 12.5"):
+        polar_image(raw, bit_depth=12.5)
 
 
 @pytest.mark.parametrize(("bits", "shift"), [(0, 0), (17, 0), (12, -1), (12, 5), (True, 0), (12.0, 0)])

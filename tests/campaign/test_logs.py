@@ -365,3 +365,12 @@ def test_gps_times_and_attitudes_that_cannot_be_are_refused() -> None:
         camera_pose_from_attitude([0.0, 0.0, 30.0], 0.0, math.nan, 90.0)
     week, ms = utc_to_gps(1.62e9)
     assert gps_to_utc(week, ms) == pytest.approx(1.62e9, abs=1e-3)
+
+
+def test_a_time_rounding_up_to_the_next_gps_week_carries_into_it() -> None:
+    """utc_to_gps gave (week, 604800000) within 0.5 ms of a week's end, which gps_to_utc refuses (a simulated
+    DataFlash log could then not be read back)."""
+    week, ms = utc_to_gps(1.62e9)
+    end = float(gps_to_utc(week, 604_799_999)) + 0.0008  # 0.2 ms before the week's end
+    week2, ms2 = utc_to_gps(end)
+    assert (week2, ms2) == (week + 1, 0) and float(gps_to_utc(week2, ms2)) == pytest.approx(end, abs=1e-3)

@@ -385,10 +385,12 @@ def test_noise_weighting_keeps_a_dark_regions_noise_out_of_the_maps():
             edge_maps(pim.s0, pim.dolp, pim.aop_deg, noise=(sig, np.ones_like(sig)))
 
 
-@pytest.mark.parametrize(("kwargs", "says"), [({"n_sigma": math.nan}, "n_sigma must be a finite number > 0"),
-                                              ({"n_sigma": 0.0}, "n_sigma"), ({"low_ratio": 5.0}, r"low_ratio must be in \(0, 1\]"),
-                                              ({"floor_fraction": -0.1}, r"floor_fraction must be in \[0, 1\]")])
+@pytest.mark.parametrize(("kwargs", "says"), [({"n_sigma": math.nan}, "n_sigma must be a finite number >= 0"),
+                                              ({"n_sigma": -1.0}, "n_sigma"), ({"low_ratio": 5.0}, r"low_ratio must be in \(0, 1\]"),
+                                              ({"floor_fraction": -0.1}, "floor_fraction must be a finite number >= 0")])
 def test_robust_thresholds_refuse_settings_without_meaning(kwargs, says):
-    """n_sigma=nan gave (nan, nan); low_ratio=5 put the low threshold above the high one."""
+    """n_sigma=nan gave (nan, nan); low_ratio=5 put the low threshold above the high one. The bounds are
+    edge_maps' own (n_sigma 0 and floor_fraction 1.5 are accepted by both)."""
     with pytest.raises(PihimInputError, match=says):
         robust_thresholds(np.linspace(0.0, 1.0, 100), **kwargs)
+    robust_thresholds(np.linspace(0.0, 1.0, 100), n_sigma=0.0, floor_fraction=1.5)

@@ -111,6 +111,8 @@ def test_options_of_another_source_are_refused(spec, options, says):
         open_source(spec, **options)
     with pytest.raises(PihimInputError, match=says):
         check_source_options(spec, **options)
+    check_source_options("genicam", pixel_format="Mono12")  # a camera's own format names (docs/live.md)
+    check_source_options("genicam:123", pixel_format="PolarizeMono12")
 
 
 def test_synthetic_source_responds_to_exposure():

@@ -864,6 +864,7 @@ def test_bad_plans_raise_one_line_errors_and_write_nothing(plan, tmp_path, name,
                          (_nan_latitude_plan(plan), "pass 1 waypoint 2: latitude_deg is nan"),
                          # outside plan.schema.json's ranges: were written (a plan.json its own schema refuses)
                          (_nan_latitude_plan(plan, heading_deg=400.0), r"heading_deg 400.0 is outside \[0, 360\)"),
+                         (_nan_latitude_plan(plan, heading_deg=-0.5), r"heading_deg -0.5 is outside \[0, 360\)"),
                          (_nan_latitude_plan(plan, gimbal_pitch_deg=-120.0), r"-120.0 is outside \[-90, 90\]"),
                          (replace(plan, passes=(replace(plan.passes[0], gimbal_pitch_deg=95.0), *plan.passes[1:])),
                           r"pass \d+ \(#0\): gimbal_pitch_deg 95.0 is outside")):
@@ -871,6 +872,12 @@ def test_bad_plans_raise_one_line_errors_and_write_nothing(plan, tmp_path, name,
             writer(bad, tmp_path / name)
         assert "\n" not in str(exc.value)
         assert list(tmp_path.iterdir()) == []
+
+
+def test_a_heading_rounded_to_360_is_exported(plan, tmp_path):
+    """(-1e-14) % 360.0 == 360.0: a planner heading of a hair below 0 must not make the plan unexportable."""
+    assert -1e-14 % 360.0 == 360.0
+    write_plan_json(_nan_latitude_plan(plan, heading_deg=360.0), tmp_path / "plan.json")
 
 
 def test_export_all_bad_plan_writes_nothing(plan, tmp_path):

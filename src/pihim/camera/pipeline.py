@@ -288,6 +288,10 @@ def polar_image(
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float, np.integer,
                                                                                      np.floating))):
             raise PihimInputError(f"{name} must be a number, got {value!r}")
+    if bit_depth is not None and not isinstance(bit_depth, (int, np.integer)):
+        if not float(bit_depth).is_integer():
+            raise PihimInputError(f"bit_depth must be a whole number of bits, got {bit_depth!r}")
+        bit_depth = int(bit_depth)  # 12.0 (from a JSON file, say) is 12 bits
     if raw.dtype.kind == "f":
         depth = None
         sat = np.inf if saturation_level is None else float(saturation_level)

@@ -196,7 +196,10 @@ def utc_to_gps(utc_s: float) -> tuple[int, int]:
         raise PihimInputError(f"UTC time must be a finite number of seconds, got {utc_s!r}")
     g = float(utc_s) + _leap(float(utc_s)) - _GPS_EPOCH
     week = int(g // _WEEK_S)
-    return week, int(round((g - week * _WEEK_S) * 1e3))
+    ms = int(round((g - week * _WEEK_S) * 1e3))
+    if ms >= int(_WEEK_S * 1000):  # rounded up to the next week's first millisecond
+        week, ms = week + 1, ms - int(_WEEK_S * 1000)
+    return week, ms
 
 
 # --------------------------------------------------------------------------- rotations
@@ -750,6 +753,8 @@ def read_dataflash(path: str | os.PathLike[str], *, geoid_undulation_m: float | 
         att = np.array([[r["Yaw"], r["Pitch"], r["Roll"]] for r in rows["ATT"]], float)
     except KeyError as exc:
         raise PihimInputError(f"{p}: DataFlash GPS/ATT messages lack the field {exc.args[0]}") from None
+    except PihimInputError as exc:  # a GPS time out of range: the file is named
+        raise PihimInputError(f"{p}: DataFlash GPS message: {exc}") from None
     offsets = g_utc - g_us * 1e-6
     offset_s = float(np.median(offsets))
     h = alt + _need_undulation(geoid_undulation_m, p, "GPS")

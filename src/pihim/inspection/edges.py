@@ -381,15 +381,14 @@ def robust_thresholds(
     ``high = max(median + n_sigma * 1.4826 * MAD, floor_fraction * P99.5)``
     over the finite values (the MAD-sigma at least 1e-3 of the median);
     ``low = low_ratio * high``. ``(inf, inf)`` if no value is finite.
-    ``n_sigma`` must be finite and > 0, ``floor_fraction`` in [0, 1] and
-    ``low_ratio`` in (0, 1] (low above high is no hysteresis).
+    ``n_sigma`` and ``floor_fraction`` must be finite and >= 0, ``low_ratio``
+    in (0, 1] (low above high is no hysteresis), as :func:`edge_maps` asks.
     """
-    for name, value, lo, hi, open_lo in (("n_sigma", n_sigma, 0.0, math.inf, True),
-                                         ("floor_fraction", floor_fraction, 0.0, 1.0, False),
-                                         ("low_ratio", low_ratio, 0.0, 1.0, True)):
-        if not (math.isfinite(value) and (value > lo if open_lo else value >= lo) and value <= hi):
-            bounds = "a finite number > 0" if math.isinf(hi) else f"in {'(' if open_lo else '['}{lo:g}, {hi:g}]"
-            raise PihimInputError(f"{name} must be {bounds}, got {value!r}")
+    for name, value in (("n_sigma", n_sigma), ("floor_fraction", floor_fraction), ("low_ratio", low_ratio)):
+        if not (math.isfinite(value) and value >= 0):
+            raise PihimInputError(f"{name} must be a finite number >= 0, got {value!r}")
+    if not 0 < low_ratio <= 1:
+        raise PihimInputError(f"low_ratio must be in (0, 1], got {low_ratio!r}")
     g = np.asarray(gradient)
     if g.dtype == np.float32:  # the maps of edge_maps: exact selection without a float64 copy
         from pihim._quantiles import percentiles

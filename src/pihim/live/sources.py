@@ -935,12 +935,12 @@ def check_source_options(spec: str, *, size: tuple[int, int] | None = None, pixe
             _refuse_unused({"--size": size}, "a rendered flight (its frames have their own size)")
         return
     _refuse_unused({"--size": size}, "a folder or a camera (it sizes synthetic frames)")
-    if pixel_format is not None:
+    if low == "genicam" or low.startswith("genicam:"):  # its pixel format is the camera's to accept (Mono12, ...)
+        _refuse_unused(raw_options, "a GenICam camera (its pixel format decides)")
+    elif pixel_format is not None:
         from pihim.camera.frames import normalize_pixel_format
 
-        normalize_pixel_format(pixel_format)  # an unknown name is said as such, whatever the source
-    if low == "genicam" or low.startswith("genicam:"):
-        _refuse_unused(raw_options, "a GenICam camera (its pixel format decides)")
+        normalize_pixel_format(pixel_format)  # an unknown .raw format is said as such, TIFFs in the folder or not
 
 
 def _refuse_unused(options: dict[str, Any], source: str) -> None:

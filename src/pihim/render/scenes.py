@@ -221,6 +221,7 @@ def edge_scene(
     def ground(xx: NDArray, yy: NDArray, gain: float = 1.0, p_gain: float = 1.0, da: float = 0.0) -> StokesField:
         s0 = _linear_field(xx, yy, centre, *g_s0)
         s0 = s0 + 80 * np.sin(2 * np.pi * (xx / (0.7 * scale) + g_phase)) * np.cos(2 * np.pi * yy / (0.9 * scale))
+        s0 = np.maximum(s0, 0.0)  # the gradient crosses zero across a frame ~10x wider than high: black, not negative
         p = np.clip(_linear_field(xx, yy, centre, *g_p) * p_gain, 0.0, 1.0)
         return stokes_from_dolp_aop(gain * s0, p, _linear_field(xx, yy, centre, *g_a) + da)
 

@@ -49,8 +49,9 @@ def check_waypoint(w: Any, where: str) -> None:
     """Raise a one-line :class:`PihimInputError` unless ``w`` is a usable waypoint.
 
     Every numeric field must be finite, latitude within +/-90 deg, longitude
-    within +/-180 deg, the speed non-negative, the heading in [0, 360) and
-    the gimbal pitch in [-90, 90] deg (the ranges of ``plan.schema.json``).
+    within +/-180 deg, the speed non-negative, the heading in [0, 360] and
+    the gimbal pitch in [-90, 90] deg (the ranges of ``plan.schema.json``;
+    a heading of exactly 360 is a rounded -0, which the exporters fold).
     """
     if not isinstance(w, Waypoint):
         raise PihimInputError(f"{where}: expected a Waypoint, got {type(w).__name__}")
@@ -64,7 +65,8 @@ def check_waypoint(w: Any, where: str) -> None:
         raise PihimInputError(f"{where}: longitude_deg {w.longitude_deg!r} is outside [-180, 180]")
     if w.speed_m_s < 0:
         raise PihimInputError(f"{where}: speed_m_s {w.speed_m_s!r} is negative")
-    if not 0.0 <= w.heading_deg < 360.0:  # plan.schema.json, and what every autopilot format takes
+    # [0, 360): plan.schema.json; 360.0 itself passes, as what `x % 360.0` gives for a heading of -1e-14 deg
+    if not 0.0 <= w.heading_deg <= 360.0:
         raise PihimInputError(f"{where}: heading_deg {w.heading_deg!r} is outside [0, 360)")
     if not -90.0 <= w.gimbal_pitch_deg <= 90.0:
         raise PihimInputError(f"{where}: gimbal_pitch_deg {w.gimbal_pitch_deg!r} is outside [-90, 90]")
