@@ -103,7 +103,7 @@ def test_outputs_never_replace_a_device_or_a_pipe(tmp_path):
     os.mkfifo(fifo)
     with pytest.raises(PihimInputError, match="pipe.json: is a named pipe"):
         write_text_atomic(fifo, "{}")
-    with pytest.raises(PihimInputError, match="is a named pipe"), atomic_group([tmp_path / "a.json", fifo]) as tmps:
+    with pytest.raises(PihimInputError, match="is a named pipe"), atomic_group([tmp_path / "a.json", fifo]):
         raise AssertionError("not reached")
     assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["pipe.json"]  # no temporary, nothing else written

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pihim.camera import IMX250MZR, MosaicLayout, polar_image
+from pihim.camera import MosaicLayout, polar_image
 from pihim.camera.demosaic import superpixel
 from pihim.camera.pipeline import BitDepth, resolve_bit_depth
 from pihim.errors import PihimInputError
