@@ -425,3 +425,26 @@ def test_segments_hit_box_is_the_numpy_slab_test_with_its_edge_cases():
     centre, beside = np.array([[0.0, 0.0, 1.5]]), np.array([[5.0, 0.0, 1.5]])
     assert segments_hit_box(centre - [[3.0, 1.0, 0.5]], centre + [[3.0, 1.0, 0.5]], lo, hi)[0]
     assert not segments_hit_box(beside - [[0.0, 3.0, 0.5]], beside + [[0.0, 3.0, 0.5]], lo, hi)[0]
+
+
+def test_count_in_view_is_gaze_angles_then_in_fov():
+    """The fused count of the planner's line settings against the two public steps it replaces: the gaze at
+    each HUA's centre (heading, pitch), the field-of-view test of its facet centres, summed."""
+    from pihim.camera import CameraModel
+    from pihim.planning.sightlines import gaze_angles, in_fov
+
+    rng = np.random.default_rng(5)
+    n_h, k, p = 30, 25, 4000
+    centres = rng.uniform(-60.0, 60.0, (n_h, 3)) * [1.0, 1.0, 0.05] + [0.0, 0.0, 5.0]
+    facets = centres[:, None, :] + rng.normal(scale=3.0, size=(n_h, k, 3))
+    hua = rng.integers(0, n_h, p)
+    cam = centres[hua] + rng.normal(scale=[25.0, 25.0, 10.0], size=(p, 3)) + [0.0, 0.0, 15.0]
+    cam[:5] = centres[hua[:5]] + [0.0, 0.0, 20.0]  # straight above: heading 0 by convention
+    camera = CameraModel()
+    tx = 0.5 * camera.width_px / camera.focal_length_px
+    ty = 0.5 * camera.height_px / camera.focal_length_px
+    got = _kernels.count_in_view(facets, hua, cam, centres, tx, ty)
+    head, pitch = gaze_angles(cam, centres[hua])
+    want = in_fov(facets[hua], cam, head, pitch, camera).sum(axis=-1)
+    np.testing.assert_array_equal(got, want)
+    assert 0 < want.mean() < k and (want == 0).any() and (want == k).any()  # partial, none and all in view

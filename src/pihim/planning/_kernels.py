@@ -30,6 +30,45 @@ def in_fov(points: NDArray, cam: NDArray, r: NDArray, dn: NDArray, f: NDArray, t
 
 
 @njit(cache=True)
+def count_in_view(points: NDArray, hua: NDArray, cam: NDArray, centres: NDArray, tx: float,
+                  ty: float) -> NDArray:  # pragma: no cover - compiled
+    """Points ``points[hua[p]]`` (K each) in view of camera ``cam[p]`` aimed at ``centres[hua[p]]``, counted.
+
+    The camera frame is :func:`pihim.planning.sightlines.gaze_angles` followed by
+    :func:`~pihim.planning.sightlines.camera_frame` (zero roll), step for step, and the test that of
+    :func:`in_fov`; (P,) int64. One pass without the (P, K, 3) gather and the per-camera frames the numpy
+    route builds.
+    """
+    n_p, n_k = hua.shape[0], points.shape[1]
+    out = np.zeros(n_p, np.int64)
+    for p in range(n_p):
+        h = hua[p]
+        cx, cy, cz = cam[p, 0], cam[p, 1], cam[p, 2]
+        dx, dy, dz = centres[h, 0] - cx, centres[h, 1] - cy, centres[h, 2] - cz
+        head = math.degrees(math.atan2(dx, dy)) % 360.0
+        if head >= 360.0:
+            head = 0.0
+        pitch = math.degrees(math.atan2(dz, math.hypot(dx, dy)))
+        hr, pr = math.radians(head), math.radians(pitch)
+        cp, sp, ch, sh = math.cos(pr), math.sin(pr), math.cos(hr), math.sin(hr)
+        fx, fy, fz = cp * sh, cp * ch, sp
+        rx, ry = ch, -sh  # right; its z is 0
+        ux, uy, uz = fy * 0.0 - fz * ry, fz * rx - fx * 0.0, fx * ry - fy * rx  # down = f x r
+        c = 0
+        for j in range(n_k):
+            vx = points[h, j, 0] - cx
+            vy = points[h, j, 1] - cy
+            vz = points[h, j, 2] - cz
+            z = vx * fx + vy * fy + vz * fz
+            x = vx * rx + vy * ry + vz * 0.0
+            y = vx * ux + vy * uy + vz * uz
+            if z > 0.0 and abs(x) <= tx * z and abs(y) <= ty * z:
+                c += 1
+        out[p] = c
+    return out
+
+
+@njit(cache=True)
 def segments_hit_box(p0: NDArray, p1: NDArray, lo: NDArray, hi: NDArray) -> NDArray:  # pragma: no cover - compiled
     """Segments ``p0 -> p1`` (N, 3) crossing the box ``[lo, hi]``: the slab method of
     :func:`pihim.planning.sightlines.segments_hit_box`, with its handling of parallel and NaN slabs, one pass."""
@@ -59,7 +98,7 @@ def segments_hit_box(p0: NDArray, p1: NDArray, lo: NDArray, hi: NDArray) -> NDAr
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def view_tests(pair: NDArray, ch_all: NDArray, nh_all: NDArray, w_all: NDArray, elev_all: NDArray,
                origin: NDArray, direction: NDArray, altitude: NDArray, nxy_all: NDArray, tc_all: NDArray,
                tn_all: NDArray, tx_all: NDArray, ty_all: NDArray,
@@ -83,51 +122,56 @@ def view_tests(pair: NDArray, ch_all: NDArray, nh_all: NDArray, w_all: NDArray, 
     to_deg = 180.0 / np.pi
     for i in range(n):
         g = pair[i]
-        ch, nh, w, nxy = ch_all[g], nh_all[g], w_all[g], nxy_all[g]
-        tc, tn, tx, ty = tc_all[g], tn_all[g], tx_all[g], ty_all[g]
+        # rows read as scalars: a 1-D view per row (``ch_all[g]``) made the loop about 30 % slower
+        ch0, ch1, ch2 = ch_all[g, 0], ch_all[g, 1], ch_all[g, 2]
+        nh0, nh1, nh2 = nh_all[g, 0], nh_all[g, 1], nh_all[g, 2]
+        w0, w1, w2 = w_all[g, 0], w_all[g, 1], w_all[g, 2]
+        nxy0, nxy1 = nxy_all[g, 0], nxy_all[g, 1]
         c = code_low if elev_all[g] < min_elev else code_ok
         # the camera: where the direction w from the HUA to the camera reaches the pass altitude, on the line
-        t = (altitude[i] - ch[2]) / w[2] if w[2] != 0.0 else (
-            np.inf if altitude[i] - ch[2] > 0.0 else (-np.inf if altitude[i] - ch[2] < 0.0 else np.nan))
-        ex = ch[0] + t * w[0] - origin[i, 0]
-        ey = ch[1] + t * w[1] - origin[i, 1]
+        t = (altitude[i] - ch2) / w2 if w2 != 0.0 else (
+            np.inf if altitude[i] - ch2 > 0.0 else (-np.inf if altitude[i] - ch2 < 0.0 else np.nan))
+        ex = ch0 + t * w0 - origin[i, 0]
+        ey = ch1 + t * w1 - origin[i, 1]
         along = ex * direction[i, 0] + ey * direction[i, 1]
         cam[i, 0] = origin[i, 0] + along * direction[i, 0]
         cam[i, 1] = origin[i, 1] + along * direction[i, 1]
         cam[i, 2] = altitude[i]
-        dx, dy, dz = cam[i, 0] - ch[0], cam[i, 1] - ch[1], cam[i, 2] - ch[2]
+        dx, dy, dz = cam[i, 0] - ch0, cam[i, 1] - ch1, cam[i, 2] - ch2
         rg = np.sqrt(dx * dx + dy * dy + dz * dz)
         rng[i] = rg
         s = max(rg, 1e-12)
         v[i, 0], v[i, 1], v[i, 2] = dx / s, dy / s, dz / s
-        vn = v[i, 0] * nh[0] + v[i, 1] * nh[1] + v[i, 2] * nh[2]
+        vn = v[i, 0] * nh0 + v[i, 1] * nh1 + v[i, 2] * nh2
         if c == code_ok and (not np.isfinite(rg) or vn <= 0.0 or rg > max_range):
             c = code_behind
         # distance of the camera from the vertical plane of the HUA's normal
-        offset[i] = abs(dx * nxy[1] - dy * nxy[0])
+        offset[i] = abs(dx * nxy1 - dy * nxy0)
         if c == code_ok and offset[i] > max_offset:
             c = code_off_plane
-        pitch = np.arctan2(-dz, np.hypot(dx, dy)) * to_deg
-        bad = pitch < pitch_min - 1e-9 or pitch > pitch_max + 1e-9
-        if use_keepout and (keepout[0, 0] <= cam[i, 0] <= keepout[1, 0] and keepout[0, 1] <= cam[i, 1] <= keepout[1, 1]
-                            and keepout[0, 2] <= cam[i, 2] <= keepout[1, 2]):
-            bad = True
-        if c == code_ok and bad:
-            c = code_gimbal
+        if c == code_ok:  # the gimbal's pitch and the keep-out box (tested only where every test so far passed)
+            pitch = np.arctan2(-dz, np.hypot(dx, dy)) * to_deg
+            bad = pitch < pitch_min - 1e-9 or pitch > pitch_max + 1e-9
+            if use_keepout and (keepout[0, 0] <= cam[i, 0] <= keepout[1, 0]
+                                and keepout[0, 1] <= cam[i, 1] <= keepout[1, 1]
+                                and keepout[0, 2] <= cam[i, 2] <= keepout[1, 2]):
+                bad = True
+            if bad:
+                c = code_gimbal
         if c == code_ok:  # the ray camera -> HUA centre reflected about the HUA's normal, against the target
-            rx = 2.0 * vn * nh[0] - v[i, 0]
-            ry = 2.0 * vn * nh[1] - v[i, 1]
-            rz = 2.0 * vn * nh[2] - v[i, 2]
+            rx = 2.0 * vn * nh0 - v[i, 0]
+            ry = 2.0 * vn * nh1 - v[i, 1]
+            rz = 2.0 * vn * nh2 - v[i, 2]
             r[i, 0], r[i, 1], r[i, 2] = rx, ry, rz
-            denom = rx * tn[0] + ry * tn[1] + rz * tn[2]
-            num = (tc[0] - ch[0]) * tn[0] + (tc[1] - ch[1]) * tn[1] \
-                + (tc[2] - ch[2]) * tn[2]
+            denom = rx * tn_all[g, 0] + ry * tn_all[g, 1] + rz * tn_all[g, 2]
+            num = (tc_all[g, 0] - ch0) * tn_all[g, 0] + (tc_all[g, 1] - ch1) * tn_all[g, 1] \
+                + (tc_all[g, 2] - ch2) * tn_all[g, 2]
             lam = num / denom if denom != 0.0 else np.nan
-            hx, hy, hz = ch[0] + lam * rx, ch[1] + lam * ry, ch[2] + lam * rz
+            hx, hy, hz = ch0 + lam * rx, ch1 + lam * ry, ch2 + lam * rz
             hit[i, 0], hit[i, 1], hit[i, 2] = hx, hy, hz
-            qx0, qy0, qz0 = hx - tc[0], hy - tc[1], hz - tc[2]
-            qx = abs(qx0 * tx[0] + qy0 * tx[1] + qz0 * tx[2]) - half_w
-            qy = abs(qx0 * ty[0] + qy0 * ty[1] + qz0 * ty[2]) - half_h
+            qx0, qy0, qz0 = hx - tc_all[g, 0], hy - tc_all[g, 1], hz - tc_all[g, 2]
+            qx = abs(qx0 * tx_all[g, 0] + qy0 * tx_all[g, 1] + qz0 * tx_all[g, 2]) - half_w
+            qy = abs(qx0 * ty_all[g, 0] + qy0 * ty_all[g, 1] + qz0 * ty_all[g, 2]) - half_h
             if denom > 0.0 and lam > 0.0:
                 # np.maximum's NaN propagation: a NaN miss stays NaN (neither missed nor traced)
                 miss[i] = np.nan if (qx != qx or qy != qy) else max(max(qx, qy), 0.0)

@@ -139,7 +139,6 @@ from pihim.planning.sightlines import (
     dot,
     first_mirror_hits,
     gaze_angles,
-    in_fov,
     mirror_index,
     optical_axis,
     segments_hit_box,
@@ -545,15 +544,19 @@ class _Context:
                               altitude, trace=trace)
 
     def facets_in_view(self, hua: NDArray[np.int64], cam: NDArray[np.float64]) -> NDArray[np.int64]:
-        """Facet centres of each HUA inside the field of view with the HUA centred (chunked)."""
-        fc = self.pose.facet_centres
-        out = np.zeros(len(hua), dtype=np.int64)
-        step = max(1, 400_000 // max(1, fc.shape[1]))
-        for a in range(0, len(hua), step):
-            h, p = hua[a:a + step], cam[a:a + step]
-            head, pitch = gaze_angles(p, self.pose.mirror_centres[h])
-            out[a:a + step] = in_fov(fc[h], p, head, pitch, self.camera).sum(axis=-1)
-        return out
+        """Facet centres of each HUA inside the field of view with the HUA centred.
+
+        :func:`gaze_angles` and :func:`in_fov` in one compiled pass (:func:`pihim.planning._kernels.count_in_view`,
+        held to them by a test).
+        """
+        from pihim.planning import _kernels
+
+        cam_model = self.camera
+        return _kernels.count_in_view(
+            np.ascontiguousarray(self.pose.facet_centres, dtype=float), np.ascontiguousarray(hua, dtype=np.int64),
+            np.ascontiguousarray(cam, dtype=float), np.ascontiguousarray(self.pose.mirror_centres, dtype=float),
+            float(0.5 * cam_model.width_px / cam_model.focal_length_px),
+            float(0.5 * cam_model.height_px / cam_model.focal_length_px))
 
 
 def _config_scores(ctx: _Context, pairs: NDArray[np.int64], line_of: NDArray[np.int64], n_h: int, *, trace: bool,
