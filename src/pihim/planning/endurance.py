@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 from pihim.errors import PihimInputError
 from pihim.field.geodesy import GeodeticOrigin, as_origin, enu_to_geodetic
 from pihim.planning.attitude import turn_limited_speed
-from pihim.planning.model import Flight, ScanPass, Waypoint, replace_fields
+from pihim.planning.model import Flight, ScanPass, Waypoint, heading_0_360, replace_fields
 
 __all__ = [
     "PAPER_HELIOSTATS_PER_HOUR",
@@ -426,7 +426,7 @@ def flight_time_s(waypoints: Sequence[Waypoint], model: DroneEndurance = DroneEn
 def _leg_waypoints(legs: Sequence[_Leg]) -> list[Waypoint]:
     """Legs as waypoints for counting mission items (no geodetic conversion: coordinates 0)."""
     return [leg.waypoint if leg.waypoint is not None else
-            Waypoint(leg.xyz[0], leg.xyz[1], leg.xyz[2], 0.0, 0.0, 0.0, leg.heading_deg % 360.0, leg.pitch_deg,
+            Waypoint(leg.xyz[0], leg.xyz[1], leg.xyz[2], 0.0, 0.0, 0.0, heading_0_360(leg.heading_deg), leg.pitch_deg,
                      leg.speed_m_s, kind=leg.kind, capture=leg.capture, hua=leg.hua)  # type: ignore[arg-type]
             for leg in legs]
 
@@ -443,7 +443,7 @@ def _finish(index: int, pass_indices: tuple[int, ...], legs: list[_Leg], passes:
             continue
         q = next(it)
         wps.append(Waypoint(leg.xyz[0], leg.xyz[1], leg.xyz[2], float(lat[q]), float(lon[q]), float(hgt[q]),
-                            leg.heading_deg % 360.0, leg.pitch_deg, leg.speed_m_s, kind=leg.kind,  # type: ignore[arg-type]
+                            heading_0_360(leg.heading_deg), leg.pitch_deg, leg.speed_m_s, kind=leg.kind,  # type: ignore[arg-type]
                             capture=leg.capture, hua=leg.hua))
     duration, distance = _time_and_distance(legs, model)
     huas = {h for p in passes for h, _ in p.pairs}

@@ -23,6 +23,12 @@ _PLAIN_SCALARS = frozenset({str, int, float, bool, type(None)})
 _FIELD_NAMES: dict[type, tuple[str, ...]] = {}
 
 
+def heading_0_360(deg: float) -> float:
+    """A heading folded into [0, 360) degrees (``x % 360.0`` alone gives 360.0 for ``x = -1e-14``)."""
+    h = float(deg) % 360.0
+    return 0.0 if h >= 360.0 else h
+
+
 def replace_fields(record: Any, **changes: Any) -> Any:
     """``dataclasses.replace(record, **changes)`` for the records of this module, without running ``__init__``.
 

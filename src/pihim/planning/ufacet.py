@@ -131,7 +131,7 @@ from pihim.planning.lines import (
     plane_links,
     views_of_pairs,
 )
-from pihim.planning.model import ScanPass, Waypoint
+from pihim.planning.model import ScanPass, Waypoint, heading_0_360
 from pihim.planning.sightlines import (
     TOWER_HIT,
     MirrorIndex,
@@ -508,7 +508,7 @@ def home_waypoint(field: Any, *, origin: GeodeticOrigin | Any, point: ArrayLike 
         xyz = np.r_[v, 0.0] if v.shape == (2,) else v
     lat, lon, h = enu_to_geodetic(xyz, as_origin(origin))
     return Waypoint(float(xyz[0]), float(xyz[1]), float(xyz[2]), float(lat), float(lon), float(h),
-                    float(heading_deg) % 360.0, 0.0, 0.0, kind="takeoff", capture=False, hua=None)
+                    heading_0_360(heading_deg), 0.0, 0.0, kind="takeoff", capture=False, hua=None)
 
 
 # --------------------------------------------------------------------------- the planner

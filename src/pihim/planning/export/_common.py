@@ -208,12 +208,6 @@ def resolve_flight(plan: Plan, flight: int | None) -> int | None:
     return plan.flights[0].index if plan.flights else None
 
 
-def heading_0_360(deg: float) -> float:
-    """A heading folded into [0, 360) degrees."""
-    h = float(deg) % 360.0
-    return 0.0 if h >= 360.0 else h
-
-
 def known_geoid_undulation(latitude_deg: float, longitude_deg: float) -> float | None:
     """The geoid undulation pihim knows without being told, metres: the NSTTF estimate
     (:data:`pihim.sky.sun.NSTTF_GEOID_UNDULATION_M`) within 0.5 deg of the NSTTF, else None."""

@@ -58,12 +58,11 @@ from pihim.errors import PihimInputError
 from pihim.planning.export._common import (
     check_plan,
     geoid_undulation,
-    heading_0_360,
     plan_counts,
     site_origin,
     write_export,
 )
-from pihim.planning.model import Plan, ScanPass, Waypoint
+from pihim.planning.model import Plan, ScanPass, Waypoint, heading_0_360
 
 __all__ = ["KML_NS", "kml_text", "write_kml"]
 

@@ -57,13 +57,12 @@ from pathlib import Path
 from pihim.errors import PihimInputError
 from pihim.planning.export._common import (
     check_plan,
-    heading_0_360,
     mission_waypoints,
     plan_index,
     resolve_flight,
     write_export,
 )
-from pihim.planning.model import Plan, Waypoint
+from pihim.planning.model import Plan, Waypoint, heading_0_360
 
 __all__ = [
     "LITCHI_ACTION_NONE",

@@ -130,14 +130,13 @@ from pihim.errors import PihimInputError
 from pihim.planning.export._common import (
     check_plan,
     geoid_undulation,
-    heading_0_360,
     json_ready,
     mission_waypoints,
     resolve_flight,
     write_export,
 )
 from pihim.planning.attitude import leg_speed
-from pihim.planning.model import Plan, Waypoint
+from pihim.planning.model import Plan, Waypoint, heading_0_360
 
 __all__ = [
     "MAV_CMD_CONDITION_YAW",
