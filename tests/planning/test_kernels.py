@@ -112,31 +112,41 @@ def test_facet_grid_agrees_with_plain_loops():
     np.testing.assert_array_equal(target, want_target)
 
 
-def test_first_hits_among_agrees_with_plain_loops():
-    n_m, n_r = 6, 200
+def test_first_hits_in_rows_agrees_with_plain_loops():
+    """Each ray against its own row only (rows padded, in any order); equal distances: the least index."""
+    n_m, n_r = 24, 300
     centres = RNG.uniform(-10, 10, size=(n_m, 3))
     rot = np.linalg.qr(RNG.normal(size=(n_m, 3, 3)))[0]
+    centres[5], rot[5] = centres[17], rot[17]  # two mirrors in one place: a tie, 5 must win where both are tested
     x, y, normals = (np.ascontiguousarray(rot[:, :, k]) for k in range(3))
-    mirrors = np.array([3, 7, 8, 11, 20, 21])
+    table = np.full((8, 10), -1)
+    for k in range(8):
+        members = RNG.choice(n_m, size=RNG.integers(0, 11), replace=False)
+        table[k, :len(members)] = members[::-1] if k % 2 else members
+    table[0, :3] = (17, 3, 5)  # the tie in reversed order
+    row = RNG.integers(0, 8, n_r)
+    row[:40] = 0
     p0 = RNG.uniform(-15, 15, size=(n_r, 3))
     aim = centres[RNG.integers(0, n_m, n_r)] + RNG.normal(size=(n_r, 3))  # most rays pass near a mirror
+    aim[:40] = centres[17] + RNG.normal(scale=0.2, size=(40, 3))
     d = (aim - p0) / np.linalg.norm(aim - p0, axis=1, keepdims=True)
-    skip = np.where(RNG.random(n_r) < 0.2, mirrors[RNG.integers(0, n_m, n_r)], -1)
+    skip = np.where(RNG.random(n_r) < 0.2, RNG.integers(0, n_m, n_r), -1)
     t_max = RNG.uniform(5, 40, n_r)
     hw, hh = 1.5, 1.0
-    got = _kernels.first_hits_among(p0, d, mirrors, skip, t_max, normals, centres, x, y, hw, hh)
+    got = _kernels.first_hits_in_rows(p0, d, table, row, skip, t_max, normals, centres, x, y, hw, hh)
     want = np.full(n_r, -1)
     for r in range(n_r):
         best = math.inf
-        for m in range(n_m):
+        for m in sorted(int(v) for v in table[row[r]] if v >= 0):
             den = d[r] @ normals[m]
-            if mirrors[m] == skip[r] or den == 0:
+            if m == skip[r] or den == 0:
                 continue
             t = (centres[m] - p0[r]) @ normals[m] / den
             hit = p0[r] + t * d[r] - centres[m]
             if 1e-9 < t < min(t_max[r], best) and abs(hit @ x[m]) <= hw and abs(hit @ y[m]) <= hh:
-                best, want[r] = t, mirrors[m]
+                best, want[r] = t, m
     assert (want >= 0).sum() > 20 and (want < 0).sum() > 20
+    assert (want == 5).sum() >= 5  # the tie was met
     np.testing.assert_array_equal(got, want)
 
 

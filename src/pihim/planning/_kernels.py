@@ -366,42 +366,41 @@ def facet_grid(s: NDArray, valid: NDArray, r_lo: NDArray, r_hi: NDArray, back: N
 
 
 @njit(cache=True)
-def first_hits_among(p0: NDArray, d: NDArray, mirrors: NDArray, skip: NDArray, t_max: NDArray, normals: NDArray,
-                     centres: NDArray, x: NDArray, y: NDArray, hw: float,
-                     hh: float) -> NDArray:  # pragma: no cover - compiled
-    """First of ``mirrors`` (M,) met by each ray ``p0 + t d`` (R, 3), ``1e-9 < t < t_max``, within the mirror's
-    half-width ``hw`` along ``x`` and half-height ``hh`` along ``y`` (``normals``, ``centres``, ``x``, ``y``:
-    (M, 3), the mirrors' own rows), skipping mirror ``skip[r]``; -1 for none. Equal ``t`` keeps the earlier
-    mirror (:func:`pihim.planning.facets._first_hits_among`)."""
-    n_r, n_m = p0.shape[0], mirrors.shape[0]
+def first_hits_in_rows(p0: NDArray, d: NDArray, table: NDArray, row: NDArray, skip: NDArray, t_max: NDArray,
+                       normals: NDArray, centres: NDArray, x: NDArray, y: NDArray, hw: float,
+                       hh: float) -> NDArray:  # pragma: no cover - compiled
+    """First mirror met by each ray ``p0 + t d`` (R, 3), ``1e-9 < t < t_max``, among its own row of mirrors
+    ``table[row[r]]`` (-1 padded), skipping mirror ``skip[r]``; -1 for none. A mirror ``m`` is the rectangle
+    of half-width ``hw`` along ``x[m]`` and half-height ``hh`` along ``y[m]`` about ``centres[m]`` in the plane
+    of ``normals[m]`` (field-wide (N, 3) arrays). Equal ``t`` keeps the least mirror index, whatever the row's
+    order (:func:`pihim.planning.facets._first_hits_among`)."""
+    n_r, n_j = p0.shape[0], table.shape[1]
     out = np.full(n_r, -1, np.int64)
-    cn = np.empty(n_m)
-    cx = np.empty(n_m)
-    cy = np.empty(n_m)
-    for m in range(n_m):
-        cn[m] = centres[m, 0] * normals[m, 0] + centres[m, 1] * normals[m, 1] + centres[m, 2] * normals[m, 2]
-        cx[m] = centres[m, 0] * x[m, 0] + centres[m, 1] * x[m, 1] + centres[m, 2] * x[m, 2]
-        cy[m] = centres[m, 0] * y[m, 0] + centres[m, 1] * y[m, 1] + centres[m, 2] * y[m, 2]
     for r in range(n_r):
         best = np.inf
         px0, py0, pz0 = p0[r, 0], p0[r, 1], p0[r, 2]
         dx, dy, dz = d[r, 0], d[r, 1], d[r, 2]
-        for m in range(n_m):
-            if mirrors[m] == skip[r]:
+        k = row[r]
+        for j in range(n_j):
+            m = table[k, j]
+            if m < 0 or m == skip[r]:
                 continue
             den = dx * normals[m, 0] + dy * normals[m, 1] + dz * normals[m, 2]
             if den == 0.0:  # parallel to the plane (numpy's inf or nan t: no hit either)
                 continue
-            t = (cn[m] - (px0 * normals[m, 0] + py0 * normals[m, 1] + pz0 * normals[m, 2])) / den
-            if not (t > 1e-9 and t < t_max[r] and t < best):
+            cn = centres[m, 0] * normals[m, 0] + centres[m, 1] * normals[m, 1] + centres[m, 2] * normals[m, 2]
+            t = (cn - (px0 * normals[m, 0] + py0 * normals[m, 1] + pz0 * normals[m, 2])) / den
+            if not (t > 1e-9 and t < t_max[r] and (t < best or (t == best and m < out[r]))):
                 continue
+            cx = centres[m, 0] * x[m, 0] + centres[m, 1] * x[m, 1] + centres[m, 2] * x[m, 2]
+            cy = centres[m, 0] * y[m, 0] + centres[m, 1] * y[m, 1] + centres[m, 2] * y[m, 2]
             u = (px0 * x[m, 0] + py0 * x[m, 1] + pz0 * x[m, 2]) + t * (dx * x[m, 0] + dy * x[m, 1] + dz * x[m, 2]) \
-                - cx[m]
+                - cx
             v = (px0 * y[m, 0] + py0 * y[m, 1] + pz0 * y[m, 2]) + t * (dx * y[m, 0] + dy * y[m, 1] + dz * y[m, 2]) \
-                - cy[m]
+                - cy
             if abs(u) <= hw and abs(v) <= hh:
                 best = t
-                out[r] = mirrors[m]
+                out[r] = m
     return out
 
 

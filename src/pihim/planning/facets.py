@@ -152,34 +152,26 @@ def facets_showing_target(pose: Any, hua: int, target: int, camera_xyz: Sequence
 
 
 def _first_hits_among(p0: NDArray[np.float64], d: NDArray[np.float64], table: NDArray[np.int64],
-                      row: NDArray[np.int64], skip: NDArray[np.int64], pose: Any, t_max: NDArray[np.float64] | float,
-                      chunk: int = 1024) -> NDArray[np.int64]:
+                      row: NDArray[np.int64], skip: NDArray[np.int64], pose: Any,
+                      t_max: NDArray[np.float64] | float) -> NDArray[np.int64]:
     """First mirror rectangle met by each ray ``p0 + t d``, ``0 < t < t_max``, skipping ``skip``; -1 for none.
 
-    Ray ``i`` must be tested against the mirrors ``table[row[i]]`` (-1
-    padded); each chunk of ``chunk`` consecutive rays is tested against the
-    union of its rows (a superset), so group the rays by row.
+    Ray ``i`` is tested against the mirrors ``table[row[i]]`` (-1 padded), in one compiled pass
+    (:func:`pihim.planning._kernels.first_hits_in_rows`); equal ``t``: the least mirror index.
     """
     from pihim.planning import _kernels
 
     spec = pose.field.spec
-    hw, hh = float(spec.mirror_half_width_m), float(spec.mirror_half_height_m)
     n_r = len(p0)
-    out = np.full(n_r, -1, dtype=np.int64)
     t_lim = np.ascontiguousarray(np.broadcast_to(np.asarray(t_max, float), (n_r,)))
     t_lim.flags.writeable = False  # read-only whether broadcast or copied: one compiled signature of the kernel
-    p0, d, skip = np.ascontiguousarray(p0, float), np.ascontiguousarray(d, float), np.ascontiguousarray(skip, np.int64)
-    for a in range(0, n_r, chunk):
-        sl = slice(a, a + chunk)
-        u = np.unique(table[np.unique(row[sl])])
-        u = u[u >= 0]
-        if len(u) == 0:
-            continue
-        rot = pose.rotations[u]
-        out[sl] = _kernels.first_hits_among(p0[sl], d[sl], u, skip[sl], t_lim[sl], pose.normals[u],
-                                            pose.mirror_centres[u], np.ascontiguousarray(rot[:, :, 0]),
-                                            np.ascontiguousarray(rot[:, :, 1]), hw, hh)
-    return out
+    rot = pose.rotations
+    return _kernels.first_hits_in_rows(
+        np.ascontiguousarray(p0, float), np.ascontiguousarray(d, float), np.ascontiguousarray(table, np.int64),
+        np.ascontiguousarray(row, np.int64), np.ascontiguousarray(skip, np.int64), t_lim,
+        np.ascontiguousarray(pose.normals, float), np.ascontiguousarray(pose.mirror_centres, float),
+        np.ascontiguousarray(rot[:, :, 0], float), np.ascontiguousarray(rot[:, :, 1], float),
+        float(spec.mirror_half_width_m), float(spec.mirror_half_height_m))
 
 
 def _near(tree: cKDTree, xy: NDArray[np.float64], radius: NDArray[np.float64], skip: NDArray[np.int64]
@@ -295,7 +287,9 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
     blk = _near(tree, pose.mirror_centres[h, :2], horiz * frac + 2.0 * radius, h)
     h_xy = pose.mirror_centres[h, :2]
     fwd = pose.normals[h]
-    tg = _near(tree, h_xy, np.full(len(h), float(reach_m) + radius), h)
+    # a reflected ray starts on a facet (within ``radius`` of the HUA's centre) and meets a mirror within
+    # ``radius`` of that mirror's centre: every mirror it can meet within ``reach_m`` is in this row
+    tg = _near(tree, h_xy, np.full(len(h), float(reach_m) + 2.0 * radius), h)
     behind = np.einsum("cjd,cd->cj", pose.mirror_centres[np.maximum(tg, 0)] - pose.mirror_centres[h][:, None, :],
                        fwd) < -radius  # wholly behind the HUA's mirror plane: a reflected ray cannot reach it
     tg = np.where(behind, -1, tg)
@@ -305,7 +299,7 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
         out_ = np.full(len(live), -1, dtype=np.int64)
         if len(live) == 0:
             return out_
-        order = np.argsort(h[live // (n_f * n_s)], kind="stable")  # grouped by HUA (see _first_hits_among)
+        order = np.argsort(h[live // (n_f * n_s)], kind="stable")  # grouped by HUA: neighbouring rays, rows
         live = live[order]
         ci = live // (n_f * n_s)
         qq, dd, nn = q.reshape(-1, 3)[live], d.reshape(-1, 3)[live], n.reshape(-1, 3)[live]
