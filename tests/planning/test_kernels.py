@@ -114,25 +114,29 @@ def test_facet_grid_agrees_with_plain_loops():
 
 def test_first_hits_in_rows_agrees_with_plain_loops():
     """Each ray against its own row only (rows padded, in any order); equal distances: the least index."""
+    rng = np.random.default_rng(8)
     n_m, n_r = 24, 300
-    centres = RNG.uniform(-10, 10, size=(n_m, 3))
-    rot = np.linalg.qr(RNG.normal(size=(n_m, 3, 3)))[0]
+    centres = rng.uniform(-10, 10, size=(n_m, 3))
+    rot = np.linalg.qr(rng.normal(size=(n_m, 3, 3)))[0]
     centres[5], rot[5] = centres[17], rot[17]  # two mirrors in one place: a tie, 5 must win where both are tested
     x, y, normals = (np.ascontiguousarray(rot[:, :, k]) for k in range(3))
     table = np.full((8, 10), -1)
     for k in range(8):
-        members = RNG.choice(n_m, size=RNG.integers(0, 11), replace=False)
+        members = rng.choice(n_m, size=rng.integers(0, 11), replace=False)
         table[k, :len(members)] = members[::-1] if k % 2 else members
     table[0, :3] = (17, 3, 5)  # the tie in reversed order
-    row = RNG.integers(0, 8, n_r)
+    row = rng.integers(0, 8, n_r)
     row[:40] = 0
-    p0 = RNG.uniform(-15, 15, size=(n_r, 3))
-    aim = centres[RNG.integers(0, n_m, n_r)] + RNG.normal(size=(n_r, 3))  # most rays pass near a mirror
-    aim[:40] = centres[17] + RNG.normal(scale=0.2, size=(40, 3))
+    p0 = rng.uniform(-15, 15, size=(n_r, 3))
+    aim = centres[rng.integers(0, n_m, n_r)] + rng.normal(size=(n_r, 3))  # most rays pass near a mirror
+    aim[:40] = centres[17] + rng.normal(scale=0.2, size=(40, 3))
     d = (aim - p0) / np.linalg.norm(aim - p0, axis=1, keepdims=True)
-    skip = np.where(RNG.random(n_r) < 0.2, RNG.integers(0, n_m, n_r), -1)
-    t_max = RNG.uniform(5, 40, n_r)
+    t_max = rng.uniform(5, 40, n_r)
     hw, hh = 1.5, 1.0
+    unskipped = _kernels.first_hits_in_rows(p0, d, table, row, np.full(n_r, -1), t_max, normals, centres, x, y,
+                                            hw, hh)
+    skip = np.where(rng.random(n_r) < 0.3, rng.integers(0, n_m, n_r), -1)
+    skip[::4] = unskipped[::4]  # a quarter of the rays skip the mirror they would meet first
     got = _kernels.first_hits_in_rows(p0, d, table, row, skip, t_max, normals, centres, x, y, hw, hh)
     want = np.full(n_r, -1)
     for r in range(n_r):
@@ -147,6 +151,7 @@ def test_first_hits_in_rows_agrees_with_plain_loops():
                 best, want[r] = t, m
     assert (want >= 0).sum() > 20 and (want < 0).sum() > 20
     assert (want == 5).sum() >= 5  # the tie was met
+    assert ((unskipped[::4] >= 0) & (want[::4] != unskipped[::4])).sum() >= 5  # skipping changed the answer
     np.testing.assert_array_equal(got, want)
 
 
@@ -437,11 +442,11 @@ def test_segments_hit_box_is_the_numpy_slab_test_with_its_edge_cases():
     assert not segments_hit_box(beside - [[0.0, 3.0, 0.5]], beside + [[0.0, 3.0, 0.5]], lo, hi)[0]
 
 
-def test_count_in_view_is_gaze_angles_then_in_fov():
-    """The fused count of the planner's line settings against the two public steps it replaces: the gaze at
-    each HUA's centre (heading, pitch), the field-of-view test of its facet centres, summed."""
+def test_count_in_view_is_in_fov_summed():
+    """The fused count of the planner's line settings against the public steps it replaces: the gaze at each
+    HUA's centre, its camera frame, the field-of-view test of the HUA's facet centres, summed."""
     from pihim.camera import CameraModel
-    from pihim.planning.sightlines import gaze_angles, in_fov
+    from pihim.planning.sightlines import camera_frame, gaze_angles, in_fov
 
     rng = np.random.default_rng(5)
     n_h, k, p = 30, 25, 4000
@@ -453,8 +458,9 @@ def test_count_in_view_is_gaze_angles_then_in_fov():
     camera = CameraModel()
     tx = 0.5 * camera.width_px / camera.focal_length_px
     ty = 0.5 * camera.height_px / camera.focal_length_px
-    got = _kernels.count_in_view(facets, hua, cam, centres, tx, ty)
     head, pitch = gaze_angles(cam, centres[hua])
+    r, dn, f = camera_frame(head, pitch)
+    got = _kernels.count_in_view(facets, hua, cam, r, dn, f, tx, ty)
     want = in_fov(facets[hua], cam, head, pitch, camera).sum(axis=-1)
     np.testing.assert_array_equal(got, want)
     assert 0 < want.mean() < k and (want == 0).any() and (want == k).any()  # partial, none and all in view

@@ -30,38 +30,22 @@ def in_fov(points: NDArray, cam: NDArray, r: NDArray, dn: NDArray, f: NDArray, t
 
 
 @njit(cache=True)
-def count_in_view(points: NDArray, hua: NDArray, cam: NDArray, centres: NDArray, tx: float,
+def count_in_view(points: NDArray, hua: NDArray, cam: NDArray, r: NDArray, dn: NDArray, f: NDArray, tx: float,
                   ty: float) -> NDArray:  # pragma: no cover - compiled
-    """Points ``points[hua[p]]`` (K each) in view of camera ``cam[p]`` aimed at ``centres[hua[p]]``, counted.
-
-    The camera frame is :func:`pihim.planning.sightlines.gaze_angles` followed by
-    :func:`~pihim.planning.sightlines.camera_frame` (zero roll), step for step, and the test that of
-    :func:`in_fov`; (P,) int64. One pass without the (P, K, 3) gather and the per-camera frames the numpy
-    route builds.
-    """
+    """:func:`in_fov` of the points ``points[hua[p]]`` (K each) seen from ``cam[p]`` with axes ``r``, ``dn``,
+    ``f`` (P, 3) each, counted per camera: (P,) int64, without the (P, K, 3) gather of the points."""
     n_p, n_k = hua.shape[0], points.shape[1]
     out = np.zeros(n_p, np.int64)
     for p in range(n_p):
         h = hua[p]
-        cx, cy, cz = cam[p, 0], cam[p, 1], cam[p, 2]
-        dx, dy, dz = centres[h, 0] - cx, centres[h, 1] - cy, centres[h, 2] - cz
-        head = math.degrees(math.atan2(dx, dy)) % 360.0
-        if head >= 360.0:
-            head = 0.0
-        pitch = math.degrees(math.atan2(dz, math.hypot(dx, dy)))
-        hr, pr = math.radians(head), math.radians(pitch)
-        cp, sp, ch, sh = math.cos(pr), math.sin(pr), math.cos(hr), math.sin(hr)
-        fx, fy, fz = cp * sh, cp * ch, sp
-        rx, ry = ch, -sh  # right; its z is 0
-        ux, uy, uz = fy * 0.0 - fz * ry, fz * rx - fx * 0.0, fx * ry - fy * rx  # down = f x r
         c = 0
         for j in range(n_k):
-            vx = points[h, j, 0] - cx
-            vy = points[h, j, 1] - cy
-            vz = points[h, j, 2] - cz
-            z = vx * fx + vy * fy + vz * fz
-            x = vx * rx + vy * ry + vz * 0.0
-            y = vx * ux + vy * uy + vz * uz
+            vx = points[h, j, 0] - cam[p, 0]
+            vy = points[h, j, 1] - cam[p, 1]
+            vz = points[h, j, 2] - cam[p, 2]
+            z = vx * f[p, 0] + vy * f[p, 1] + vz * f[p, 2]
+            x = vx * r[p, 0] + vy * r[p, 1] + vz * r[p, 2]
+            y = vx * dn[p, 0] + vy * dn[p, 1] + vz * dn[p, 2]
             if z > 0.0 and abs(x) <= tx * z and abs(y) <= ty * z:
                 c += 1
         out[p] = c

@@ -246,8 +246,12 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
     A mirror can hide a sight line only where the line is below the
     highest mirror point of the field, so the blockers tested for a capture
     are the mirrors within that stretch (plus a mirror half-diagonal) of the
-    HUA: no blocker is missed. The other points of a facet are traced only
-    where its middle point shows no heliostat back.
+    HUA: no blocker is missed. Likewise a reflected ray, which starts on a
+    facet, can meet within ``reach_m`` only mirrors whose centres lie within
+    ``reach_m`` plus two mirror half-diagonals of the HUA's centre; each ray
+    is tested against those of its own capture that are not wholly behind
+    the HUA's mirror plane. The other points of a facet
+    are traced only where its middle point shows no heliostat back.
     """
     camera = camera or CameraModel()
     if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
@@ -288,7 +292,9 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
     h_xy = pose.mirror_centres[h, :2]
     fwd = pose.normals[h]
     # a reflected ray starts on a facet (within ``radius`` of the HUA's centre) and meets a mirror within
-    # ``radius`` of that mirror's centre: every mirror it can meet within ``reach_m`` is in this row
+    # ``radius`` of that mirror's centre: every mirror it can meet within ``reach_m`` is in this row, less those
+    # wholly behind the HUA's mirror plane (dropped just below; a grazing reflection off a canted facet could
+    # in principle reach one)
     tg = _near(tree, h_xy, np.full(len(h), float(reach_m) + 2.0 * radius), h)
     behind = np.einsum("cjd,cd->cj", pose.mirror_centres[np.maximum(tg, 0)] - pose.mirror_centres[h][:, None, :],
                        fwd) < -radius  # wholly behind the HUA's mirror plane: a reflected ray cannot reach it

@@ -136,6 +136,7 @@ from pihim.planning.sightlines import (
     TOWER_HIT,
     MirrorIndex,
     azimuth_deg,
+    camera_frame,
     dot,
     first_mirror_hits,
     gaze_angles,
@@ -546,17 +547,19 @@ class _Context:
     def facets_in_view(self, hua: NDArray[np.int64], cam: NDArray[np.float64]) -> NDArray[np.int64]:
         """Facet centres of each HUA inside the field of view with the HUA centred.
 
-        :func:`gaze_angles` and :func:`in_fov` in one compiled pass (:func:`pihim.planning._kernels.count_in_view`,
-        held to them by a test).
+        :func:`gaze_angles` and :func:`camera_frame` on the cameras, then :func:`in_fov` summed in one
+        compiled pass (:func:`pihim.planning._kernels.count_in_view`, held to ``in_fov`` by a test).
         """
         from pihim.planning import _kernels
 
-        cam_model = self.camera
-        return _kernels.count_in_view(
-            np.ascontiguousarray(self.pose.facet_centres, dtype=float), np.ascontiguousarray(hua, dtype=np.int64),
-            np.ascontiguousarray(cam, dtype=float), np.ascontiguousarray(self.pose.mirror_centres, dtype=float),
-            float(0.5 * cam_model.width_px / cam_model.focal_length_px),
-            float(0.5 * cam_model.height_px / cam_model.focal_length_px))
+        hua = np.ascontiguousarray(hua, dtype=np.int64)
+        cam = np.ascontiguousarray(cam, dtype=float)
+        head, pitch = gaze_angles(cam, self.pose.mirror_centres[hua])
+        r, dn, f = (np.ascontiguousarray(a, dtype=float) for a in camera_frame(head, pitch))
+        c = self.camera
+        return _kernels.count_in_view(np.ascontiguousarray(self.pose.facet_centres, dtype=float), hua, cam, r, dn, f,
+                                      float(0.5 * c.width_px / c.focal_length_px),
+                                      float(0.5 * c.height_px / c.focal_length_px))
 
 
 def _config_scores(ctx: _Context, pairs: NDArray[np.int64], line_of: NDArray[np.int64], n_h: int, *, trace: bool,
