@@ -9,6 +9,19 @@ from numba import njit
 from numpy.typing import NDArray
 
 
+@njit(cache=True, inline="always")
+def _seen(points: NDArray, k: int, j: int, cam: NDArray, r: NDArray, dn: NDArray, f: NDArray, p: int, tx: float,
+          ty: float) -> bool:  # pragma: no cover - compiled
+    """Point ``points[k, j]`` in the view of camera ``p``: the test of :func:`in_fov`."""
+    vx = points[k, j, 0] - cam[p, 0]
+    vy = points[k, j, 1] - cam[p, 1]
+    vz = points[k, j, 2] - cam[p, 2]
+    z = vx * f[p, 0] + vy * f[p, 1] + vz * f[p, 2]
+    x = vx * r[p, 0] + vy * r[p, 1] + vz * r[p, 2]
+    y = vx * dn[p, 0] + vy * dn[p, 1] + vz * dn[p, 2]
+    return z > 0.0 and abs(x) <= tx * z and abs(y) <= ty * z
+
+
 @njit(cache=True)
 def in_fov(points: NDArray, cam: NDArray, r: NDArray, dn: NDArray, f: NDArray, tx: float,
            ty: float) -> NDArray:  # pragma: no cover - compiled
@@ -19,13 +32,7 @@ def in_fov(points: NDArray, cam: NDArray, r: NDArray, dn: NDArray, f: NDArray, t
     out = np.empty((n_p, n_k), np.bool_)
     for p in range(n_p):
         for j in range(n_k):
-            vx = points[p, j, 0] - cam[p, 0]
-            vy = points[p, j, 1] - cam[p, 1]
-            vz = points[p, j, 2] - cam[p, 2]
-            z = vx * f[p, 0] + vy * f[p, 1] + vz * f[p, 2]
-            x = vx * r[p, 0] + vy * r[p, 1] + vz * r[p, 2]
-            y = vx * dn[p, 0] + vy * dn[p, 1] + vz * dn[p, 2]
-            out[p, j] = z > 0.0 and abs(x) <= tx * z and abs(y) <= ty * z
+            out[p, j] = _seen(points, p, j, cam, r, dn, f, p, tx, ty)
     return out
 
 
@@ -37,16 +44,9 @@ def count_in_view(points: NDArray, hua: NDArray, cam: NDArray, r: NDArray, dn: N
     n_p, n_k = hua.shape[0], points.shape[1]
     out = np.zeros(n_p, np.int64)
     for p in range(n_p):
-        h = hua[p]
         c = 0
         for j in range(n_k):
-            vx = points[h, j, 0] - cam[p, 0]
-            vy = points[h, j, 1] - cam[p, 1]
-            vz = points[h, j, 2] - cam[p, 2]
-            z = vx * f[p, 0] + vy * f[p, 1] + vz * f[p, 2]
-            x = vx * r[p, 0] + vy * r[p, 1] + vz * r[p, 2]
-            y = vx * dn[p, 0] + vy * dn[p, 1] + vz * dn[p, 2]
-            if z > 0.0 and abs(x) <= tx * z and abs(y) <= ty * z:
+            if _seen(points, hua[p], j, cam, r, dn, f, p, tx, ty):
                 c += 1
         out[p] = c
     return out
