@@ -250,8 +250,8 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
     facet, can meet within ``reach_m`` only mirrors whose centres lie within
     ``reach_m`` plus two mirror half-diagonals of the HUA's centre; each ray
     is tested against those of its own capture that are not wholly behind
-    the HUA's mirror plane. The other points of a facet
-    are traced only where its middle point shows no heliostat back.
+    the HUA's mirror plane. The other points of a facet are traced only
+    where its middle point shows no heliostat back.
     """
     camera = camera or CameraModel()
     if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
@@ -297,7 +297,7 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
     # in principle reach one)
     tg = _near(tree, h_xy, np.full(len(h), float(reach_m) + 2.0 * radius), h)
     behind = np.einsum("cjd,cd->cj", pose.mirror_centres[np.maximum(tg, 0)] - pose.mirror_centres[h][:, None, :],
-                       fwd) < -radius  # wholly behind the HUA's mirror plane: a reflected ray cannot reach it
+                       fwd) < -radius  # wholly behind the HUA's mirror plane: out of a reflected ray's reach
     tg = np.where(behind, -1, tg)
 
     def trace(live: NDArray[np.int64]) -> NDArray[np.int64]:
