@@ -877,7 +877,10 @@ def test_bad_plans_raise_one_line_errors_and_write_nothing(plan, tmp_path, name,
 def test_a_heading_rounded_to_360_is_exported(plan, tmp_path):
     """(-1e-14) % 360.0 == 360.0: a planner heading of a hair below 0 must not make the plan unexportable."""
     assert -1e-14 % 360.0 == 360.0
-    write_plan_json(_nan_latitude_plan(plan, heading_deg=360.0), tmp_path / "plan.json")
+    path = write_plan_json(_nan_latitude_plan(plan, heading_deg=360.0), tmp_path / "plan.json")
+    doc = json.loads(path.read_text())
+    jsonschema.validate(doc, load_plan_schema(), cls=jsonschema.Draft202012Validator)  # exclusiveMaximum 360
+    assert 360.0 not in [w["heading_deg"] for p in doc["passes"] for w in p["waypoints"]]
 
 
 def test_export_all_bad_plan_writes_nothing(plan, tmp_path):

@@ -223,6 +223,8 @@ class Plan:
                 names = _FIELD_NAMES.setdefault(kind, tuple(f.name for f in dataclasses.fields(obj)))
             if names is not None:
                 d = {name: v if type(v := getattr(obj, name)) in kept else conv(v) for name in names}
+                if kind is Waypoint and d["heading_deg"] == 360.0:  # a heading of a hair below 0 folded by `%`:
+                    d["heading_deg"] = 0.0  # written as the schema's [0, 360) wants (the exporters fold it too)
                 if isinstance(obj, ScanPass):
                     d["heliostats"] = list(obj.heliostats)
                     d["usable_fraction"] = conv(obj.usable_fraction)
