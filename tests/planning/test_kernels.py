@@ -464,3 +464,31 @@ def test_count_in_view_is_in_fov_summed():
     want = in_fov(facets[hua], cam, head, pitch, camera).sum(axis=-1)
     np.testing.assert_array_equal(got, want)
     assert 0 < want.mean() < k and (want == 0).any() and (want == k).any()  # partial, none and all in view
+
+
+@pytest.mark.parametrize(("n_lines", "reach"), [(0, 15.0), (1, 15.0), (300, 15.0), (300, 1e4)])
+def test_lines_near_is_the_numpy_test_to_the_last_bit(n_lines, reach):
+    """The facet captures' rescue (every HUA to every flown line) against the numpy expression it replaces:
+    the same lines in the same order and bit-identical positions along them, a point exactly ``reach`` away
+    included; with a reach over the whole area every point meets every line and the buffer has to grow."""
+    rng = np.random.default_rng(11)
+    theta = rng.uniform(0.0, 2.0 * np.pi, n_lines)
+    e = np.column_stack([np.sin(theta), np.cos(theta)])
+    a = rng.uniform(-500.0, 500.0, (n_lines, 2))
+    pts = rng.uniform(-600.0, 600.0, (400, 2))
+    if n_lines:  # on a line's edge: exactly reach to its right (axis-aligned, integers: no rounding)
+        a[0], e[0] = (10.0, 20.0), (0.0, 1.0)
+        pts[0] = (10.0 + reach, 55.0)
+        pts[1:60] = a[-1] + rng.normal(scale=3.0, size=(59, 2))  # crowded near one line
+    start, idx, along = _kernels.lines_near(pts, a, e, reach)
+    assert start.shape == (len(pts) + 1,) and start[0] == 0 and start[-1] == len(idx) == len(along)
+    for h in range(len(pts)):
+        rel = pts[h, None, :] - a
+        j = np.flatnonzero(np.abs(rel[:, 0] * e[:, 1] - rel[:, 1] * e[:, 0]) <= reach)
+        np.testing.assert_array_equal(idx[start[h]:start[h + 1]], j)
+        assert along[start[h]:start[h + 1]].tobytes() == np.sum(rel[j] * e[j], axis=1).tobytes()
+    if n_lines:
+        assert 0 in idx[start[0]:start[1]].tolist()  # the point on the edge counts
+        assert all(n_lines - 1 in idx[start[h]:start[h + 1]].tolist() for h in range(1, 60))
+    if reach > 1e3:
+        assert len(idx) > n_lines + 64 * len(pts)  # more than the first buffer holds

@@ -755,3 +755,39 @@ def greedy_captures(good: NDArray, target: NDArray, kk: NDArray, taken: NDArray,
                         if kk[b2, g] == k:
                             taken[b2, g] = True
     return pick_g, pick_a, pick_new, pick_t
+
+
+@njit(cache=True)
+def lines_near(points: NDArray, a: NDArray, e: NDArray, reach: float) -> tuple:  # pragma: no cover - compiled
+    """For points (H, 2): the lines through ``a`` (L, 2) along the unit vectors ``e`` (L, 2) that pass within
+    ``reach`` of each (``|(p - a) x e| <= reach``), in line order, and the point's position along each,
+    ``(p - a) . e`` (the products and sums of the numpy expression, in its order: the same floats). Returns
+    ``start`` (H + 1,) and the lines ``idx`` and positions ``along`` of point ``h`` at
+    ``start[h]:start[h + 1]``: the (H, L) test without its (H, L, 2) temporaries (25,000 points by 34,000
+    lines at 100,000 heliostats)."""
+    n_h, n_l = points.shape[0], a.shape[0]
+    start = np.zeros(n_h + 1, np.int64)
+    idx = np.empty(n_l + 64 * n_h, np.int64)
+    along = np.empty(idx.shape[0], np.float64)
+    m = 0
+    for h in range(n_h):
+        if m + n_l > idx.shape[0]:  # room for every line of this point
+            idx = np.concatenate((idx, np.empty(idx.shape[0], np.int64)))
+            along = np.concatenate((along, np.empty(along.shape[0], np.float64)))
+        m = _near_one(points[h, 0], points[h, 1], a, e, reach, idx, along, m)
+        start[h + 1] = m
+    return start, idx[:m].copy(), along[:m].copy()
+
+
+@njit(cache=True)
+def _near_one(px: float, py: float, a: NDArray, e: NDArray, reach: float, idx: NDArray, along: NDArray,
+              m: int) -> int:  # pragma: no cover - compiled
+    """:func:`lines_near` of one point, written from ``m`` on; returns the end."""
+    for j in range(a.shape[0]):
+        rx = px - a[j, 0]
+        ry = py - a[j, 1]
+        if abs(rx * e[j, 1] - ry * e[j, 0]) <= reach:
+            idx[m] = j
+            along[m] = rx * e[j, 0] + ry * e[j, 1]
+            m += 1
+    return m
