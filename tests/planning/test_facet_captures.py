@@ -456,6 +456,26 @@ def test_turn_charges_count_what_turns_counts():
         assert charged == pytest.approx(turns(path)), trial
 
 
+def test_costs_with_another_turn_cost_are_those_built_with_it():
+    """The route's two cost tables share the pass geometry (:meth:`_Costs.with_turn_cost`): every transit and
+    home leg as a table built with that turn cost, and the first table's cached distances left as they were."""
+    rng = np.random.default_rng(23)
+    home = Waypoint(0, -50, 0, 0, 0, 0, 0, 0, 0, kind="takeoff")
+    passes = [_pass(k, a := rng.uniform(0, 60, 2), a + rng.uniform(-30, 30, 2)) for k in range(7)]
+    keepout = (np.array([20.0, 20.0]), np.array([30.0, 30.0]), 40.0)  # low, high corner, top: transits go around
+    turned = _Costs(passes, home, keepout, turn_cost_m=10.0)
+    ends = range(2 * len(passes))
+    before = {(a, b): turned.d(a, b) for a in ends for b in ends}
+    plain = turned.with_turn_cost(0.0)
+    fresh = _Costs(passes, home, keepout)
+    assert plain.turn_cost_m == 0.0 and turned.turn_cost_m == 10.0
+    assert all(plain.d(a, b) == fresh.d(a, b) for a in ends for b in ends)
+    assert all(plain.h(e, 25.0) == fresh.h(e, 25.0) for e in ends)
+    assert any(plain.d(a, b) != before[a, b] for a in ends for b in ends)  # the turn cost does count
+    assert all(turned.d(a, b) == before[a, b] for a in ends for b in ends)
+    assert turned.with_turn_cost(10.0).d(0, 3) == before[0, 3]
+
+
 def test_turn_cost_trades_distance_for_turns():
     """The route's default charge per turn flies fewer turns than distance alone, for a little more distance."""
     from pihim.planning.route import RouteSettings
