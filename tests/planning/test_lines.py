@@ -151,6 +151,20 @@ def test_pass_alignment_of_a_hand_made_pass() -> None:
     assert s["median_deviation_deg"] == pytest.approx(4.0) and s["max_camera_offset_m"] == pytest.approx(1.5)
 
 
+def test_plane_azimuth_a_hair_west_of_north_is_0_not_360(monkeypatch) -> None:
+    """``x % 360`` of a tiny negative azimuth is 360.0, outside the documented [0, 360): folded to 0."""
+    from pihim.planning import lines
+
+    p = ScanPass(index=0, azimuth_deg=0.0, altitude_m=20.0, gimbal_pitch_deg=-80.0, pairs=(("8E3", "7E3"),),
+                 waypoints=(Waypoint(0.0, 0.0, 20.0, 0.0, 0.0, 0.0, 0.0, -80.0, 5.0, kind="scan", capture=True,
+                                     hua="8E3"),))
+    one = np.zeros(1)
+    for x, want in ((-1e-300, 0.0), (-1.0, 360.0 - math.degrees(math.atan2(1.0, 1.0)))):
+        monkeypatch.setattr(lines, "_capture_alignment", lambda *_a, x=x: (one, one, np.array([x, 1.0]), 0.0))
+        (a,) = pass_alignment([p], FIELD, POSE)
+        assert 0.0 <= a.plane_azimuth_deg < 360.0 and a.plane_azimuth_deg == pytest.approx(want)
+
+
 def test_chains_straying_from_their_line_are_halved() -> None:
     from pihim.planning.lines import chain_lines, link_chains
 

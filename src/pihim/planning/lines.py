@@ -68,7 +68,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from pihim.field.kinematics import FieldPose
-from pihim.planning.model import ScanPass
+from pihim.planning.model import ScanPass, heading_0_360
 from pihim.planning.sightlines import (
     TOWER_HIT,
     MirrorIndex,
@@ -596,7 +596,7 @@ def pass_alignment(passes: Sequence[ScanPass], field: Any, pose: FieldPose) -> t
         dev, offset, mean_b, off_line = got
         out.append(PassAlignment(
             index=int(p.index),
-            plane_azimuth_deg=float(np.degrees(np.arctan2(mean_b[0], mean_b[1])) % 360.0),
+            plane_azimuth_deg=heading_0_360(np.degrees(np.arctan2(mean_b[0], mean_b[1]))),
             median_deviation_deg=float(np.median(dev)),
             max_deviation_deg=float(dev.max()),
             median_camera_offset_m=float(np.median(offset)),
