@@ -466,6 +466,7 @@ def test_costs_with_another_turn_cost_are_those_built_with_it():
     turned = _Costs(passes, home, keepout, turn_cost_m=10.0)
     ends = range(2 * len(passes))
     before = {(a, b): turned.d(a, b) for a in ends for b in ends}
+    home_before = {e: turned.h(e, 25.0) for e in ends}
     plain = turned.with_turn_cost(0.0)
     fresh = _Costs(passes, home, keepout)
     assert plain.turn_cost_m == 0.0 and turned.turn_cost_m == 10.0
@@ -473,6 +474,8 @@ def test_costs_with_another_turn_cost_are_those_built_with_it():
     assert all(plain.h(e, 25.0) == fresh.h(e, 25.0) for e in ends)
     assert any(plain.d(a, b) != before[a, b] for a in ends for b in ends)  # the turn cost does count
     assert all(turned.d(a, b) == before[a, b] for a in ends for b in ends)
+    assert all(turned.h(e, 25.0) == home_before[e] for e in ends)
+    assert any(plain.h(e, 25.0) != home_before[e] for e in ends)  # the turn at the pass end counts at home too
     assert turned.with_turn_cost(10.0).d(0, 3) == before[0, 3]
 
 

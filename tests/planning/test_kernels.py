@@ -480,6 +480,9 @@ def test_lines_near_is_the_numpy_test_to_the_last_bit(n_lines, reach):
         a[0], e[0] = (10.0, 20.0), (0.0, 1.0)
         pts[0] = (10.0 + reach, 55.0)
         pts[1:60] = a[-1] + rng.normal(scale=3.0, size=(59, 2))  # crowded near one line
+        if n_lines > 1:  # on a line along -x through a: rx = +0, ry * e_y = -0.0; np.sum gives +0.0, not -0.0
+            a[1], e[1] = (0.0, 0.0), (-1.0, 0.0)
+            pts[60] = (0.0, -5.0)
     start, idx, along = _kernels.lines_near(pts, a, e, reach)
     assert start.shape == (len(pts) + 1,) and start[0] == 0 and start[-1] == len(idx) == len(along)
     for h in range(len(pts)):
@@ -490,5 +493,8 @@ def test_lines_near_is_the_numpy_test_to_the_last_bit(n_lines, reach):
     if n_lines:
         assert 0 in idx[start[0]:start[1]].tolist()  # the point on the edge counts
         assert all(n_lines - 1 in idx[start[h]:start[h + 1]].tolist() for h in range(1, 60))
+    if n_lines > 1:
+        k = start[60] + idx[start[60]:start[61]].tolist().index(1)
+        assert along[k] == 0.0 and math.copysign(1.0, along[k]) == 1.0  # +0.0, as the numpy sum
     if reach > 1e3:
         assert len(idx) > n_lines + 64 * len(pts)  # more than the first buffer holds
