@@ -762,10 +762,9 @@ def lines_near(points: NDArray, a: NDArray, e: NDArray, reach: float) -> tuple: 
     """For points (H, 2): the lines through ``a`` (L, 2) along the unit vectors ``e`` (L, 2) that pass within
     ``reach`` of each (``|(p - a) x e| <= reach``), in line order, and the point's position along each,
     ``(p - a) . e`` (the products and sums of ``np.sum(rel * e, axis=1)``, in its order, from its +0.0 start:
-    the same floats, signed zeros included). Returns
-    ``start`` (H + 1,) and the lines ``idx`` and positions ``along`` of point ``h`` at
-    ``start[h]:start[h + 1]``: the (H, L) test without its (H, L, 2) temporaries (25,000 points by 34,000
-    lines at 100,000 heliostats)."""
+    the same floats, signed zeros included). Returns ``start`` (H + 1,) and the lines ``idx`` and positions
+    ``along`` of point ``h`` at ``start[h]:start[h + 1]``: the (H, L) test without its (H, L, 2) temporaries
+    (25,000 points by 34,000 lines at 100,000 heliostats)."""
     n_h, n_l = points.shape[0], a.shape[0]
     start = np.zeros(n_h + 1, np.int64)
     idx = np.empty(n_l + 64 * n_h, np.int64)
