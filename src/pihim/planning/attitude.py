@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 
 from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
-from pihim.planning.model import ScanPass, Waypoint
+from pihim.planning.model import ScanPass, Waypoint, heading_0_360
 from pihim.planning.sightlines import gaze_angles, in_fov, optical_axis
 
 __all__ = ["heading_runs", "leg_speed", "steady_headings", "turn_limited_speed"]
@@ -179,16 +179,11 @@ def steady_headings(passes: Sequence[ScanPass], pose: Any, *, camera: CameraMode
         wps = list(p.waypoints)
         for a, b, heading in runs:
             for j in idx[a:b]:
-                wps[j] = dataclasses.replace(wps[j], heading_deg=_fold(heading))
-        first, last = _fold(runs[0][2]), _fold(runs[-1][2])
+                wps[j] = dataclasses.replace(wps[j], heading_deg=heading_0_360(heading))
+        first, last = heading_0_360(runs[0][2]), heading_0_360(runs[-1][2])
         wps = [_edge_heading(w, j, idx, first, last) for j, w in enumerate(wps)]
         out.append(dataclasses.replace(p, waypoints=tuple(wps)))
     return tuple(out)
-
-
-def _fold(h: float) -> float:
-    h = float(h) % 360.0
-    return 0.0 if h >= 360.0 else h
 
 
 def _edge_heading(w: Waypoint, j: int, idx: list[int], first: float, last: float) -> Waypoint:

@@ -271,8 +271,7 @@ def _heading(a: Sequence[float], b: Sequence[float], default: float) -> float:
     dx, dy = b[0] - a[0], b[1] - a[1]
     if math.hypot(dx, dy) < 1e-9:
         return default
-    h = math.degrees(math.atan2(dx, dy)) % 360.0
-    return 0.0 if h >= 360.0 else h
+    return heading_0_360(math.degrees(math.atan2(dx, dy)))
 
 
 def _transit(a: tuple[float, float, float], b: tuple[float, float, float], z: float, keepout: Any,

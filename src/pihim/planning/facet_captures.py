@@ -84,7 +84,7 @@ from pihim.camera.model import CameraModel
 from pihim.errors import PihimInputError
 from pihim.field.geodesy import as_origin, enu_to_geodetic
 from pihim.field.kinematics import facet_corners
-from pihim.planning.model import ScanPass, Waypoint
+from pihim.planning.model import ScanPass, Waypoint, heading_0_360
 from pihim.planning.sightlines import azimuth_deg, camera_frame, dot, gaze_angles
 
 __all__ = [
@@ -1040,6 +1040,5 @@ def _rebuild(p: ScanPass, ln: _Line | None, lay: _Layout, lat: NDArray[np.float6
 
 def _wp(x: NDArray[np.float64], lat: float, lon: float, h: float, heading: float, pitch: float, speed: float,
         kind: str, capture: bool, hua: str | None) -> Waypoint:
-    hd = float(heading) % 360.0
-    return Waypoint(float(x[0]), float(x[1]), float(x[2]), float(lat), float(lon), float(h), 0.0 if hd >= 360 else hd,
+    return Waypoint(float(x[0]), float(x[1]), float(x[2]), float(lat), float(lon), float(h), heading_0_360(heading),
                     float(pitch), float(speed), kind=kind, capture=capture, hua=hua)  # type: ignore[arg-type]

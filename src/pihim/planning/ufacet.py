@@ -864,9 +864,8 @@ def _scan_passes(drafts: list[_PassDraft], origin: GeodeticOrigin, speed_m_s: fl
     for rank_, azi, z, gp, pr, wps, feasible, issues in drafts:
         wl = []
         for xyz, hd, gpw, kind, capture, hua in wps:
-            hd = float(hd) % 360.0
             wl.append(Waypoint(float(xyz[0]), float(xyz[1]), float(xyz[2]), float(lat[q]), float(lon[q]),
-                               float(hgt[q]), 0.0 if hd >= 360.0 else hd, float(gpw), float(speed_m_s),
+                               float(hgt[q]), heading_0_360(hd), float(gpw), float(speed_m_s),
                                kind=kind, capture=capture, hua=hua))
             q += 1
         passes.append(ScanPass(index=rank_, azimuth_deg=azi, altitude_m=z, gimbal_pitch_deg=gp, pairs=pr,
