@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import math
 import struct
@@ -21,6 +22,7 @@ from pihim.field.layout import NSTTF_TOWER, Field, nsttf_spec
 from pihim.planning.export import (
     LITCHI_HEADER,
     OUTPUT_NAMES,
+    MissionItemCounter,
     count_mission_items,
     export_all,
     flight_file_stem,
@@ -771,6 +773,19 @@ def test_mission_item_limit(plan, tmp_path):
     assert len(small) > 1 and all(count_mission_items(f.waypoints) <= 40 for f in small)
     with pytest.raises(PihimInputError, match="mission items, more than 10"):
         split_flights(plan.passes, plan.home, origin=ORIGIN, max_mission_items=10, count_items=count_mission_items)
+    # a counter that counts each flight tried on from the one a pass shorter splits the same: twelve passes at
+    # one altitude (a flight grows pass by pass; a higher pass would rebuild it), cut by the items
+    row = [_pass(k, 20.0 + 4.0 * k, 40.0 - 0.5 * (k % 3), k % 2 == 0, -25.0 - k, (f"{k}A", f"{k}B", f"{k}C"),
+                 ("1E1", "1E2", "1E3")) for k in range(12)]
+    for cap in (60, 95, 200):
+        kw = dict(origin=ORIGIN, include_infeasible=True, max_mission_items=cap)
+        whole = split_flights(row, plan.home, count_items=count_mission_items, **kw)
+        assert len(whole) > 1 and max(count_mission_items(f.waypoints) for f in whole) > cap - 10
+        assert split_flights(row, plan.home, count_items=MissionItemCounter(), **kw) == whole
+    with pytest.raises(PihimInputError, match="mission items, more than 10"):
+        split_flights(plan.passes, plan.home, origin=ORIGIN, max_mission_items=10, count_items=MissionItemCounter())
+    with pytest.raises(PihimInputError, match="autopilot"):
+        MissionItemCounter(autopilot="inav")
 
 
 _KINDS = ("scan", "lead_in", "run_past", "transit", "return", "takeoff")
@@ -783,15 +798,16 @@ _KINDS = ("scan", "lead_in", "run_past", "transit", "return", "takeoff")
                                 st.sampled_from([0.0, 0.05, 2.0, 2.0 + 1e-10, 8.0]),  # speed
                                 st.sampled_from(_KINDS), st.booleans()),
                       min_size=0, max_size=25),
-       takeoff=st.booleans(), land_at=st.none() | st.integers(0, 30),
+       takeoff=st.booleans(), land_at=st.none() | st.integers(0, 30), cuts=st.lists(st.integers(1, 26), max_size=4),
        options=st.fixed_dictionaries({}, optional={
            "autopilot": st.sampled_from(["ardupilot", "px4"]), "condition_yaw": st.booleans(),
            "mount_control": st.booleans(), "speed_commands": st.booleans(), "end": st.sampled_from(["rtl", "land"]),
            "camera": st.sampled_from(["image_start_capture", "digicam"]),
            "yaw_rate_deg_s": st.sampled_from([5.0, 30.0]), "settle_s": st.sampled_from([0.0, 0.5])}))
-def test_mission_item_count_is_the_built_items(steps, takeoff, land_at, options):
+def test_mission_item_count_is_the_built_items(steps, takeoff, land_at, cuts, options):
     """count_mission_items counts without building: it must equal the items mission export builds, for any
-    sequence (turns, near-equal speeds and pitches at the tolerances, landings mid-way) and any options."""
+    sequence (turns, near-equal speeds and pitches at the tolerances, landings mid-way) and any options; and
+    MissionItemCounter counting the same sequence in pieces (cut anywhere) must give the same count."""
     from pihim.planning.export.qgc import MAV_FRAME_GLOBAL_RELATIVE_ALT, _build_items, _options
 
     x = y = heading = pitch = 0.0
@@ -803,6 +819,13 @@ def test_mission_item_count_is_the_built_items(steps, takeoff, land_at, options)
                             capture and kind == "scan"))
     built = _build_items(wps, wps[0], lambda w: 0.0, MAV_FRAME_GLOBAL_RELATIVE_ALT, _options(**options))
     assert count_mission_items(wps, **options) == len(built) + 1
+    counter = MissionItemCounter(**options)
+    assert counter(wps) == len(built) + 1
+    bounds = [0, *sorted({c for c in cuts if c < len(wps)}), len(wps)]
+    state = None
+    for a, b in itertools.pairwise(bounds):
+        state = counter.resume(state, wps[a:b])
+    assert counter.total(state) == len(built) + 1
 
 
 def test_kml_is_valid_against_the_ogc_schema(plan, field, tmp_path):

@@ -8,7 +8,6 @@ contrast-raising shifts, the flight split, throughput and a fleet estimate.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import time as _time
 from collections.abc import Callable, Sequence
@@ -196,11 +195,9 @@ def build_plan(
         home = home_waypoint(field, origin=site)
         counter = None
         if max_mission_items is not None:
-            from pihim.planning.export.qgc import count_mission_items
+            from pihim.planning.export.qgc import MissionItemCounter
 
-            opts = dict(mission_options or {})
-            counter = functools.partial(count_mission_items, **opts)
-            count_mission_items([home, home], **opts)  # bad options -> one-line error before the split
+            counter = MissionItemCounter(**dict(mission_options or {}))  # bad options -> one-line error here
         unflown: list[int] = []  # passes no flight from home reaches within a battery (a field kilometres wide)
         if route is not False:
             scored, flights = plan_flights(scored, home, origin=site, model=endurance, tower=field.tower,

@@ -61,6 +61,7 @@ from pihim.planning.export.plan_json import (
 from pihim.planning.export.qgc import (
     Mission,
     MissionItem,
+    MissionItemCounter,
     count_mission_items,
     mission_items,
     qgc_document_text,
@@ -78,6 +79,7 @@ __all__ = [
     "OUTPUT_NAMES",
     "Mission",
     "MissionItem",
+    "MissionItemCounter",
     "count_mission_items",
     "export_all",
     "flight_file_stem",

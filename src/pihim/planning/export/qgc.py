@@ -154,6 +154,7 @@ __all__ = [
     "MAV_FRAME_MISSION",
     "Mission",
     "MissionItem",
+    "MissionItemCounter",
     "count_mission_items",
     "mission_items",
     "qgc_plan_document",
@@ -407,20 +408,35 @@ def _count_items(wps: Sequence[Waypoint], o: _Options) -> int:
     where the pitch changes, the yaw condition, the navigation item, the
     capture. ``tests/planning/test_export.py`` holds it to the built items.
     """
-    first = wps[0]
-    rest = wps[1:] if first.kind == "takeoff" else wps
-    n = 1  # the take-off
-    if not rest:
-        return n + 1  # and the return
+    return _tally(wps, o, None)[0] + 1  # the return, or the landing
+
+
+# what the items of the next waypoint depend on: the count so far, the speed and pitch of the last speed and pitch
+# items, the last waypoint's x, y, z, heading (None before the first after the take-off) and pitch, and whether
+# a landing ended the mission
+_Tally = tuple[int, float, float, float, float, float, "float | None", float, bool]
+
+
+def _tally(wps: Sequence[Waypoint], o: _Options, state: _Tally | None) -> _Tally:
+    """:func:`_count_items` of ``wps`` continued from ``state`` (None: ``wps`` starts the flight), less the
+    closing item: counting a flight in pieces gives the count of the whole, to the item."""
+    if state is None:
+        first = wps[0]
+        wps = wps[1:] if first.kind == "takeoff" else wps
+        state = (1, _NAN, _NAN, first.x_m, first.y_m, first.z_m, None, 0.0, False)  # 1: the take-off
+    n, speed_state, pitch_state, px, py, pz, ph, pp, landed = state
+    if landed:
+        return state
     yaw_rate, gimbal_rate, settle = o.yaw_rate_deg_s, o.gimbal_rate_deg_s, o.settle_s
     speeds, per_waypoint, per_pitch = o.speed_commands, 1 + o.condition_yaw, 1 + o.mount_control
-    speed_state = pitch_state = _NAN
-    px, py, pz, ph, pp = first.x_m, first.y_m, first.z_m, float(rest[0].heading_deg), 0.0
-    for w in rest:
+    for w in wps:
         kind = w.kind
         if kind == "land":
-            break  # its landing item ends the mission (counted below, as the return would be)
+            landed = True
+            break  # its landing item ends the mission (counted as the return would be)
         x, y, z, h, pitch = w.x_m, w.y_m, w.z_m, float(w.heading_deg), float(w.gimbal_pitch_deg)
+        if ph is None:  # the first waypoint after the take-off: the drone already faces it
+            ph = h
         speed = float(w.speed_m_s)
         if kind != "takeoff":  # leg_speed -> turn_limited_speed, inlined
             dist = math.dist((px, py, pz), (x, y, z))
@@ -438,7 +454,51 @@ def _count_items(wps: Sequence[Waypoint], o: _Options) -> int:
             pitch_state = pitch
         n += per_waypoint + bool(w.capture)
         px, py, pz, ph, pp = x, y, z, h, pitch
-    return n + 1  # the return, or the landing
+    return (n, speed_state, pitch_state, px, py, pz, ph, pp, landed)
+
+
+class MissionItemCounter:
+    """:func:`count_mission_items` with its options checked once, able to count a flight in pieces.
+
+    ``counter(waypoints)`` is ``count_mission_items(waypoints, **mission_options)``.
+    A flight grown one pass at a time (:func:`pihim.planning.endurance.split_flights`
+    tries every prefix of a flight) is counted from where its last piece ended:
+    ``state = counter.resume(None, first_piece)``, then
+    ``counter.resume(state, next_piece)``, and ``counter.total(state)`` is the
+    count of all the pieces one after the other, to the item (tested).
+
+    Parameters
+    ----------
+    **mission_options
+        As :func:`count_mission_items`.
+
+    Raises
+    ------
+    PihimInputError
+        A bad option (when made, not at the first count).
+    """
+
+    __slots__ = ("_o",)
+
+    def __init__(self, **mission_options: Any) -> None:
+        self._o = _options(**{k: v for k, v in mission_options.items()
+                              if k not in ("altitude_frame", "geoid_undulation_m", "flight")})
+
+    def __call__(self, waypoints: Sequence[Waypoint]) -> int:
+        if not waypoints:
+            raise PihimInputError("no waypoints to count")
+        return _count_items(waypoints, self._o) + 1
+
+    def resume(self, state: _Tally | None, waypoints: Sequence[Waypoint]) -> _Tally:
+        """The count after ``waypoints``, continued from ``state`` (None: they start the flight)."""
+        if state is None and not waypoints:
+            raise PihimInputError("no waypoints to count")
+        return _tally(waypoints, self._o, state)
+
+    @staticmethod
+    def total(state: _Tally) -> int:
+        """Mission items of the waypoints counted into ``state``, home slot and closing item included."""
+        return state[0] + 2
 
 
 def count_mission_items(waypoints: Sequence[Waypoint], **mission_options: Any) -> int:
@@ -462,8 +522,7 @@ def count_mission_items(waypoints: Sequence[Waypoint], **mission_options: Any) -
     """
     if not waypoints:
         raise PihimInputError("no waypoints to count")
-    opts = {k: v for k, v in mission_options.items() if k not in ("altitude_frame", "geoid_undulation_m", "flight")}
-    return _count_items(waypoints, _options(**opts)) + 1
+    return MissionItemCounter(**mission_options)(waypoints)
 
 
 def mission_items(
