@@ -773,19 +773,50 @@ def test_mission_item_limit(plan, tmp_path):
     assert len(small) > 1 and all(count_mission_items(f.waypoints) <= 40 for f in small)
     with pytest.raises(PihimInputError, match="mission items, more than 10"):
         split_flights(plan.passes, plan.home, origin=ORIGIN, max_mission_items=10, count_items=count_mission_items)
-    # a counter that counts each flight tried on from the one a pass shorter splits the same: twelve passes at
-    # one altitude (a flight grows pass by pass; a higher pass would rebuild it), cut by the items
-    row = [_pass(k, 20.0 + 4.0 * k, 40.0 - 0.5 * (k % 3), k % 2 == 0, -25.0 - k, (f"{k}A", f"{k}B", f"{k}C"),
-                 ("1E1", "1E2", "1E3")) for k in range(12)]
-    for cap in (60, 95, 200):
-        kw = dict(origin=ORIGIN, include_infeasible=True, max_mission_items=cap)
-        whole = split_flights(row, plan.home, count_items=count_mission_items, **kw)
-        assert len(whole) > 1 and max(count_mission_items(f.waypoints) for f in whole) > cap - 10
-        assert split_flights(row, plan.home, count_items=MissionItemCounter(), **kw) == whole
+
+
+def test_flight_split_counting_in_pieces_is_counting_whole(plan):
+    """split_flights counts a MissionItemCounter's flights on from the flight one pass shorter: the same flights
+    as counting each whole, where the flight grows (passes at one altitude), where a higher pass rebuilds it,
+    and with a pass out of reach; a subclass that counts otherwise is called whole."""
+    def row(altitude):
+        return [_pass(k, 20.0 + 4.0 * k, altitude(k), k % 2 == 0, -25.0 - k, (f"{k}A", f"{k}B", f"{k}C"),
+                      ("1E1", "1E2", "1E3")) for k in range(12)]
+
+    level = row(lambda k: 40.0 - 0.5 * (k % 3))
+    rising = row(lambda k: 30.0 + 2.0 * k if k % 4 else 60.0 - k)
+    far = [*level[:5], replace(_pass(5, 6000.0, 40.0, True, -30.0, ("FA", "FB", "FC"), ("1E1", "1E2", "1E3")),
+                               feasible=True), *level[6:]]
+    for passes, caps in ((level, (60, 95, 200)), (rising, (60, 95, 200)), (far, (95,))):
+        for cap in caps:
+            kw = dict(origin=ORIGIN, include_infeasible=True, max_mission_items=cap)
+            lost: list[int] = []
+            whole = split_flights(passes, plan.home, count_items=count_mission_items, unflyable=lost, **kw)
+            assert len(whole) > 1 and max(count_mission_items(f.waypoints) for f in whole) > cap - 25  # binds
+            lost2: list[int] = []
+            assert split_flights(passes, plan.home, count_items=MissionItemCounter(), unflyable=lost2, **kw) == whole
+            assert lost2 == lost and lost == ([5] if passes is far else [])
     with pytest.raises(PihimInputError, match="mission items, more than 10"):
         split_flights(plan.passes, plan.home, origin=ORIGIN, max_mission_items=10, count_items=MissionItemCounter())
+
+    class Padded(MissionItemCounter):
+        def __call__(self, waypoints):
+            return super().__call__(waypoints) + 20
+
+    padded = split_flights(level, plan.home, origin=ORIGIN, include_infeasible=True, max_mission_items=120,
+                           count_items=Padded())
+    assert max(Padded()(f.waypoints) for f in padded) <= 120 < max(Padded()(f.waypoints) for f in split_flights(
+        level, plan.home, origin=ORIGIN, include_infeasible=True, max_mission_items=120, count_items=MissionItemCounter()))
+
+
+def test_mission_item_counter_options():
     with pytest.raises(PihimInputError, match="autopilot"):
         MissionItemCounter(autopilot="inav")
+    with pytest.raises(PihimInputError, match="unknown mission option.*autopilt"):
+        MissionItemCounter(autopilt="px4")
+    assert repr(MissionItemCounter(autopilot="px4")) == "MissionItemCounter(autopilot='px4')"
+    wps = make_plan().flights[0].waypoints
+    assert MissionItemCounter(flight=0, altitude_frame="amsl")(wps) == count_mission_items(wps)
 
 
 _KINDS = ("scan", "lead_in", "run_past", "transit", "return", "takeoff")
@@ -821,7 +852,7 @@ def test_mission_item_count_is_the_built_items(steps, takeoff, land_at, cuts, op
     assert count_mission_items(wps, **options) == len(built) + 1
     counter = MissionItemCounter(**options)
     assert counter(wps) == len(built) + 1
-    bounds = [0, *sorted({c for c in cuts if c < len(wps)}), len(wps)]
+    bounds = [0, *sorted(c for c in cuts if c <= len(wps)), len(wps)]  # empty pieces too
     state = None
     for a, b in itertools.pairwise(bounds):
         state = counter.resume(state, wps[a:b])

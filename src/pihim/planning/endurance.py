@@ -494,9 +494,9 @@ def split_flights(
     count_items : callable, optional
         ``count_items(waypoints) -> int``: mission items of a flight's
         waypoints (take-off ... landing). Required with ``max_mission_items``.
-        One that can also count in pieces (``resume`` and ``total``, as
-        :class:`pihim.planning.export.MissionItemCounter` can) counts each
-        flight tried from where the same flight one pass shorter ended.
+        A :class:`pihim.planning.export.MissionItemCounter` counts each
+        flight tried on from where the same flight one pass shorter ended
+        (the same counts, a few times faster on long flights).
     unflyable : list, optional
         Given, a pass that alone does not fit (too far from home for the
         battery, say, in a field kilometres wide) is left out and its index
@@ -536,15 +536,18 @@ def split_flights(
     item_cap = math.inf if max_mission_items is None else max_mission_items
 
     counting = count_items is not None and max_mission_items is not None
-    resume, total = getattr(count_items, "resume", None), getattr(count_items, "total", None)
-    if not (callable(resume) and callable(total)):
-        resume = None
+    resume = total = None
+    if counting:
+        from pihim.planning.export.qgc import MissionItemCounter
+
+        if type(count_items) is MissionItemCounter:  # not a subclass: its __call__ may count otherwise
+            resume, total = count_items.resume, count_items.total
 
     def counter(flight: _FlightLegs, legs: list[_Leg], grown_from: tuple[_FlightLegs, Any] | None,
                 found: list[Any]) -> Callable[[], float]:
-        """The mission items of ``legs``, ``flight`` closed, counted when asked. With a resumable counter
-        (``resume``, ``total``: :class:`pihim.planning.export.MissionItemCounter`) ``flight``'s body is counted
-        on from the state after the body it grew from (``grown_from``: that flight and state), and the state after
+        """The mission items of ``legs``, ``flight`` closed, counted when asked. With a
+        :class:`pihim.planning.export.MissionItemCounter` (``resume``, ``total``) ``flight``'s body is counted on
+        from the state after the body it grew from (``grown_from``: that flight and state), and the state after
         its own body is appended to ``found``."""
 
         def items() -> float:

@@ -97,8 +97,9 @@ def build_plan(
     max_mission_items : int or None
         Close a flight before its autopilot mission exceeds this many items
         (default 700, what Pixhawk-class ArduPilot boards store; None: no
-        limit). Counted with :func:`pihim.planning.export.count_mission_items`
-        and ``mission_options``.
+        limit). Counted as :func:`pihim.planning.export.count_mission_items`
+        counts with ``mission_options`` (by a
+        :class:`~pihim.planning.export.MissionItemCounter`).
     mission_options : dict, optional
         The options the missions will be written with (``autopilot``,
         ``mount_control``, ...; see :func:`pihim.planning.export.mission_items`).

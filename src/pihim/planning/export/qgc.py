@@ -414,7 +414,7 @@ def _count_items(wps: Sequence[Waypoint], o: _Options) -> int:
 # what the items of the next waypoint depend on: the count so far, the speed and pitch of the last speed and pitch
 # items, the last waypoint's x, y, z, heading (None before the first after the take-off) and pitch, and whether
 # a landing ended the mission
-_Tally = tuple[int, float, float, float, float, float, "float | None", float, bool]
+_Tally = tuple[int, float, float, float, float, float, float | None, float, bool]
 
 
 def _tally(wps: Sequence[Waypoint], o: _Options, state: _Tally | None) -> _Tally:
@@ -467,6 +467,10 @@ class MissionItemCounter:
     ``counter.resume(state, next_piece)``, and ``counter.total(state)`` is the
     count of all the pieces one after the other, to the item (tested).
 
+    :func:`~pihim.planning.endurance.split_flights` counts in pieces with
+    this class only; a subclass is called on whole flights, as any other
+    counting function is.
+
     Parameters
     ----------
     **mission_options
@@ -475,14 +479,28 @@ class MissionItemCounter:
     Raises
     ------
     PihimInputError
-        A bad option (when made, not at the first count).
+        A bad or unknown option (when made, not at the first count).
     """
 
-    __slots__ = ("_o",)
+    __slots__ = ("_given", "_o")
 
     def __init__(self, **mission_options: Any) -> None:
-        self._o = _options(**{k: v for k, v in mission_options.items()
-                              if k not in ("altitude_frame", "geoid_undulation_m", "flight")})
+        counted = {k: v for k, v in mission_options.items()
+                   if k not in ("altitude_frame", "geoid_undulation_m", "flight")}  # no effect on the count
+        try:
+            self._o = _options(**counted)
+        except TypeError:
+            import inspect
+
+            known = inspect.signature(_options).parameters
+            unknown = ", ".join(sorted(k for k in counted if k not in known))
+            if not unknown:
+                raise
+            raise PihimInputError(f"unknown mission option(s): {unknown} (see mission_items)") from None
+        self._given = dict(mission_options)
+
+    def __repr__(self) -> str:
+        return f"MissionItemCounter({', '.join(f'{k}={v!r}' for k, v in self._given.items())})"
 
     def __call__(self, waypoints: Sequence[Waypoint]) -> int:
         if not waypoints:
