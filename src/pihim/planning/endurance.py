@@ -388,7 +388,7 @@ def _turn_speeds(legs: list[_Leg], model: DroneEndurance) -> list[_Leg]:
         if speed < leg.speed_m_s:
             wp = None if leg.waypoint is None else replace_fields(leg.waypoint, speed_m_s=speed)
             xyz, heading, pitch, _, kind, capture, hua, _, start = leg
-            leg = _Leg(xyz, heading, pitch, speed, kind, capture, hua, wp, start)  # _replace is 3x slower
+            leg = _Leg(xyz, heading, pitch, speed, kind, capture, hua, wp, start)  # 1.4x faster than _replace
         out.append(leg)
     return out
 
