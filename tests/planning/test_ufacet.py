@@ -440,7 +440,7 @@ def test_beam_concentration_matches_a_plain_sum_over_every_beam() -> None:
     c = pose.mirror_centres
     r_max = float(np.hypot(c[:, 0], c[:, 1]).max())
     pts = np.r_[c[:300] + [0.0, 0.0, 2.0], np.c_[rng.uniform(-r_max, r_max, (700, 2)), rng.uniform(5, 80, 700)],
-                aim + rng.normal(size=(100, 3)) * 3.0]
+                aim + rng.normal(size=(100, 3)) * 3.0, aim[None, :], [[np.nan, 0.0, 10.0], [0.0, np.inf, 10.0]]]
     got = beam_concentration(pts, pose, aim)
     spec = fld.spec
     r0 = math.sqrt(4.0 * spec.mirror_half_width_m * spec.mirror_half_height_m / math.pi)
@@ -452,8 +452,10 @@ def test_beam_concentration_matches_a_plain_sum_over_every_beam() -> None:
         w = p - c
         along = np.sum(w * e, axis=1)
         f = along / length
-        radius = (1 - f) * r0 + f * length * 7e-3
-        inside = (f > 0) & (f <= 1) & (np.linalg.norm(w - along[:, None] * e, axis=1) <= radius)
+        with np.errstate(invalid="ignore"):  # the point at infinity
+            radius = (1 - f) * r0 + f * length * 7e-3
+            inside = (f > 0) & (f <= 1) & (np.linalg.norm(w - along[:, None] * e, axis=1) <= radius)
         want[k] = np.sum((r0 / radius[inside]) ** 2)
     assert np.allclose(got, want, rtol=1e-12, atol=1e-12)
     assert (want > 0).sum() > 300 and want.max() > 50  # inside beams, near the mirrors and near the focus
+    assert got[-3] > 1000 and got[-2] == got[-1] == 0.0  # every beam meets at the aim point; a NaN or inf is in none

@@ -791,3 +791,54 @@ def _near_one(px: float, py: float, a: NDArray, e: NDArray, reach: float, idx: N
             along[m] = 0.0 + rx * e[j, 0] + ry * e[j, 1]  # np.sum's start at +0: -0.0 sums to +0.0 there too
             m += 1
     return m
+
+
+@njit(cache=True)
+def beam_suns(p: NDArray, q: NDArray, chord: NDArray, order: NDArray, cell_start: NDArray, x0: float, y0: float,
+              cell: float, n_x: int, n_y: int, u: NDArray, c: NDArray, e: NDArray, length: NDArray, r0: float,
+              theta: float) -> NDArray:  # pragma: no cover - compiled
+    """Suns at points ``p`` (M, 3) in the beams of :class:`pihim.planning.flux.Beams`: (M,).
+
+    Point ``i`` is tested against the beams whose direction ``u`` (N, 3; from the aim point toward mirror
+    centre ``c``) is within ``chord[i]`` of its own direction ``q[i]``; candidates come from the grid over u's
+    x, y (``n_x`` x ``n_y`` cells of ``cell`` from ``(x0, y0)``; cell ``cx * n_y + cy`` holds
+    ``order[cell_start[c]:cell_start[c + 1]]``, a direction beyond the grid in its nearest edge cell) that meet
+    the square of half-side ``chord[i]`` around ``q[i]``'s x, y, clamped into the grid (x, y distances never
+    exceed the 3-D one, so no candidate is missed). A beam of axis ``e`` (mirror to aim point, unit) and
+    length ``L`` holds the point where it is a fraction ``0 < f <= 1`` of the way and within ``(1 - f) r0 +
+    f L theta`` of the axis, and adds ``(r0 / radius)^2``; the arithmetic is that of
+    :func:`pihim.planning.sightlines.dot` and :func:`numpy.linalg.norm`, operation for operation. A point with
+    a coordinate that is not finite is in no beam."""
+    n = p.shape[0]
+    out = np.zeros(n)
+    for i in range(n):
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+            continue
+        qx, qy, qz, r = q[i, 0], q[i, 1], q[i, 2], chord[i]
+        r2 = r * r
+        cx0 = int(min(max((qx - r - x0) / cell, 0.0), n_x - 1.0))
+        cx1 = int(min(max((qx + r - x0) / cell, 0.0), n_x - 1.0))
+        cy0 = int(min(max((qy - r - y0) / cell, 0.0), n_y - 1.0))
+        cy1 = int(min(max((qy + r - y0) / cell, 0.0), n_y - 1.0))
+        s = 0.0
+        for cx in range(cx0, cx1 + 1):
+            for cy in range(cy0, cy1 + 1):
+                k0 = cx * n_y + cy
+                for k in range(cell_start[k0], cell_start[k0 + 1]):
+                    h = order[k]
+                    dx, dy, dz = u[h, 0] - qx, u[h, 1] - qy, u[h, 2] - qz
+                    if dx * dx + dy * dy + dz * dz > r2:
+                        continue
+                    wx, wy, wz = px - c[h, 0], py - c[h, 1], pz - c[h, 2]
+                    along = wx * e[h, 0] + wy * e[h, 1] + wz * e[h, 2]
+                    f = along / length[h]
+                    if not (f > 0.0 and f <= 1.0):
+                        continue
+                    ox, oy, oz = wx - along * e[h, 0], wy - along * e[h, 1], wz - along * e[h, 2]
+                    radius = (1.0 - f) * r0 + f * length[h] * theta
+                    if math.sqrt(ox * ox + oy * oy + oz * oz) <= radius:
+                        g = r0 / max(radius, 1e-9)
+                        s += g * g
+        out[i] = s
+    return out

@@ -673,7 +673,7 @@ def plan_facet_captures(
     if aim_point is not None:
         from pihim.planning.flux import Beams
 
-        ctx["flux"] = Beams(pose, np.asarray(aim_point, float)).concentration  # indexed once (one k-d tree)
+        ctx["flux"] = Beams(pose, np.asarray(aim_point, float)).concentration  # indexed once (one grid of the beams)
     # instances: every HUA captured in a pass, at its first capture
     inst: list[_Instance] = []
     seen_hua: set[int] = set()

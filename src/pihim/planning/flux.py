@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import itertools
 import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import cKDTree
 
 from pihim.field.kinematics import FieldPose
-from pihim.planning.sightlines import dot
 
 __all__ = ["Beams", "beam_concentration"]
 
@@ -52,6 +49,14 @@ class Beams:
     """The beams of a tracked field toward its aim point, indexed once for many
     :meth:`concentration` calls (:func:`beam_concentration` for the model).
 
+    The index is a uniform grid over the x, y components of the unit vectors
+    from the aim point toward the mirror centres (each beam's direction seen
+    from its focus). A point whose direction from the aim point is ``q`` can
+    lie in a beam only if the beam's direction is within a chord of ``q``
+    that the point's height bounds (:meth:`concentration`); the beams of the
+    grid cells meeting that chord's square around ``q`` are tested, in one
+    compiled pass (:func:`pihim.planning._kernels.beam_suns`).
+
     Parameters
     ----------
     pose : FieldPose
@@ -66,50 +71,56 @@ class Beams:
         spec = pose.field.spec  # type: ignore[attr-defined]
         self.r0 = math.sqrt(4.0 * spec.mirror_half_width_m * spec.mirror_half_height_m / math.pi)
         self.theta = divergence_mrad * 1e-3
-        self.centres = pose.mirror_centres
+        self.centres = np.ascontiguousarray(pose.mirror_centres, dtype=float)
         self.axis = self.aim - self.centres
         self.length = np.linalg.norm(self.axis, axis=1)
-        self.tree = cKDTree(-self.axis / self.length[:, None])  # unit vectors from the aim point toward the mirrors
+        self.e = self.axis / self.length[:, None]  # unit beam axes, mirror -> aim point
+        self.u = np.ascontiguousarray(-self.e)  # unit vectors from the aim point toward the mirrors
         self.lmax = float(self.length.max())
         self.rmax = max(self.r0, self.lmax * self.theta)  # no beam is wider between its mirror and its focus
         self.z_lo, self.z_hi = float(self.centres[:, 2].min()), float(self.centres[:, 2].max())
+        # the grid over u's x, y: cells about the chord a point low above the field searches (2 r0 / L at a
+        # typical slant range L), at most about 4 N + 10,000 of them; a beam whose direction is not finite is in
+        # no cell (it holds no finite point either)
+        uxy = self.u[:, :2]
+        finite = np.isfinite(uxy).all(axis=1)
+        lo, hi = (uxy[finite].min(axis=0), uxy[finite].max(axis=0)) if finite.any() else (np.zeros(2), np.zeros(2))
+        span = hi - lo
+        typical = 2.0 * self.r0 / float(np.median(self.length[finite])) if finite.any() else 1.0
+        budget = 4 * len(uxy) + 10_000
+        self.cell = max(typical, math.sqrt(float(span[0]) * float(span[1]) / budget),
+                        float(span[0] + span[1]) / budget, 1e-6)
+        self.n_x, self.n_y = (int(v) + 1 for v in np.floor(span / self.cell))
+        self.x0, self.y0 = float(lo[0]), float(lo[1])
+        with np.errstate(invalid="ignore"):
+            cx = np.clip(np.floor((uxy[:, 0] - self.x0) / self.cell), 0, self.n_x - 1)
+            cy = np.clip(np.floor((uxy[:, 1] - self.y0) / self.cell), 0, self.n_y - 1)
+        key = np.where(finite, np.nan_to_num(cx) * self.n_y + np.nan_to_num(cy), self.n_x * self.n_y).astype(np.int64)
+        self.order = np.argsort(key, kind="stable")
+        self.cell_start = np.searchsorted(key[self.order], np.arange(self.n_x * self.n_y + 1)).astype(np.int64)
 
     def concentration(self, points: ArrayLike) -> NDArray[np.float64]:
         """Suns at ``points`` (M, 3), ENU metres: shape (M,)."""
-        pts = np.atleast_2d(np.asarray(points, float))
-        a, r0, theta, c, axis, length, tree = (self.aim, self.r0, self.theta, self.centres, self.axis, self.length,
-                                               self.tree)
-        out = np.zeros(len(pts))
-        rmax, lmax, z_lo, z_hi = self.rmax, self.lmax, self.z_lo, self.z_hi
-        for s0 in range(0, len(pts), 20_000):
-            p = pts[s0:s0 + 20_000]
-            v = p - a
-            dist = np.linalg.norm(v, axis=1)
-            # a beam holding a point at height z is at most f_max of its way to the aim point there (its axis is
-            # within the beam radius r of z), and r <= r0 + f_max L theta there: a narrower cone to search than rmax
-            # for points low above the field (the flights). Fixed point of the two bounds, from rmax down.
-            rad = np.full(len(p), rmax)
-            if a[2] > z_hi:
-                for _ in range(3):
-                    f_max = np.clip((p[:, 2] + rad - z_lo) / (a[2] - z_hi), 0.0, 1.0)
-                    rad = np.minimum(rmax, np.maximum(r0, r0 + f_max * lmax * theta))
-            with np.errstate(divide="ignore", invalid="ignore"):
-                q = v / dist[:, None]
-                half = np.where(dist > rad, np.arcsin(np.minimum(1.0, rad / dist)), np.pi)
-            q = np.where(np.isfinite(q), q, 0.0)
-            lists = tree.query_ball_point(q, np.minimum(2.0, 2.0 * np.sin(np.minimum(half, np.pi / 2)) + 1e-12),
-                                          return_sorted=False)
-            lens = np.fromiter(map(len, lists), dtype=np.int64, count=len(p))
-            if lens.sum() == 0:
-                continue
-            pi = np.repeat(np.arange(len(p)), lens)
-            hi = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lens.sum()))
-            w = p[pi] - c[hi]
-            e = axis[hi] / length[hi, None]
-            along = dot(w, e)
-            f = along / length[hi]
-            perp = np.linalg.norm(w - along[:, None] * e, axis=1)
-            radius = (1.0 - f) * r0 + f * length[hi] * theta
-            inside = (f > 0) & (f <= 1.0) & (perp <= radius)
-            np.add.at(out, s0 + pi[inside], (r0 / np.maximum(radius[inside], 1e-9)) ** 2)
-        return out
+        from pihim.planning import _kernels
+
+        p = np.ascontiguousarray(np.atleast_2d(np.asarray(points, float)))
+        a, r0, rmax, lmax, z_lo, z_hi = self.aim, self.r0, self.rmax, self.lmax, self.z_lo, self.z_hi
+        v = p - a
+        dist = np.linalg.norm(v, axis=1)
+        # a beam holding a point at height z is at most f_max of its way to the aim point there (its axis is
+        # within the beam radius r of z), and r <= r0 + f_max L theta there: a narrower cone to search than rmax
+        # for points low above the field (the flights). Fixed point of the two bounds, from rmax down.
+        rad = np.full(len(p), rmax)
+        if a[2] > z_hi:
+            for _ in range(3):
+                f_max = np.clip((p[:, 2] + rad - z_lo) / (a[2] - z_hi), 0.0, 1.0)
+                rad = np.minimum(rmax, np.maximum(r0, r0 + f_max * lmax * self.theta))
+        # the beams holding the point are seen from the aim point within the half-angle of a ball of radius rad
+        # around it, i.e. within this chord of its direction q (every beam for a point at the aim point)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            q = v / dist[:, None]
+            half = np.where(dist > rad, np.arcsin(np.minimum(1.0, rad / dist)), np.pi)
+        q = np.ascontiguousarray(np.where(np.isfinite(q), q, 0.0))
+        chord = np.minimum(2.0, 2.0 * np.sin(np.minimum(half, np.pi / 2)) + 1e-12)
+        return _kernels.beam_suns(p, q, chord, self.order, self.cell_start, self.x0, self.y0, self.cell, self.n_x,
+                                  self.n_y, self.u, self.centres, self.e, self.length, r0, self.theta)
