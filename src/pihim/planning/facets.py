@@ -455,19 +455,31 @@ def facet_coverage(passes: Sequence[ScanPass], pose: Any, *, camera: CameraModel
     new = facet_targets(pose, [names[str(w.hua)] for w in ws], np.array([(w.x_m, w.y_m, w.z_m) for w in ws]),
                         [w.heading_deg for w in ws], [w.gimbal_pitch_deg for w in ws], camera=camera,
                         samples=samples, tower=tower, workers=workers)
-    fresh = dict(zip(todo, new, strict=True))
-    by: dict[str, dict[int, tuple[int, int, str]]] = {}
-    count: dict[str, int] = {}
-    field_names = pose.field.names
-    for k, (pi, j, w) in enumerate(refs):
-        hua = str(w.hua)
-        row = fresh[k] if k in fresh else known[capture_key(w)]
-        got = by.setdefault(hua, {})
-        count[hua] = count.get(hua, 0) + 1
-        for f in np.flatnonzero(row >= 0).tolist():
-            got.setdefault(f, (pi, j, field_names[int(row[f])]))
-    return {h: FacetCoverage(h, n_facets, tuple(sorted(m)), count[h], tuple(sorted(m.items())))
-            for h, m in by.items()}
+    rows = np.empty((len(refs), n_facets), np.int64)  # facet_targets' row of every capture
+    rows[todo] = new
+    fresh = set(todo)
+    for k, (_, _, w) in enumerate(refs):
+        if k not in fresh:
+            rows[k] = known[capture_key(w)]
+    # each HUA numbered in first-capture order; the first capture showing each (HUA, facet): the first
+    # occurrence of its key among the covered (capture, facet) cells, which np.nonzero gives capture by capture
+    huas = list(dict.fromkeys(str(w.hua) for _, _, w in refs))
+    hid = {h: i for i, h in enumerate(huas)}
+    which = np.array([hid[str(w.hua)] for _, _, w in refs], np.int64)
+    kk, ff = np.nonzero(rows >= 0)
+    keys, first = np.unique(which[kk] * n_facets + ff, return_index=True)  # sorted: by HUA, then facet
+    cap, fac = kk[first], ff[first]
+    names_of = np.asarray(pose.field.names, dtype=object)[rows[cap, fac]].tolist()
+    refs_pi = np.array([pi for pi, _, _ in refs], np.int64)[cap].tolist()
+    refs_j = np.array([j for _, j, _ in refs], np.int64)[cap].tolist()
+    shown = list(zip(fac.tolist(), zip(refs_pi, refs_j, names_of, strict=True), strict=True))
+    bounds = np.searchsorted(keys // n_facets, np.arange(len(huas) + 1)).tolist()
+    count = np.bincount(which, minlength=len(huas)).tolist()
+    out = {}
+    for i, h in enumerate(huas):
+        got = tuple(shown[bounds[i]:bounds[i + 1]])
+        out[h] = FacetCoverage(h, n_facets, tuple(f for f, _ in got), count[i], got)
+    return out
 
 
 def coverage_summary(coverage: dict[str, FacetCoverage]) -> dict[str, Any]:
