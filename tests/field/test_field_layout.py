@@ -425,3 +425,12 @@ def test_a_facet_grid_that_cannot_be_built_is_refused(args, says):
     """Negative sizes and gaps (overlapping facets) were accepted; rows=2.5 was a TypeError."""
     with pytest.raises(PihimInputError, match=says):
         grid_facet_centroids(*args)
+
+
+def test_name_index_maps_each_name_to_its_position_and_is_read_only():
+    field = nsttf_like_field()
+    idx = field.name_index
+    assert len(idx) == len(field) and all(idx[n] == i for i, n in enumerate(field.names))
+    assert "8e03" not in idx and idx["8E3"] == field.index("8e03")  # exact names only; index() parses the rest
+    with pytest.raises(TypeError):
+        idx["8E3"] = 0  # type: ignore[index]

@@ -67,9 +67,10 @@ import io
 import math
 import re
 import stat
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -577,6 +578,15 @@ class Field:
         tower = "no tower" if self.tower is None else f"tower {self.tower.height_m:g} m"
         rows = f"rows {int(self.rows.min())}-{int(self.rows.max())}" if len(self) else "empty"
         return f"Field({len(self)} heliostats, {rows}, {self.spec.rows}x{self.spec.cols} facets, {tower})"
+
+    @property
+    def name_index(self) -> Mapping[str, int]:
+        """Array index of each heliostat by its name as in :attr:`names` (``names[i]`` -> ``i``), read-only.
+
+        Exact names only (:meth:`index` parses other spellings); the mapping
+        is the field's own, so looking names up costs no copy.
+        """
+        return MappingProxyType(self._index)
 
     def index(self, name: str) -> int:
         """Array index of heliostat ``name`` (any accepted spelling, e.g. ``"8e03"``).

