@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from pihim.field.kinematics import FieldPose
+from pihim.planning.sightlines import grid_cells
 
 __all__ = ["Beams", "beam_concentration"]
 
@@ -88,16 +89,9 @@ class Beams:
         span = hi - lo
         typical = 2.0 * self.r0 / float(np.median(self.length[finite])) if finite.any() else 1.0
         budget = 4 * len(uxy) + 10_000
-        self.cell = max(typical, math.sqrt(float(span[0]) * float(span[1]) / budget),
-                        float(span[0] + span[1]) / budget, 1e-6)
-        self.n_x, self.n_y = (int(v) + 1 for v in np.floor(span / self.cell))
-        self.x0, self.y0 = float(lo[0]), float(lo[1])
-        with np.errstate(invalid="ignore"):
-            cx = np.clip(np.floor((uxy[:, 0] - self.x0) / self.cell), 0, self.n_x - 1)
-            cy = np.clip(np.floor((uxy[:, 1] - self.y0) / self.cell), 0, self.n_y - 1)
-        key = np.where(finite, np.nan_to_num(cx) * self.n_y + np.nan_to_num(cy), self.n_x * self.n_y).astype(np.int64)
-        self.order = np.argsort(key, kind="stable")
-        self.cell_start = np.searchsorted(key[self.order], np.arange(self.n_x * self.n_y + 1)).astype(np.int64)
+        cell = max(typical, math.sqrt(float(span[0]) * float(span[1]) / budget), float(span[0] + span[1]) / budget,
+                   1e-6)
+        self.grid = grid_cells(uxy, lo, span, cell)
 
     def concentration(self, points: ArrayLike) -> NDArray[np.float64]:
         """Suns at ``points`` (M, 3), ENU metres: shape (M,)."""
@@ -122,5 +116,6 @@ class Beams:
             half = np.where(dist > rad, np.arcsin(np.minimum(1.0, rad / dist)), np.pi)
         q = np.ascontiguousarray(np.where(np.isfinite(q), q, 0.0))
         chord = np.minimum(2.0, 2.0 * np.sin(np.minimum(half, np.pi / 2)) + 1e-12)
-        return _kernels.beam_suns(p, q, chord, self.order, self.cell_start, self.x0, self.y0, self.cell, self.n_x,
-                                  self.n_y, self.u, self.centres, self.e, self.length, r0, self.theta)
+        g = self.grid
+        return _kernels.beam_suns(p, q, chord, g.order, g.cell_start, g.x0, g.y0, g.cell, g.n_x, g.n_y, self.u,
+                                  self.centres, self.e, self.length, r0, self.theta)

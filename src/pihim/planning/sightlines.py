@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import weakref
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -25,11 +25,13 @@ from pihim.field.kinematics import FieldPose
 
 __all__ = [
     "TOWER_HIT",
+    "GridCells",
     "MirrorIndex",
     "azimuth_deg",
     "camera_frame",
     "first_mirror_hits",
     "gaze_angles",
+    "grid_cells",
     "mirror_index",
     "in_fov",
     "optical_axis",
@@ -154,6 +156,41 @@ def segments_hit_box(p0: NDArray[np.float64], p1: NDArray[np.float64], lo: NDArr
                                      np.ascontiguousarray(hi, float).reshape(3))
 
 
+class GridCells(NamedTuple):
+    """Points binned in a uniform grid over x, y (:func:`grid_cells`), as the compiled kernels read them.
+
+    ``n_x`` x ``n_y`` cells of ``cell`` from ``(x0, y0)``; cell ``cx * n_y + cy``
+    holds the points ``order[cell_start[c]:cell_start[c + 1]]``.
+    """
+
+    x0: float
+    y0: float
+    cell: float
+    n_x: int
+    n_y: int
+    order: NDArray[np.int64]
+    cell_start: NDArray[np.int64]
+
+
+def grid_cells(xy: NDArray[np.float64], lo: NDArray[np.float64], span: NDArray[np.float64], cell: float) -> GridCells:
+    """Bin points ``xy`` (N, 2) in cells of ``cell`` over ``lo`` to ``lo + span``.
+
+    A point beyond the span goes to the nearest edge cell (a search whose cell
+    range is clamped into the grid still meets it); a point with a coordinate
+    that is not finite is in no cell.
+    """
+    finite = np.isfinite(xy).all(axis=1)
+    n_x, n_y = (int(v) + 1 for v in np.floor(span / cell))
+    x0, y0 = float(lo[0]), float(lo[1])
+    with np.errstate(invalid="ignore", over="ignore"):
+        cx = np.clip(np.floor((xy[:, 0] - x0) / cell), 0, n_x - 1)
+        cy = np.clip(np.floor((xy[:, 1] - y0) / cell), 0, n_y - 1)
+    key = np.where(finite, np.nan_to_num(cx) * n_y + np.nan_to_num(cy), n_x * n_y).astype(np.int64)
+    order = np.argsort(key, kind="stable")
+    cell_start = np.searchsorted(key[order], np.arange(n_x * n_y + 1)).astype(np.int64)
+    return GridCells(x0, y0, float(cell), n_x, n_y, order, cell_start)
+
+
 class MirrorIndex:
     """Tracked mirror rectangles of a field with a spatial index for batched ray tests.
 
@@ -186,15 +223,7 @@ class MirrorIndex:
                    float(span[0] + span[1]) / budget, 1e-3)
         if not (math.isfinite(cell) and np.isfinite(lo).all()):  # coordinates near the float limits: one cell
             lo, span, cell = np.zeros(2), np.zeros(2), 1.0
-        self.cell = cell
-        self.n_x, self.n_y = (int(v) + 1 for v in np.floor(span / self.cell))
-        self.x0, self.y0 = float(lo[0]), float(lo[1])
-        with np.errstate(invalid="ignore", over="ignore"):
-            cx = np.clip(np.floor((xy[:, 0] - self.x0) / self.cell), 0, self.n_x - 1)
-            cy = np.clip(np.floor((xy[:, 1] - self.y0) / self.cell), 0, self.n_y - 1)
-        key = np.where(finite, np.nan_to_num(cx) * self.n_y + np.nan_to_num(cy), self.n_x * self.n_y).astype(np.int64)
-        self.order = np.argsort(key, kind="stable")  # a mirror whose centre is not finite is in no cell
-        self.cell_start = np.searchsorted(key[self.order], np.arange(self.n_x * self.n_y + 1)).astype(np.int64)
+        self.x0, self.y0, self.cell, self.n_x, self.n_y, self.order, self.cell_start = grid_cells(xy, lo, span, cell)
 
     def first_hits(self, p0: NDArray[np.float64], p1: NDArray[np.float64], exclude: NDArray[np.int64],
                    chunk: int = 50_000) -> NDArray[np.int64]:
