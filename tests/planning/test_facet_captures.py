@@ -251,6 +251,16 @@ def test_traced_captures_give_the_same_report(plan10, background, monkeypatch):
     assert sum(len(c.covered) for c in direct.values()) > 100
 
 
+@pytest.mark.parametrize("samples", [0, True, 2.0])
+def test_trace_captures_refuses_a_bad_sample_count(plan10, samples):
+    """Checked before any tracing starts, as facet_targets checks it (the chunks trace without checking)."""
+    from pihim.planning import facets
+
+    plan, field_, pose, _ = plan10
+    with pytest.raises(PihimInputError, match="samples must be a positive integer"):
+        facets.trace_captures(plan.passes, pose, samples=samples, tower=field_.tower)
+
+
 def test_coverage_is_the_first_capture_showing_each_facet(plan10):
     """facet_coverage against its definition, a plain loop over the captures in plan order: per HUA (in
     first-capture order) its captures and the facets some capture shows a heliostat's back in, each with the

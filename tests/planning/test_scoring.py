@@ -534,3 +534,23 @@ def test_min_safe_altitude_is_the_planners_and_refuses_a_margin_under_5_m(pose):
     assert min_safe_altitude_m(pose) == minimum_safe_altitude(pose)[0]
     with pytest.raises(PihimInputError, match="safety_margin_m must be at least 5 m"):
         min_safe_altitude_m(pose, -50.0)
+
+
+def test_shift_setup_is_built_once_per_scene_and_follows_its_inputs(pose):
+    """The shift search's lowest altitude and beam index are kept per scene: the same objects for the same aim
+    point and clearance; a new index for another aim point, even one passed in the same (edited) array, whose
+    edits never reach the index already kept."""
+    from pihim.planning.scoring import _shift_setup
+
+    scene = build_scene(pose, SUN)
+    search = ShiftSearch()
+    aim = AIM.astype(float)
+    alt, a1, b1 = _shift_setup(scene, search, aim)
+    assert alt == min_safe_altitude_m(pose) and np.array_equal(a1, AIM)
+    assert _shift_setup(scene, search, AIM.copy())[2] is b1  # built once
+    aim[2] -= 30.0  # the caller edits its array
+    _, a2, b2 = _shift_setup(scene, search, aim)
+    assert b2 is not b1 and b2.aim[2] == AIM[2] - 30.0 and b1.aim[2] == AIM[2] and a1[2] == AIM[2]
+    assert _shift_setup(scene, dataclasses.replace(search, beam_clearance_m=5.0), AIM)[2] is not b1
+    assert _shift_setup(scene, dataclasses.replace(search, min_altitude_m=40.0), None) == (40.0, None, None)
+    assert _shift_setup(build_scene(pose, SUN), search, AIM)[2] is not b1  # another scene, its own index

@@ -459,3 +459,37 @@ def test_beam_concentration_matches_a_plain_sum_over_every_beam() -> None:
     assert np.allclose(got, want, rtol=1e-12, atol=1e-12)
     assert (want > 0).sum() > 300 and want.max() > 50  # inside beams, near the mirrors and near the focus
     assert got[-3] > 1000 and got[-2] == got[-1] == 0.0  # every beam meets at the aim point; a NaN or inf is in none
+
+
+def test_beam_concentration_leaves_out_a_mirror_whose_centre_is_not_finite() -> None:
+    """A NaN mirror centre has no beam; the other beams are all still found (its NaN once made the search cone
+    too narrow for an aim point below the highest mirror)."""
+    from types import SimpleNamespace
+
+    from pihim.field.layout import radial_staggered_field
+    from pihim.planning.flux import Beams
+
+    fld = radial_staggered_field(300)
+    pose = track_field(fld, np.array([0.2, -0.5, 0.84]) / np.linalg.norm([0.2, -0.5, 0.84]),
+                       np.asarray(fld.default_aim_point))
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-150, 150, (2000, 2)), rng.uniform(2, 60, 2000)]
+    for aim in (np.asarray(fld.default_aim_point), np.array([0.0, 0.0, 2.0])):  # above and below the mirrors
+        c = np.array(pose.mirror_centres, float)
+        c[5] = np.nan
+        # beams 30 mrad wide at their focus: wider there than at the mirror (r0 < L theta for the far ones)
+        got = Beams(SimpleNamespace(field=fld, mirror_centres=c), aim, divergence_mrad=30).concentration(pts)
+        want = Beams(SimpleNamespace(field=fld, mirror_centres=np.delete(c, 5, axis=0)), aim,
+                     divergence_mrad=30).concentration(pts)
+        assert np.allclose(got, want, rtol=1e-12, atol=0.0) and (want > 0).sum() > 50
+    # a far mirror's beam, 21 m wide near its focus, and a mirror above the aim point (no narrower cone to
+    # search): a point 15 m off the far beam's axis is in it, with or without a NaN mirror beside
+    aim = np.array([0.0, 0.0, 100.0])
+    c = np.array([[3000.0, 0.0, 2.0], [0.0, 0.0, 150.0]])
+    pt = aim + 0.1 * (c[0] - aim) + [0.0, 0.0, 15.0]
+    alone = Beams(SimpleNamespace(field=fld, mirror_centres=c), aim).concentration(pt[None])
+    nan_too = SimpleNamespace(field=fld, mirror_centres=np.r_[c, [[np.nan, 0.0, 2.0]]])
+    with_nan = Beams(nan_too, aim).concentration(pt[None])
+    assert alone[0] > 0.01 and with_nan[0] == alone[0]
+    none = SimpleNamespace(field=fld, mirror_centres=np.full((3, 3), np.nan))
+    assert np.array_equal(Beams(none, aim).concentration(pts[:4]), np.zeros(4))

@@ -112,6 +112,11 @@ def _hits_quad(p: NDArray[np.float64], r: NDArray[np.float64], quad: NDArray[np.
     return inside & (s > 1e-9) & np.isfinite(s)
 
 
+def _check_samples(samples: Any) -> None:
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+        raise PihimInputError(f"samples must be a positive integer, got {samples!r}")
+
+
 def facets_showing_target(pose: Any, hua: int, target: int, camera_xyz: Sequence[float], heading_deg: float,
                           pitch_deg: float, *, camera: CameraModel | None = None,
                           samples: int = 3) -> NDArray[np.bool_]:
@@ -136,8 +141,7 @@ def facets_showing_target(pose: Any, hua: int, target: int, camera_xyz: Sequence
     ndarray of bool, shape (F,)
     """
     camera = camera or CameraModel()
-    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
-        raise PihimInputError(f"samples must be a positive integer, got {samples!r}")
+    _check_samples(samples)
     corners = pose.facet_corners()[hua]  # (F, 4, 3)
     q = _grid(corners, samples)  # (F, S, 3)
     cam = np.asarray(camera_xyz, dtype=float)
@@ -271,8 +275,7 @@ def facet_targets(pose: Any, hua: Sequence[int], camera_xyz: ArrayLike, heading_
     where its middle point shows no heliostat back.
     """
     camera = camera or CameraModel()
-    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
-        raise PihimInputError(f"samples must be a positive integer, got {samples!r}")
+    _check_samples(samples)
     h = np.asarray(hua, dtype=np.int64).reshape(-1)
     cam = np.asarray(camera_xyz, dtype=float).reshape(-1, 3)
     head = np.broadcast_to(np.asarray(heading_deg, float), h.shape)
@@ -425,6 +428,7 @@ def trace_captures(passes: Sequence[ScanPass], pose: Any, *, camera: CameraModel
     ``result()``, in this process.
     """
     camera = camera or CameraModel()
+    _check_samples(samples)
     names = {nm: k for k, nm in enumerate(pose.field.names)}
     ws = [w for _, _, w in _captures(passes, names)]
     h = np.array([names[str(w.hua)] for w in ws], dtype=np.int64)

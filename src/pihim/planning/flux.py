@@ -77,9 +77,12 @@ class Beams:
         self.length = np.linalg.norm(self.axis, axis=1)
         self.e = self.axis / self.length[:, None]  # unit beam axes, mirror -> aim point
         self.u = np.ascontiguousarray(-self.e)  # unit vectors from the aim point toward the mirrors
-        self.lmax = float(self.length.max())
+        ok = np.isfinite(self.length)  # a mirror centre that is not finite has no beam (it is in no grid cell)
+        self.any_beam = bool(ok.any())
+        self.lmax = float(self.length[ok].max(initial=0.0))
         self.rmax = max(self.r0, self.lmax * self.theta)  # no beam is wider between its mirror and its focus
-        self.z_lo, self.z_hi = float(self.centres[:, 2].min()), float(self.centres[:, 2].max())
+        self.z_lo = float(self.centres[ok, 2].min(initial=np.inf))
+        self.z_hi = float(self.centres[ok, 2].max(initial=-np.inf))
         # the grid over u's x, y: cells about the chord a point low above the field searches (2 r0 / L at a
         # typical slant range L), at most about 4 N + 10,000 of them; a beam whose direction is not finite is in
         # no cell (it holds no finite point either)
@@ -98,6 +101,8 @@ class Beams:
         from pihim.planning import _kernels
 
         p = np.ascontiguousarray(np.atleast_2d(np.asarray(points, float)))
+        if not self.any_beam:
+            return np.zeros(len(p))
         a, r0, rmax, lmax, z_lo, z_hi = self.aim, self.r0, self.rmax, self.lmax, self.z_lo, self.z_hi
         v = p - a
         dist = np.linalg.norm(v, axis=1)

@@ -898,7 +898,9 @@ class _Images:
 
 def _collect_images(passes: Sequence[ScanPass], fld: Any) -> _Images:
     cols: dict[str, list[Any]] = {k: [] for k in ("p", "w", "h", "t", "c", "hd", "pt", "hn", "tn")}
-    index = fld.name_index  # not rebuilt for each group of passes (19 ms at 100,000 heliostats)
+    index = getattr(fld, "name_index", None)  # not rebuilt for each group of passes (19 ms at 100,000)
+    if index is None:  # a field-like object without one
+        index = {n: i for i, n in enumerate(fld.names)}
 
     def canon(name: str) -> str:  # exact names are looked up directly; other spellings are parsed
         return name if name in index else fld.names[fld.index(name)]
@@ -1259,9 +1261,10 @@ def _shift_setup(scene: ScoringScene, search: ShiftSearch,
         min_alt = memo["min_alt"]
     if aim_point is None:
         return min_alt, None, None
-    aim = np.asarray(aim_point, dtype=float).reshape(3)
+    aim = np.array(aim_point, dtype=float).reshape(3)  # a copy: the cached index must not see the caller's edits
+    aim.setflags(write=False)
     radius = math.hypot(*scene.half_size)
-    key = ("beams", aim.tobytes(), float(search.beam_clearance_m))
+    key = ("beams", aim.tobytes(), np.float64(search.beam_clearance_m).tobytes())  # bytes: a NaN finds itself
     if key not in memo:
         memo[key] = _BeamIndex(scene.centres, aim, radius, search.beam_clearance_m + radius)
     return min_alt, aim, memo[key]
