@@ -114,3 +114,25 @@ def test_empty_path_option_is_refused(tmp_path, capsys, monkeypatch, argv):
                   if a.endswith("=") or (k + 1 < len(argv) and argv[k + 1] == ""))
     _refused(capsys, argv, f"{option} needs a path, got an empty string")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv, name", [
+    (["polar", ""], "FRAMES"),
+    (["polar", "a.tiff", "", "--out", "o"], "FRAMES"),
+    (["polar", "--json", "", "--out=o"], "FRAMES"),  # --json is a flag: '' is a frame
+    (["polar", "--out", "o", "--", ""], "FRAMES"),
+    (["edges", "", "--out", "o"], "FRAME"),
+    (["calibrate-camera", "", "--out", "c.json"], "IMAGE"),
+    (["campaign", "report", "", "--out", "o"], "STORE"),
+])
+def test_empty_positional_path_is_refused(tmp_path, capsys, monkeypatch, argv, name):
+    # typer turns '' into Path('.'): 'pihim polar ""' was reported as ".: is a directory"
+    monkeypatch.chdir(tmp_path)
+    _refused(capsys, argv, f"{name} needs a path, got an empty string")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_empty_option_value_is_left_to_the_command(tmp_path, capsys, monkeypatch):
+    # '' as the value of an option that takes one is not a positional argument
+    monkeypatch.chdir(tmp_path)
+    _refused(capsys, ["plan", "--heliostats", "", "--time", TIME, "--out", "o"], "--heliostats names no heliostat")

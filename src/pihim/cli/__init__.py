@@ -243,9 +243,49 @@ def _empty_path_option(args: list[str]) -> str | None:
     return None
 
 
+def _empty_argument(args: list[str]) -> str | None:
+    """The name of the first positional argument given an empty string (``pihim polar ''``), if any.
+
+    typer turns it into ``Path(".")``, which would then be reported as the working directory. The command's own
+    parameters tell which tokens are option values; an unknown command or option is left to the parser.
+    """
+    if "" not in args:
+        return None
+    cmd: Any = _command()
+    k = 0
+    while isinstance(cmd, typer.core.TyperGroup):  # down to the (sub)command, past the group's own flags
+        while k < len(args) and args[k].startswith("-") and args[k] != "--":
+            k += 1
+        if k >= len(args) or cmd.get_command(None, args[k]) is None:  # type: ignore[arg-type]
+            return None
+        cmd = cmd.get_command(None, args[k])  # type: ignore[arg-type]
+        cmd = cmd.real() if isinstance(cmd, LazyCommand) else cmd
+        k += 1
+    params = cmd.params
+    takes_value = {name for p in params if p.param_type_name == "option" and not p.is_flag and not p.count
+                   for name in p.opts + p.secondary_opts}
+    positional = [p for p in params if p.param_type_name == "argument"]
+    only_positional = False
+    while k < len(args):
+        arg = args[k]
+        if not only_positional and arg == "--":
+            only_positional = True
+        elif not only_positional and arg.startswith("-") and arg != "-":
+            k += "=" not in arg and arg in takes_value  # the option's value is the next token
+        elif arg == "" and positional:
+            return (positional[0].metavar or positional[0].name.upper()) if len(positional) == 1 else "an argument"
+        k += 1
+    return None
+
+
 def _run(argv: list[str] | None) -> int:
     """The command, with every failure turned into one stderr line and an exit status."""
-    empty = _empty_path_option(sys.argv[1:] if argv is None else list(argv))
+    args = sys.argv[1:] if argv is None else list(argv)
+    empty = _empty_path_option(args)
+    if empty is not None:
+        print(f"pihim: error: {empty} needs a path, got an empty string", file=sys.stderr)
+        return 2
+    empty = _empty_argument(args)
     if empty is not None:
         print(f"pihim: error: {empty} needs a path, got an empty string", file=sys.stderr)
         return 2
