@@ -132,9 +132,11 @@ def plan_figure(
     labelled = len(plan.passes) <= MAX_LABELLED_PASSES
     starts = []
     segments, colours, styles, cap_xy, cap_colour = [], [], [], [], []
-    for p in plan.passes:
+    # the colour map called once for every pass (34,000 scalar calls took 1.5-2.5 s at 100,000 heliostats)
+    pass_colours = cmap(norm(np.array([p.usable_fraction for p in plan.passes], dtype=float)))
+    for p, rgba in zip(plan.passes, pass_colours, strict=True):
         xy = np.array([(w.x_m, w.y_m) for w in p.waypoints])
-        colour = cmap(norm(p.usable_fraction))
+        colour = tuple(rgba)
         segments.append(xy)
         colours.append(colour)
         styles.append("-" if p.feasible else "--")
