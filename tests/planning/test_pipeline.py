@@ -95,3 +95,37 @@ def test_time_and_site_as_text_and_a_site_that_is_none_of_them(field):
         pipeline.build_plan(field, WHEN, 3)
     with pytest.raises(PihimInputError, match="no UTC offset"):
         pipeline.build_plan(field, "2021-05-13T13:00", NSTTF)
+
+
+@pytest.mark.parametrize("workers", [1, pytest.param(2, marks=linux)])
+def test_an_interrupted_export_leaves_the_folder_as_it_was(field, tmp_path, monkeypatch, workers):
+    """Files are written to temporaries by the process rendering them: an interruption removes them all,
+    those of pieces finished in workers after it included, and keeps what was there before."""
+    monkeypatch.setattr(export_module, "_FLIGHTS_PER_PIECE", 1)
+    plan = pipeline.build_plan(field, WHEN, NSTTF, facet_report=False)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "plan.json").write_text("an earlier plan")
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(export_module, "plan_png_bytes", interrupted)  # the third piece, after plan.json's
+    with pytest.raises(KeyboardInterrupt):
+        export_all(plan, out, field=field, workers=workers)
+    assert [p.name for p in out.iterdir()] == ["plan.json"] and (out / "plan.json").read_text() == "an earlier plan"
+    with pytest.raises(KeyboardInterrupt):
+        export_all(plan, tmp_path / "new", field=field, workers=workers)
+    assert not (tmp_path / "new").exists()
+
+
+@linux
+def test_a_refused_flight_with_workers_leaves_an_existing_folder_untouched(field, tmp_path, monkeypatch):
+    monkeypatch.setattr(export_module, "_FLIGHTS_PER_PIECE", 1)
+    plan = pipeline.build_plan(field, WHEN, NSTTF, facet_report=False)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("kept")
+    with pytest.raises(PihimInputError, match="more than the limit of 10"):
+        export_all(plan, out, max_mission_items=10, workers=2)
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]

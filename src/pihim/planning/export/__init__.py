@@ -33,12 +33,13 @@ from __future__ import annotations
 
 import contextlib
 import functools
-from collections.abc import Callable
+import os
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any, Literal
 
 from pihim import _forked
-from pihim._atomic import atomic_path
+from pihim._atomic import clean_stale_temporaries, missing_dirs, output_target, remove_empty_dirs, temp_sibling
 from pihim.errors import PihimInputError
 from pihim.planning.export._common import check_plan, mission_waypoints, write_data
 from pihim.planning.export.figure import plan_figure, plan_png_bytes, write_plan_figure
@@ -190,8 +191,10 @@ def export_all(
 ) -> dict[str, Path]:
     """Write ``plan.json``, ``plan.kml``, ``plan.png`` and one set of mission files per flight.
 
-    Everything is rendered in memory first and then renamed into ``out_dir``
-    together: invalid input writes nothing, and no file is ever partial.
+    Each file is written to a temporary next to its final name by the process
+    that renders it, and the temporaries are renamed together once all are
+    written: invalid input leaves nothing behind (an ``out_dir`` this call
+    created is removed again), and no file is ever partial.
 
     Parameters
     ----------
@@ -250,15 +253,48 @@ def export_all(
         mission_waypoints(plan, flight)  # unknown index -> one-line error
     flights = [f.index for f in plan.flights if flight is None or f.index == flight]
 
-    def missions(ks: list[int]) -> list[dict[str, tuple[str, str | bytes]]]:
-        return [_mission_files(plan, k, flight_file_stem(k), max_items=limit, geofence_margin_m=geofence_margin_m,
-                               litchi_hover_ms=litchi_hover_ms, opts=opts) for k in ks]
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise PihimInputError(f"{out} exists and is not a directory")
+    created = missing_dirs(out)
+    out.mkdir(parents=True, exist_ok=True)
 
-    # every file is rendered independently: side by side with workers (the plan-wide files first, the longest)
-    pieces: list[Callable[[], Any]] = [
-        lambda: plan_json_text(plan),
-        lambda: kml_text(plan, field=field, altitude_mode=kml_altitude_mode, geoid_undulation_m=geoid_undulation_m),
-        lambda: plan_png_bytes(plan, field=field, figsize=figsize, dpi=dpi),
+    def stage(files: dict[str, tuple[str, str | bytes]]) -> dict[str, tuple[Path, Path]]:
+        """Write rendered files each to a temporary next to its final path: ``{key: (path, temporary)}``."""
+        made: list[Path] = []
+        staged: dict[str, tuple[Path, Path]] = {}
+        try:
+            for key, (name, data) in files.items():
+                final = output_target(out / name)  # a link is followed, anything but a regular file refused
+                final.parent.mkdir(parents=True, exist_ok=True)
+                temp = temp_sibling(final, made)
+                write_data(temp, data, newline="\n")
+                staged[key] = (out / name, temp)
+        except BaseException:
+            _unlink(made)
+            raise
+        return staged
+
+    def missions(ks: list[int]) -> dict[str, tuple[Path, Path]]:
+        staged: dict[str, tuple[Path, Path]] = {}
+        try:
+            for k in ks:
+                staged.update(stage(_mission_files(plan, k, flight_file_stem(k), max_items=limit,
+                                                   geofence_margin_m=geofence_margin_m,
+                                                   litchi_hover_ms=litchi_hover_ms, opts=opts)))
+        except BaseException:
+            _unlink(temp for _, temp in staged.values())
+            raise
+        return staged
+
+    # Every file is rendered and written to its temporary by the process that renders it (side by side with
+    # workers, the plan-wide files first, the longest): only the names come back, and no file's content waits
+    # in memory for the others. The temporaries are renamed together once all are written.
+    pieces: list[Callable[[], dict[str, tuple[Path, Path]]]] = [
+        lambda: stage({"plan_json": ("plan.json", plan_json_text(plan))}),
+        lambda: stage({"kml": ("plan.kml", kml_text(plan, field=field, altitude_mode=kml_altitude_mode,
+                                                     geoid_undulation_m=geoid_undulation_m))}),
+        lambda: stage({"figure": ("plan.png", plan_png_bytes(plan, field=field, figsize=figsize, dpi=dpi))}),
     ]
     pieces += [functools.partial(missions, flights[i:i + _FLIGHTS_PER_PIECE])
                for i in range(0, len(flights), _FLIGHTS_PER_PIECE)]
@@ -269,40 +305,42 @@ def export_all(
         except PihimInputError as exc:  # raised below in the pieces' order, whichever worker met it first
             return exc
 
-    done = _forked.map_pieces(render, len(pieces), workers, what="files")
-    for result in done:
-        if isinstance(result, PihimInputError):
-            raise result
-    contents: dict[str, tuple[str, str | bytes]] = {
-        "plan_json": ("plan.json", done[0]),
-        "kml": ("plan.kml", done[1]),
-        "figure": ("plan.png", done[2]),
-    }
-    per_flight = [files for part in done[3:] for files in part]
-    # A plan never split into flights is one mission; a plan split into none (every pass beyond a battery's
-    # reach from home) has nothing flyable, so no mission files.
-    unsplit = not plan.flights and "flights" not in plan.summary
-    if unsplit:
-        per_flight.append(_mission_files(plan, None, "mission", max_items=limit, geofence_margin_m=geofence_margin_m,
-                                         litchi_hover_ms=litchi_hover_ms, opts=opts))
-    for files in per_flight:
-        contents.update(files)
-    if len(plan.flights) == 1 and flight is None:  # one flight covers the plan: the whole-field files too
-        only = per_flight[0]
-        stem = flight_file_stem(plan.flights[0].index)
-        contents["qgc_plan"] = ("mission.plan", only[f"{stem}_plan"][1])
-        contents["wpl"] = ("mission.waypoints", only[f"{stem}_waypoints"][1])
-        if f"{stem}_litchi" in only:
-            contents["litchi"] = ("litchi.csv", only[f"{stem}_litchi"][1])
-    if unsplit:  # the plan-wide files keep their usual names
-        for key, name in (("qgc_plan", "mission_plan"), ("wpl", "mission_waypoints"), ("litchi", "mission_litchi")):
-            if name in contents:
-                contents[key] = (OUTPUT_NAMES[key], contents.pop(name)[1])
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise PihimInputError(f"{out} exists and is not a directory")
-    paths = {key: out / name for key, (name, _) in contents.items()}
-    with contextlib.ExitStack() as stack:
-        for key, (_, data) in contents.items():
-            write_data(stack.enter_context(atomic_path(paths[key])), data, newline="\n")
-    return paths
+    done: list[Any] = [None] * len(pieces)
+    staged: dict[str, tuple[Path, Path]] = {}
+    renamed: list[Path] = []
+    try:
+        for i, result in _forked.imap_unordered(render, len(pieces), workers, what="files"):
+            done[i] = result
+        for result in done:
+            if isinstance(result, PihimInputError):
+                raise result
+            staged.update(result)  # in the pieces' order, whatever the order they came in
+        # A plan never split into flights is one mission; a plan split into none (every pass beyond a battery's
+        # reach from home) has nothing flyable, so no mission files.
+        if not plan.flights and "flights" not in plan.summary:
+            files = _mission_files(plan, None, "mission", max_items=limit, geofence_margin_m=geofence_margin_m,
+                                   litchi_hover_ms=litchi_hover_ms, opts=opts)
+            # under the plan-wide keys and names
+            keys = {"mission_plan": "qgc_plan", "mission_waypoints": "wpl", "mission_litchi": "litchi"}
+            staged.update(stage({keys[key]: (OUTPUT_NAMES[keys[key]], data) for key, (_, data) in files.items()}))
+        elif len(plan.flights) == 1 and flight is None:  # one flight covers the plan: the whole-field files too
+            stem = flight_file_stem(plan.flights[0].index)
+            copies = {"qgc_plan": f"{stem}_plan", "wpl": f"{stem}_waypoints", "litchi": f"{stem}_litchi"}
+            staged.update(stage({key: (OUTPUT_NAMES[key], staged[of][1].read_bytes())
+                                 for key, of in copies.items() if of in staged}))
+        for path, temp in staged.values():
+            os.replace(temp, output_target(path))
+            renamed.append(path)
+    except BaseException:
+        known = [temp for r in done if isinstance(r, dict) for _, temp in r.values()]
+        _unlink([*known, *(temp for _, temp in staged.values()), *renamed])
+        clean_stale_temporaries(out)  # those of pieces a stopped worker finished: its process is gone
+        remove_empty_dirs(created)
+        raise
+    return {key: path for key, (path, _) in staged.items()}
+
+
+def _unlink(paths: Iterable[Path]) -> None:
+    for p in paths:
+        with contextlib.suppress(OSError):
+            p.unlink()
