@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pihim._jsontext import json_text
+from pihim._jsontext import json_text, write_json_text
 
 _scalars = st.one_of(st.none(), st.booleans(), st.integers(-10**12, 10**12),
                      st.floats(allow_nan=False, allow_infinity=False), st.text(max_size=8))
@@ -60,3 +60,21 @@ def test_values_json_cannot_hold_are_refused():
         json_text({"a": {1, 2}})
     with pytest.raises(TypeError):
         json_text({(1, 2): 0})
+
+
+@settings(max_examples=200, deadline=None)
+@given(documents, st.integers(1, 9), st.sampled_from([None, 0, 1, 2]))
+def test_written_in_pieces_the_text_is_the_same(doc, chunk_parts, depth):
+    pieces: list[str] = []
+    write_json_text(doc, pieces.append, indent=2, inline_depth=depth, chunk_parts=chunk_parts)
+    assert "".join(pieces) == json_text(doc, indent=2, inline_depth=depth)
+
+
+def test_a_large_document_goes_out_in_bounded_pieces():
+    doc = {"passes": [{"index": k, "waypoints": [{"x_m": float(j)} for j in range(5)]} for k in range(2000)]}
+    pieces: list[str] = []
+    write_json_text(doc, pieces.append, indent=2, inline_depth=3, chunk_parts=100)
+    text = "".join(pieces)
+    assert text == json_text(doc, indent=2, inline_depth=3) and len(text) > 200_000
+    # a piece holds about chunk_parts strings (plus the rest of one member): never the document
+    assert max(len(p) for p in pieces) < 10_000

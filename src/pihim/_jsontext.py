@@ -11,9 +11,10 @@ one line with the C encoder -- e.g. one waypoint per line.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from typing import Any
 
-__all__ = ["json_text"]
+__all__ = ["json_text", "write_json_text"]
 
 
 def _key(k: Any) -> str:
@@ -61,10 +62,27 @@ def json_text(obj: Any, *, indent: int = 2, inline_depth: int | None = None, sor
     TypeError
         A value JSON cannot hold.
     """
+    chunks: list[str] = []
+    write_json_text(obj, chunks.append, indent=indent, inline_depth=inline_depth, sort_keys=sort_keys)
+    return "".join(chunks)
+
+
+def write_json_text(obj: Any, write: Callable[[str], Any], *, indent: int = 2, inline_depth: int | None = None,
+                    sort_keys: bool = False, chunk_parts: int = 1 << 16) -> None:
+    """:func:`json_text` of ``obj`` passed to ``write`` in consecutive pieces (e.g. a text file's ``write``).
+
+    A piece joins ``chunk_parts`` strings of the text (a megabyte or two for a plan), so a document's text
+    never lies in memory whole, nor as millions of small strings. On an error, the pieces written so far
+    are the start of the text.
+    """
     leaf = json.JSONEncoder(allow_nan=False, sort_keys=sort_keys, separators=(", ", ": ")).encode
     limit = float("inf") if inline_depth is None else inline_depth
     parts: list[str] = []
     add = parts.append
+
+    def flush() -> None:
+        write("".join(parts))
+        parts.clear()
 
     def walk(o: Any, depth: int) -> None:
         if depth >= limit or not isinstance(o, (dict, list, tuple)) or not o:
@@ -81,13 +99,17 @@ def json_text(obj: Any, *, indent: int = 2, inline_depth: int | None = None, sor
                 add(leaf(k))
                 add(": ")
                 walk(v, depth + 1)
+                if len(parts) >= chunk_parts:
+                    flush()
             add("\n" + " " * (indent * depth) + "}")
         else:
             add("[")
             for n, v in enumerate(o):
                 add(pad if n == 0 else "," + pad)
                 walk(v, depth + 1)
+                if len(parts) >= chunk_parts:
+                    flush()
             add("\n" + " " * (indent * depth) + "]")
 
     walk(obj, 0)
-    return "".join(parts)
+    flush()

@@ -31,6 +31,7 @@ from pihim.planning.export import (
     litchi_missions,
     litchi_waypoints,
     load_plan_schema,
+    plan_json_text,
     load_qgc_plan_schema,
     mission_items,
     qgc_plan_document,
@@ -38,6 +39,7 @@ from pihim.planning.export import (
     write_litchi_csv,
     write_plan_figure,
     write_plan_json,
+    write_plan_json_text,
     write_qgc_plan,
     write_wpl,
 )
@@ -204,6 +206,17 @@ def test_plan_json_validates_against_schema(plan, tmp_path):
     assert doc["passes"][0]["predictions"][0]["sky_dolp_difference"] is None
     assert set(doc["passes"][0]["predictions"][0]) >= {"reflection_dolp_ok", "sky_vs_sky_ok", "ground_vs_ground_ok",
                                                       "usable"}
+
+
+def test_plan_json_is_the_same_text_written_whole_or_in_pieces(plan, tmp_path):
+    pieces: list[str] = []
+    write_plan_json_text(plan, pieces.append)
+    text = plan_json_text(plan)
+    assert "".join(pieces) == text and text.endswith("}\n")
+    assert write_plan_json(plan, tmp_path / "plan.json").read_text() == text
+    with pytest.raises(PihimInputError, match="latitude_deg"):  # checked before the first piece
+        write_plan_json_text(_nan_latitude_plan(plan), pieces.append)
+    assert "".join(pieces) == text
 
 
 def test_plan_schema_has_teeth(plan):

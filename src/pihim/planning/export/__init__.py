@@ -58,6 +58,7 @@ from pihim.planning.export.plan_json import (
     plan_document,
     plan_json_text,
     write_plan_json,
+    write_plan_json_text,
 )
 from pihim.planning.export.qgc import (
     Mission,
@@ -103,6 +104,7 @@ __all__ = [
     "write_litchi_csv",
     "write_plan_figure",
     "write_plan_json",
+    "write_plan_json_text",
     "write_qgc_plan",
     "write_wpl",
 ]
@@ -140,6 +142,9 @@ def _check_limit(value: Any) -> int:
         raise PihimInputError(f"max_mission_items must be an integer >= 4, got {value!r}")
     return value
 
+
+#: A file's text written in pieces to the ``write`` it is given (see ``export_all``).
+_Producer = Callable[[Callable[[str], Any]], None]
 
 #: Flights whose mission files one piece of :func:`export_all`'s work renders.
 _FLIGHTS_PER_PIECE = 64
@@ -259,8 +264,12 @@ def export_all(
     created = missing_dirs(out)
     out.mkdir(parents=True, exist_ok=True)
 
-    def stage(files: dict[str, tuple[str, str | bytes]]) -> dict[str, tuple[Path, Path]]:
-        """Write rendered files each to a temporary next to its final path: ``{key: (path, temporary)}``."""
+    def stage(files: dict[str, tuple[str, str | bytes | _Producer]]) -> dict[str, tuple[Path, Path]]:
+        """Write files each to a temporary next to its final path: ``{key: (path, temporary)}``.
+
+        A file is its rendered content, or a function that writes the text in pieces to the ``write`` it is
+        given (``plan.json``: 340 MB at 100,000 heliostats).
+        """
         made: list[Path] = []
         staged: dict[str, tuple[Path, Path]] = {}
         try:
@@ -268,7 +277,11 @@ def export_all(
                 final = output_target(out / name)  # a link is followed, anything but a regular file refused
                 final.parent.mkdir(parents=True, exist_ok=True)
                 temp = temp_sibling(final, made)
-                write_data(temp, data, newline="\n")
+                if callable(data):
+                    with open(temp, "w", encoding="utf-8", newline="\n") as fh:
+                        data(fh.write)
+                else:
+                    write_data(temp, data, newline="\n")
                 staged[key] = (out / name, temp)
         except BaseException:
             _unlink(made)
@@ -291,7 +304,7 @@ def export_all(
     # workers, the plan-wide files first, the longest): only the names come back, and no file's content waits
     # in memory for the others. The temporaries are renamed together once all are written.
     pieces: list[Callable[[], dict[str, tuple[Path, Path]]]] = [
-        lambda: stage({"plan_json": ("plan.json", plan_json_text(plan))}),
+        lambda: stage({"plan_json": ("plan.json", functools.partial(write_plan_json_text, plan))}),
         lambda: stage({"kml": ("plan.kml", kml_text(plan, field=field, altitude_mode=kml_altitude_mode,
                                                      geoid_undulation_m=geoid_undulation_m))}),
         lambda: stage({"figure": ("plan.png", plan_png_bytes(plan, field=field, figsize=figsize, dpi=dpi))}),

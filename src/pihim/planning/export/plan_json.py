@@ -16,21 +16,23 @@ References
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import pihim
-from pihim._jsontext import json_text
+from pihim._atomic import write_atomic
+from pihim._jsontext import json_text, write_json_text
 from pihim.planning.export._common import (
     check_plan,
     json_ready,
     plan_counts,
-    write_export,
 )
 from pihim.planning.model import PLAN_SCHEMA_ID, Plan
 
-__all__ = ["CONVENTIONS", "load_plan_schema", "plan_document", "plan_json_text", "write_plan_json"]
+__all__ = ["CONVENTIONS", "load_plan_schema", "plan_document", "plan_json_text", "write_plan_json",
+           "write_plan_json_text"]
 
 #: Frames and units, repeated in every ``plan.json`` so the file explains itself.
 CONVENTIONS = {
@@ -90,6 +92,16 @@ def plan_json_text(plan: Plan) -> str:
     return json_text(plan_document(plan), indent=2, inline_depth=4) + "\n"
 
 
+def write_plan_json_text(plan: Plan, write: Callable[[str], Any]) -> None:
+    """:func:`plan_json_text` passed to ``write`` (e.g. a text file's) in pieces of a megabyte or two.
+
+    The text of a 100,000-heliostat plan (340 MB) then never lies in memory
+    whole. The plan is checked (:func:`plan_document`) before the first piece.
+    """
+    write_json_text(plan_document(plan), write, indent=2, inline_depth=4)
+    write("\n")
+
+
 def write_plan_json(plan: Plan, path: str | Path) -> Path:
     """Write ``plan.json`` atomically.
 
@@ -113,5 +125,11 @@ def write_plan_json(plan: Plan, path: str | Path) -> Path:
     -----
     The file validates against :func:`load_plan_schema` (tested).
     """
-    text = plan_json_text(plan)
-    return write_export(path, text)
+    doc = plan_document(plan)  # checked before a temporary file is made
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "w", encoding="utf-8", newline="\n") as fh:
+            write_json_text(doc, fh.write, indent=2, inline_depth=4)
+            fh.write("\n")
+
+    return write_atomic(path, write)
