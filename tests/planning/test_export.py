@@ -26,6 +26,7 @@ from pihim.planning.export import (
     count_mission_items,
     export_all,
     flight_file_stem,
+    kml_text,
     litchi_csv_text,
     litchi_mission_texts,
     litchi_missions,
@@ -36,6 +37,7 @@ from pihim.planning.export import (
     mission_items,
     qgc_plan_document,
     write_kml,
+    write_kml_text,
     write_litchi_csv,
     write_plan_figure,
     write_plan_json,
@@ -557,10 +559,30 @@ def test_kml_stream_writes_what_elementtree_writes_for_the_same_tree():
     stream = _Stream("kml", {"xmlns": KML_NS})
     build(stream.sub, stream.root)
     assert stream.text() == _elementtree_text(root)
+    for chunk_lines in (1, 2, 3, 100):  # the same lines, passed to a sink in pieces
+        pieces = []
+        sunk = _Stream("kml", {"xmlns": KML_NS}, pieces.append, chunk_lines=chunk_lines)
+        build(sunk.sub, sunk.root)
+        sunk.finish()
+        assert "".join(pieces) == stream.text() and (len(pieces) > 5 or chunk_lines == 100)
     leaf_first = _Stream("kml", {})
     leaf = leaf_first.sub(leaf_first.root, "name", "text")
     with pytest.raises(ValueError, match="closed or holds text"):
         leaf_first.sub(leaf, "child")
+
+
+def test_kml_is_the_same_text_written_whole_or_in_pieces(plan, field, monkeypatch):
+    from pihim.planning.export import kml
+
+    text = kml_text(plan, field=field)
+    monkeypatch.setattr(kml._Stream.__init__, "__defaults__", (None, 4))  # a piece every 4 lines
+    pieces: list[str] = []
+    write_kml_text(plan, pieces.append, field=field)
+    assert "".join(pieces) == text and len(pieces) > 10 and text.endswith("</kml>\n")
+    pieces.clear()
+    with pytest.raises(PihimInputError, match="altitude_mode"):  # checked before the first piece
+        write_kml_text(plan, pieces.append, altitude_mode="above")
+    assert pieces == []
 
 
 def _elementtree_text(root):

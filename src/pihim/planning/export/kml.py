@@ -49,6 +49,7 @@ References
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
@@ -64,7 +65,7 @@ from pihim.planning.export._common import (
 )
 from pihim.planning.model import Plan, ScanPass, Waypoint, heading_0_360
 
-__all__ = ["KML_NS", "kml_text", "write_kml"]
+__all__ = ["KML_NS", "kml_text", "write_kml", "write_kml_text"]
 
 #: KML 2.2 namespace.
 KML_NS = "http://www.opengis.net/kml/2.2"
@@ -95,10 +96,14 @@ class _Stream:
     its serialization took 16 s of it.
     """
 
-    def __init__(self, tag: str, attrib: dict[str, str]) -> None:
+    def __init__(self, tag: str, attrib: dict[str, str], write: Callable[[str], Any] | None = None,
+                 chunk_lines: int = 1 << 15) -> None:
         self.lines: list[str] = []
         self.root = _Node(tag, attrib, 0)
         self.stack = [self.root]
+        self.write = write  # with a sink, the lines go out every chunk_lines (the document is not kept whole)
+        self.chunk_lines = chunk_lines
+        self.written = False
 
     def sub(self, parent: _Node, tag: str, text: Any = None, **attrib: str) -> _Node:
         stack, lines = self.stack, self.lines
@@ -117,7 +122,16 @@ class _Stream:
             pad = " " * node.depth
             lines.append(f"{pad}<{tag}{node.attrs}>{_escape_cdata(body)}</{tag}>" if body
                          else f"{pad}<{tag}{node.attrs} />")
+        if self.write is not None and len(lines) >= self.chunk_lines:
+            self._flush()
         return node
+
+    def _flush(self) -> None:
+        assert self.write is not None
+        if self.lines:
+            self.write(("\n" if self.written else "") + "\n".join(self.lines))
+            self.lines.clear()
+            self.written = True
 
     def _close(self) -> None:
         node = self.stack.pop()
@@ -129,6 +143,12 @@ class _Stream:
         while self.stack:
             self._close()
         return "\n".join(self.lines)
+
+    def finish(self) -> None:
+        """Close every open element and pass the rest of the document to the sink."""
+        while self.stack:
+            self._close()
+        self._flush()
 
 
 def _escape_cdata(text: str) -> str:
@@ -179,6 +199,26 @@ def kml_text(
     geoid_undulation_m: float | None = None,
 ) -> str:
     """The KML document text (see :func:`write_kml`)."""
+    pieces: list[str] = []
+    write_kml_text(plan, pieces.append, field=field, altitude_mode=altitude_mode,
+                   geoid_undulation_m=geoid_undulation_m)
+    return "".join(pieces)
+
+
+def write_kml_text(
+    plan: Plan,
+    write: Callable[[str], Any],
+    *,
+    field: Any = None,
+    altitude_mode: Literal["relativeToGround", "absolute"] = "relativeToGround",
+    geoid_undulation_m: float | None = None,
+) -> None:
+    """:func:`kml_text` passed to ``write`` (e.g. a text file's) in pieces of about a megabyte.
+
+    The plan and options are checked before the first piece. The KML of a
+    100,000-heliostat plan (210 MB, millions of lines) then never lies in
+    memory whole.
+    """
     check_plan(plan)
     if altitude_mode not in ("relativeToGround", "absolute"):
         raise PihimInputError(f"altitude_mode must be 'relativeToGround' or 'absolute', got {altitude_mode!r}")
@@ -204,7 +244,8 @@ def kml_text(
         origin = site_origin(plan)
 
     counts = plan_counts(plan)
-    stream = _Stream("kml", {"xmlns": KML_NS})
+    write('<?xml version="1.0" encoding="UTF-8"?>\n')
+    stream = _Stream("kml", {"xmlns": KML_NS}, write)
     _sub = stream.sub
     doc = _sub(stream.root, "Document")
     _sub(doc, "name", f"pihim plan {plan.time_iso}")
@@ -325,7 +366,8 @@ def kml_text(
             _sub(ring, "coordinates", " ".join(_coord(lo, la, t.height_m) for la, lo in
                                                zip(lat.tolist(), lon.tolist(), strict=True)))
 
-    return '<?xml version="1.0" encoding="UTF-8"?>\n' + stream.text() + "\n"
+    stream.finish()
+    write("\n")
 
 
 def write_kml(
