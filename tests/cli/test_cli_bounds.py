@@ -7,8 +7,11 @@ of its input images replaced that image.
 
 from __future__ import annotations
 
+import sys
+
 import pytest
 
+import pihim.cli as cli_module
 from pihim.cli import main
 
 TIME = "2021-05-13T13:00-06:00"
@@ -136,3 +139,21 @@ def test_empty_option_value_is_left_to_the_command(tmp_path, capsys, monkeypatch
     # '' as the value of an option that takes one is not a positional argument
     monkeypatch.chdir(tmp_path)
     _refused(capsys, ["plan", "--heliostats", "", "--time", TIME, "--out", "o"], "--heliostats names no heliostat")
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["polar", "--bogus", ""], "No such option: --bogus"),  # an unknown option is the parser's to report
+    (["edges", "x.tiff", "", "--out", "o"], "unexpected extra argument"),  # so is an extra argument
+])
+def test_an_empty_argument_the_command_does_not_take_is_left_to_the_parser(tmp_path, capsys, monkeypatch, argv,
+                                                                            needle):
+    monkeypatch.chdir(tmp_path)
+    _refused(capsys, argv, needle)
+
+
+def test_an_empty_argument_to_a_command_that_cannot_load_is_a_one_line_error(capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "pihim.cli.edges", None)  # a command module that fails to import
+    monkeypatch.setattr(cli_module, "_COMMAND", {})
+    assert main(["edges", "", "--out", "o"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pihim: error: internal error (ModuleNotFoundError"), err

@@ -129,3 +129,56 @@ def test_a_refused_flight_with_workers_leaves_an_existing_folder_untouched(field
     with pytest.raises(PihimInputError, match="more than the limit of 10"):
         export_all(plan, out, max_mission_items=10, workers=2)
     assert [p.name for p in out.iterdir()] == ["notes.txt"]
+
+
+@linux
+def test_a_worker_that_dies_while_writing_leaves_no_temporary(field, tmp_path, monkeypatch):
+    """Its pieces run again here (with a warning) and the export succeeds; its half-written temporary goes."""
+    import os
+    import signal
+
+    from pihim.planning.export import kml
+
+    monkeypatch.setattr(export_module, "_FLIGHTS_PER_PIECE", 1)
+    plan = pipeline.build_plan(field, WHEN, NSTTF, facet_report=False)
+    parent, real = os.getpid(), kml.write_kml_text
+
+    def dying(plan, write, **kwargs):
+        if os.getpid() != parent:
+            write("<?xml, and then the worker is killed")
+            os.kill(os.getpid(), signal.SIGKILL)
+        real(plan, write, **kwargs)
+
+    monkeypatch.setattr(export_module, "write_kml_text", dying)
+    with pytest.warns(RuntimeWarning, match="a worker process died"):
+        files = export_all(plan, tmp_path / "out", field=field, workers=2)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == sorted(p.name for p in files.values())
+    assert files["kml"].read_text() == kml.kml_text(plan, field=field)
+
+
+def test_an_interruption_during_the_renames_removes_only_the_temporaries(field, tmp_path, monkeypatch):
+    """The files renamed before it stay renamed (each replaced its earlier version for good), a linked name stays
+    a link, and the earlier files not yet reached stay as they were."""
+    import os
+
+    plan = pipeline.build_plan(field, WHEN, NSTTF, facet_report=False)
+    out, elsewhere = tmp_path / "out", tmp_path / "elsewhere"
+    out.mkdir()
+    elsewhere.mkdir()
+    (elsewhere / "plan.kml").write_text("an earlier map")
+    (out / "plan.kml").symlink_to(elsewhere / "plan.kml")
+    (out / "flight_01.plan").write_text("an earlier mission")
+    real, calls = os.replace, []
+
+    def replace(src, dst):
+        calls.append(dst)
+        if len(calls) == 3:  # plan.json and plan.kml are renamed, then Ctrl-C
+            raise KeyboardInterrupt
+        real(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    with pytest.raises(KeyboardInterrupt):
+        export_all(plan, out, field=field, workers=1)
+    assert sorted(p.name for p in out.iterdir()) == ["flight_01.plan", "plan.json", "plan.kml"]
+    assert (out / "plan.kml").is_symlink() and (out / "plan.kml").read_text().startswith("<?xml")
+    assert (out / "flight_01.plan").read_text() == "an earlier mission"

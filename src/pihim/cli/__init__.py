@@ -262,18 +262,30 @@ def _empty_argument(args: list[str]) -> str | None:
         cmd = cmd.real() if isinstance(cmd, LazyCommand) else cmd
         k += 1
     params = cmd.params
-    takes_value = {name for p in params if p.param_type_name == "option" and not p.is_flag and not p.count
-                   for name in p.opts + p.secondary_opts}
-    positional = [p for p in params if p.param_type_name == "argument"]
+    options = [p for p in params if p.param_type_name == "option"]
+    known = {name for p in options for name in p.opts + p.secondary_opts} | {"--help"}
+    takes_value = {name for p in options if not p.is_flag and not p.count for name in p.opts + p.secondary_opts}
+    # the positional slots in order, one per token (an argument of nargs=-1 takes every token that is left)
+    slots = [p for p in params if p.param_type_name == "argument" for _ in range(max(p.nargs, 1))]
+    open_ended = next((p for p in params if p.param_type_name == "argument" and p.nargs == -1), None)
     only_positional = False
+    n_positional = 0
     while k < len(args):
         arg = args[k]
         if not only_positional and arg == "--":
             only_positional = True
         elif not only_positional and arg.startswith("-") and arg != "-":
+            name = arg.partition("=")[0]
+            if name not in known or name == "--help":  # an unknown option or the help: the parser's to report
+                return None
             k += "=" not in arg and arg in takes_value  # the option's value is the next token
-        elif arg == "" and positional:
-            return (positional[0].metavar or positional[0].name.upper()) if len(positional) == 1 else "an argument"
+        else:
+            slot = slots[n_positional] if n_positional < len(slots) else open_ended
+            if slot is None:  # an extra argument: the parser's to report
+                return None
+            if arg == "":
+                return slot.metavar or slot.name.upper()
+            n_positional += 1
         k += 1
     return None
 
@@ -285,11 +297,10 @@ def _run(argv: list[str] | None) -> int:
     if empty is not None:
         print(f"pihim: error: {empty} needs a path, got an empty string", file=sys.stderr)
         return 2
-    empty = _empty_argument(args)
-    if empty is not None:
-        print(f"pihim: error: {empty} needs a path, got an empty string", file=sys.stderr)
-        return 2
     try:
+        empty = _empty_argument(args)
+        if empty is not None:
+            raise PihimInputError(f"{empty} needs a path, got an empty string")
         rv = _command().main(args=argv, standalone_mode=False, prog_name="pihim")
     except PihimInputError as exc:
         print(f"pihim: error: {exc}", file=sys.stderr)

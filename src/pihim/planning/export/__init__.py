@@ -322,7 +322,6 @@ def export_all(
 
     done: list[Any] = [None] * len(pieces)
     staged: dict[str, tuple[Path, Path]] = {}
-    renamed: list[Path] = []
     try:
         for i, result in _forked.imap_unordered(render, len(pieces), workers, what="files"):
             done[i] = result
@@ -345,13 +344,14 @@ def export_all(
                                  for key, of in copies.items() if of in staged}))
         for path, temp in staged.values():
             os.replace(temp, output_target(path))
-            renamed.append(path)
     except BaseException:
+        # the temporaries not renamed (a file already renamed stays: it replaced the earlier one for good)
         known = [temp for r in done if isinstance(r, dict) for _, temp in r.values()]
-        _unlink([*known, *(temp for _, temp in staged.values()), *renamed])
+        _unlink([*known, *(temp for _, temp in staged.values())])
         clean_stale_temporaries(out)  # those of pieces a stopped worker finished: its process is gone
         remove_empty_dirs(created)
         raise
+    clean_stale_temporaries(out)  # a worker that died (its pieces ran again here) left its temporary behind
     return {key: path for key, (path, _) in staged.items()}
 
 
