@@ -265,13 +265,15 @@ def export_all(
     created = missing_dirs(out)
     out.mkdir(parents=True, exist_ok=True)
 
+    made: list[Path] = []  # every temporary this process makes (a worker's copy of the list stays in the worker)
+
     def stage(files: dict[str, tuple[str, str | bytes | _Producer]]) -> dict[str, tuple[Path, Path]]:
         """Write files each to a temporary next to its final path: ``{key: (path, temporary)}``.
 
         A file is its rendered content, or a function that writes the text in pieces to the ``write`` it is
         given (``plan.json`` and ``plan.kml``: 340 and 210 MB at 100,000 heliostats).
         """
-        made: list[Path] = []
+        first = len(made)
         staged: dict[str, tuple[Path, Path]] = {}
         try:
             for key, (name, data) in files.items():
@@ -285,7 +287,7 @@ def export_all(
                     write_data(temp, data, newline="\n")
                 staged[key] = (out / name, temp)
         except BaseException:
-            _unlink(made)
+            _unlink(made[first:])
             raise
         return staged
 
@@ -346,8 +348,8 @@ def export_all(
             os.replace(temp, output_target(path))
     except BaseException:
         # the temporaries not renamed (a file already renamed stays: it replaced the earlier one for good)
-        known = [temp for r in done if isinstance(r, dict) for _, temp in r.values()]
-        _unlink([*known, *(temp for _, temp in staged.values())])
+        known = [temp for r in done if isinstance(r, dict) for _, temp in r.values()]  # made by workers
+        _unlink([*made, *known])
         clean_stale_temporaries(out)  # those of pieces a stopped worker finished: its process is gone
         remove_empty_dirs(created)
         raise
