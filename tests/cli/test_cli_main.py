@@ -28,6 +28,16 @@ def test_unexpected_failures_are_one_line(tmp_path, capsys, monkeypatch, exc, st
     assert len(err) == 1 and err[0].startswith("pihim: error:") and needle in err[0]
 
 
+def test_ctrl_c_in_a_command_is_one_line_and_status_130(tmp_path, capsys, monkeypatch):
+    """typer returns 130 for a KeyboardInterrupt and says nothing; the CLI says it was stopped."""
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sky_cli, "sky_map", interrupted)
+    assert main([*ARGS, "--out", str(tmp_path / "s")]) == 130
+    assert capsys.readouterr().err.strip().splitlines() == ["pihim: aborted"]
+
+
 @pytest.mark.parametrize("stop, status, line", [(KeyboardInterrupt(), 130, "pihim: aborted"),
                                                  ("terminated", 143, "pihim: terminated")])
 def test_an_interrupt_wrapped_by_compiled_code_is_an_interrupt(tmp_path, capsys, monkeypatch, stop, status, line):

@@ -145,8 +145,21 @@ def command_group() -> typer.core.TyperGroup:
     for group in app.registered_groups:
         sub = typer.main.get_command(group.typer_instance)
         commands[str(group.name or sub.name)] = sub
-    return typer.core.TyperGroup(name="pihim", commands=commands, help=HELP, no_args_is_help=True,
-                                 rich_markup_mode=app.rich_markup_mode)
+    return _Group(name="pihim", commands=commands, help=HELP, no_args_is_help=True,
+                  rich_markup_mode=app.rich_markup_mode)
+
+
+class _Group(typer.core.TyperGroup):
+    """The ``pihim`` group: Ctrl-C in a command ends as :class:`typer.Abort`, which :func:`main` reports.
+
+    (typer turns a KeyboardInterrupt into exit status 130 without a word.)
+    """
+
+    def invoke(self, ctx: Any) -> Any:
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt as exc:
+            raise typer.Abort() from exc
 
 
 _COMMAND: dict[int, Any] = {}
