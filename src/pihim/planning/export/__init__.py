@@ -324,8 +324,9 @@ def export_all(
 
     done: list[Any] = [None] * len(pieces)
     staged: dict[str, tuple[Path, Path]] = {}
+    results = _forked.imap_unordered(render, len(pieces), workers, what="files")
     try:
-        for i, result in _forked.imap_unordered(render, len(pieces), workers, what="files"):
+        for i, result in results:
             done[i] = result
         for result in done:
             if isinstance(result, PihimInputError):
@@ -347,6 +348,7 @@ def export_all(
         for path, temp in staged.values():
             os.replace(temp, output_target(path))
     except BaseException:
+        results.close()  # the workers stopped first: what they were writing is then stale (below)
         # the temporaries not renamed (a file already renamed stays: it replaced the earlier one for good)
         known = [temp for r in done if isinstance(r, dict) for _, temp in r.values()]  # made by workers
         _unlink([*made, *known])
