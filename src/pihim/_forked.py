@@ -164,7 +164,7 @@ class Started(Generic[T]):
 
     :meth:`results` waits for them (a dead worker's pieces then run here,
     with the warning of :func:`imap_unordered`); :meth:`close` stops the
-    workers (pieces not begun are dropped). Without workers nothing runs
+    workers (pieces not done are dropped). Without workers nothing runs
     until :meth:`results`, which then runs the pieces here, in order.
     """
 
