@@ -135,38 +135,3 @@ def test_bad_worker_counts_are_refused(workers):
         _forked.check_workers(workers)
     with pytest.raises(PihimInputError):
         _forked.map_pieces(lambda i: i, 3, workers)
-
-
-@linux
-@pytest.mark.filterwarnings("error::pytest.PytestUnhandledThreadExceptionWarning")
-def test_closing_early_ends_the_pieces_begun_at_once():
-    """Ctrl-C (or an error) while the workers are in long pieces: their results would be dropped, so they are
-    not waited for."""
-    import time
-
-    started = _forked.start(lambda i: time.sleep(60) or i, 20, 2)
-    workers = set(started._workers)
-    assert len(workers) == 2
-    time.sleep(0.5)  # both workers in a piece
-    t0 = time.perf_counter()
-    started.close()
-    assert time.perf_counter() - t0 < 5.0 and not started.running
-    assert not workers & _forked._children()
-    for pid in workers:
-        with pytest.raises(OSError):
-            os.kill(pid, 0)  # reaped by the pool's shutdown
-
-    pieces = _forked.imap_unordered(lambda i: time.sleep(60 if i else 0) or i, 3, 2)
-    t0 = time.perf_counter()
-    with pytest.raises(KeyError):
-        for _i, _result in pieces:
-            raise KeyError("the caller stops on the first result")  # closes the generator on the way out
-    pieces.close()
-    assert time.perf_counter() - t0 < 5.0
-
-
-@linux
-def test_finished_pieces_are_not_cut_short():
-    """Closed after every piece is done (the usual end), the workers are shut down, not killed."""
-    started = _forked.start(lambda i: i * i, 6, 2)
-    assert started.results() == [i * i for i in range(6)] and not started.running

@@ -20,10 +20,8 @@ hands pieces to workers that work on while the caller does something else
 
 from __future__ import annotations
 
-import contextlib
 import gc
 import os
-import signal
 import sys
 import warnings
 from collections.abc import Callable, Iterator
@@ -65,18 +63,6 @@ def can_fork(workers: int | None, n: int) -> bool:
     return min(worker_count(workers), n) > 1 and sys.platform.startswith("linux")
 
 
-def _children() -> set[int]:
-    """The process ids of this process's children (Linux ``/proc``; empty where it cannot be read)."""
-    pids: set[int] = set()
-    try:
-        for task in os.scandir(f"/proc/{os.getpid()}/task"):
-            with open(os.path.join(task.path, "children"), encoding="ascii") as fh:
-                pids.update(int(p) for p in fh.read().split())
-    except (OSError, ValueError):
-        pass
-    return pids
-
-
 def _worker_setup(job: Callable[[int], Any], parent_pid: int) -> None:
     """Start a forked worker.
 
@@ -87,6 +73,8 @@ def _worker_setup(job: Callable[[int], Any], parent_pid: int) -> None:
     leaves no orphan; and writes to the real stdout and stderr, not to a
     progress display's proxies copied by the fork.
     """
+    import signal
+
     from pihim.surfaces import ground
 
     global _WORKER_JOB
@@ -164,7 +152,7 @@ class Started(Generic[T]):
 
     :meth:`results` waits for them (a dead worker's pieces then run here,
     with the warning of :func:`imap_unordered`); :meth:`close` stops the
-    workers (pieces not done are dropped). Without workers nothing runs
+    workers (pieces not begun are dropped). Without workers nothing runs
     until :meth:`results`, which then runs the pieces here, in order.
     """
 
@@ -174,14 +162,12 @@ class Started(Generic[T]):
         self._job, self._n, self._what = job, n, what
         self._pool: Any = None
         self._futures: list[Any] = []
-        self._workers: set[int] = set()
         if background == 0 or n == 0 or not sys.platform.startswith("linux"):
             return
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
         gc.freeze()  # as in imap_unordered: the parent's objects out of the collector's sight while workers live
-        before = _children()
         try:
             self._pool = ProcessPoolExecutor(min(background, n), mp_context=multiprocessing.get_context("fork"),
                                              initializer=_worker_setup, initargs=(job, os.getpid()))
@@ -189,8 +175,6 @@ class Started(Generic[T]):
         except BaseException:
             self.close()
             raise
-        # with fork, the pool starts all its processes at the first submit
-        self._workers = _children() - before
 
     @property
     def running(self) -> bool:
@@ -227,26 +211,14 @@ class Started(Generic[T]):
         return out
 
     def close(self) -> None:
-        """Stop the workers; nothing if none were started.
-
-        Closed before every piece is done (an error, Ctrl-C), it drops the pieces not begun and ends the
-        workers at once: the results of the pieces begun would be dropped too, and a piece can take seconds
-        (``plan.json`` of 100,000 heliostats, 12 s), which Ctrl-C used to wait for.
-        """
+        """Stop the workers (the pieces they began are finished first, those not begun dropped); nothing if
+        none were started."""
         if self._pool is None:
             return
         pool, self._pool = self._pool, None
         try:
-            alive = self._workers & _children() if not all(fut.done() for fut in self._futures) else set()
-            if alive:  # still this process's children, so no other process's ids
-                for pid in alive:
-                    with contextlib.suppress(OSError):
-                        os.kill(pid, signal.SIGTERM)  # the workers die of it outright (_worker_setup)
-                # the pool then fails every piece not done and ends its processes (a cancelled piece would
-                # make Python 3.11's pool raise in its own thread there)
-            else:
-                for fut in self._futures:
-                    fut.cancel()
+            for fut in self._futures:
+                fut.cancel()
             pool.shutdown(wait=True)
         finally:
             gc.unfreeze()
