@@ -3,6 +3,7 @@
 import os
 import signal
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -117,11 +118,12 @@ def test_a_killed_started_worker_loses_no_piece():
 def test_closing_started_workers_stops_them():
     import time
 
-    started = _forked.start(lambda i: time.sleep(0.05) or i, 200, 2)
+    started = _forked.start(lambda i: time.sleep(60) or i, 200, 2)
     pids = [p.pid for p in started._pool._processes.values()]
+    time.sleep(0.5)  # the workers are in their first pieces
     t0 = time.perf_counter()
-    started.close()  # as a finally does after an error: the pieces begun finish, the others are dropped
-    assert time.perf_counter() - t0 < 2.0 and not started.running
+    started.close()  # as a finally does after an error: the pieces begun are interrupted, the others dropped
+    assert time.perf_counter() - t0 < 5.0 and not started.running
     for pid in pids:
         with pytest.raises(OSError):
             for _ in range(100):
@@ -135,3 +137,97 @@ def test_bad_worker_counts_are_refused(workers):
         _forked.check_workers(workers)
     with pytest.raises(PihimInputError):
         _forked.map_pieces(lambda i: i, 3, workers)
+
+
+@linux
+def test_an_error_interrupts_the_pieces_being_computed():
+    """The error of one piece reaches the caller without waiting for the others begun (a minute each here)."""
+    import time
+
+    def job(i: int) -> int:
+        if i == 0:
+            time.sleep(0.3)
+            raise ValueError("piece 0 failed")
+        t = time.perf_counter()
+        while time.perf_counter() - t < 60:  # Python code: stopped between two instructions
+            sum(range(1000))
+        return i
+
+    t0 = time.perf_counter()
+    with pytest.raises(ValueError, match="piece 0 failed"):
+        _forked.map_pieces(job, 4, 2)
+    assert time.perf_counter() - t0 < 10.0
+
+
+_INTERRUPTED_CHILD = """
+import sys, time
+from pihim import _forked
+
+def job(i):
+    if sys.argv[1] == "sleep":
+        time.sleep(60)
+        return i
+    time.sleep(0.02)
+    return bytes(20_000_000)  # larger than the pipe: the result is often being sent when Ctrl-C comes
+
+print("start", flush=True)
+try:
+    for _ in _forked.imap_unordered(job, 40, 2):
+        pass
+except KeyboardInterrupt:
+    print("interrupted", flush=True)
+    sys.exit(130)
+print("done", flush=True)
+"""
+
+
+@linux
+@pytest.mark.parametrize(("kind", "delays"), [("sleep", (1.0,)), ("results", (0.0, 0.05, 0.1, 0.2, 0.3, 0.5))])
+@pytest.mark.parametrize("group", [False, True], ids=["parent", "group"])
+def test_ctrl_c_stops_the_workers_at_once(kind, delays, group):
+    """Ctrl-C to the parent alone or to the whole group (a terminal's): exit within seconds, no traceback, no
+    process left, whether the workers were computing (a minute each), starting or sending a result."""
+    import subprocess
+    import time
+
+    for delay in delays:
+        child = subprocess.Popen([sys.executable, "-c", _INTERRUPTED_CHILD, kind], stdout=subprocess.PIPE,
+                                 stderr=subprocess.PIPE, text=True, start_new_session=True)
+        try:
+            assert child.stdout.readline() == "start\n"
+            time.sleep(delay)
+            t0 = time.perf_counter()
+            if group:
+                os.killpg(child.pid, signal.SIGINT)
+            else:
+                child.send_signal(signal.SIGINT)
+            out, err = child.communicate(timeout=20)
+        finally:
+            if child.poll() is None:
+                os.killpg(child.pid, signal.SIGKILL)
+        assert time.perf_counter() - t0 < 5.0
+        assert child.returncode in (0, 130) and out.strip() in ("interrupted", "done") and err == "", (delay, err)
+        if kind == "sleep":
+            assert child.returncode == 130
+        with pytest.raises(ProcessLookupError):  # the workers (in the child's session) are gone
+            os.killpg(child.pid, 0)
+
+
+@linux
+def test_a_run_that_ignores_ctrl_c_goes_on():
+    """A process started with SIGINT ignored (in the background by a shell) keeps ignoring it in its workers."""
+    import subprocess
+
+    child = subprocess.Popen([sys.executable, "-c", _INTERRUPTED_CHILD, "results"], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True, start_new_session=True,
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        assert child.stdout.readline() == "start\n"
+        for _ in range(5):
+            os.killpg(child.pid, signal.SIGINT)
+            time.sleep(0.05)
+        out, err = child.communicate(timeout=60)
+    finally:
+        if child.poll() is None:
+            os.killpg(child.pid, signal.SIGKILL)
+    assert (child.returncode, out, err) == (0, "done\n", "")

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import gc
 import os
+import signal
 import sys
 import warnings
 from collections.abc import Callable, Iterator
@@ -63,22 +64,27 @@ def can_fork(workers: int | None, n: int) -> bool:
     return min(worker_count(workers), n) > 1 and sys.platform.startswith("linux")
 
 
-def _worker_setup(job: Callable[[int], Any], parent_pid: int) -> None:
+def _worker_setup(job: Callable[[int], Any], parent_pid: int, stop_fd: int, mask: set[int]) -> None:
     """Start a forked worker.
 
     It keeps ``job``; runs compiled kernels without threads (GNU OpenMP does
-    not survive ``fork``); leaves Ctrl-C to the parent, which stops the pool,
-    and dies outright on SIGTERM (the parent then takes over its pieces);
-    dies with the parent (Linux ``PR_SET_PDEATHSIG``), so that a killed run
-    leaves no orphan; and writes to the real stdout and stderr, not to a
-    progress display's proxies copied by the fork.
+    not survive ``fork``); stops the piece it is on at Ctrl-C, unless the
+    parent ignores SIGINT, and when the parent writes a byte to ``stop_fd``
+    (:meth:`Started.close`; see :func:`_on_interrupt`); dies outright on
+    SIGTERM (the parent then takes over its pieces); dies with the parent
+    (Linux ``PR_SET_PDEATHSIG``), so that a killed run leaves no orphan;
+    writes to the real stdout and stderr, not to a progress display's
+    proxies copied by the fork; and then takes the parent's signal ``mask``
+    back (signals were held back since the fork: a KeyboardInterrupt here
+    would break the pool).
     """
-    import signal
+    import threading
 
-    from pihim.surfaces import ground
-
-    global _WORKER_JOB
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    global _WORKER_JOB, _IN_PIECE, _INTERRUPTED
+    _IN_PIECE = _INTERRUPTED = False  # a worker forked by a worker's piece starts afresh
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # a process started in the background ignores it
+        signal.signal(signal.SIGINT, _on_interrupt)
+    signal.signal(_STOP_SIGNAL, _on_interrupt)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     try:
         import ctypes
@@ -90,14 +96,54 @@ def _worker_setup(job: Callable[[int], Any], parent_pid: int) -> None:
         os._exit(1)
     sys.stdout, sys.stderr = sys.__stdout__, sys.__stderr__
     _WORKER_JOB = job
+    from pihim.surfaces import ground
+
     ground.use_serial_kernels(True)
+
+    def watch() -> None:  # one byte from the parent (or the pipe's end)
+        try:
+            os.read(stop_fd, 1)
+        except OSError:  # pragma: no cover - the descriptor is this worker's own
+            pass
+        signal.pthread_kill(main, _STOP_SIGNAL)  # a real signal: it also ends a blocking call
+
+    main = threading.main_thread().ident
+    threading.Thread(target=watch, name="pihim-stop", daemon=True).start()
+    signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
+#: The signal a worker's own thread sends it when the parent stops the pool.
+_STOP_SIGNAL: int = getattr(signal, "SIGUSR1", 10)
+#: In a forked worker: whether a piece is being computed, and whether Ctrl-C (or the parent's stop) arrived.
+_IN_PIECE = False
+_INTERRUPTED = False
+
+
+def _on_interrupt(signum: int, frame: Any) -> None:  # noqa: ARG001
+    """A worker's handler of SIGINT and of the parent's stop: end the piece being computed (it ends in KeyboardInterrupt, which goes back
+    to the parent as its result) and every later one.
+
+    Outside a piece (waiting for one, or sending a result back through the pool's pipe) it only takes note:
+    raising there could leave half a message in the pipe, on which the parent would wait for good.
+    """
+    global _INTERRUPTED
+    _INTERRUPTED = True
+    if _IN_PIECE:
+        raise KeyboardInterrupt
 
 
 def _run_piece(i: int) -> tuple[int, Any]:
     """Piece ``i`` of the worker's job, with its index (results arrive in order of completion)."""
+    global _IN_PIECE
     if _WORKER_JOB is None:
         raise RuntimeError("a forked worker started without its job")
-    return i, _WORKER_JOB(i)
+    try:
+        _IN_PIECE = True
+        if _INTERRUPTED:  # a piece queued before the stop: not begun
+            raise KeyboardInterrupt
+        return i, _WORKER_JOB(i)
+    finally:
+        _IN_PIECE = False
 
 
 def imap_unordered(job: Callable[[int], T], n: int, workers: int | None, *,
@@ -122,7 +168,10 @@ def imap_unordered(job: Callable[[int], T], n: int, workers: int | None, *,
     -----
     The pieces go to the pool one at a time (their costs may differ). If a
     worker dies (out of memory, a signal), the pieces not done run in this
-    process, with a ``RuntimeWarning``: nothing is lost. Call it from a
+    process, with a ``RuntimeWarning``: nothing is lost. If the caller
+    stops early (an exception, Ctrl-C, SIGTERM turned into an exception, the
+    iterator closed), the workers are stopped as :meth:`Started.close` does:
+    the pieces they are computing are interrupted. Call it from a
     process whose other threads hold no lock the workers need (numba
     compiling, logging, a progress display refreshing on its own thread):
     ``fork`` copies only the calling thread.
@@ -152,7 +201,8 @@ class Started(Generic[T]):
 
     :meth:`results` waits for them (a dead worker's pieces then run here,
     with the warning of :func:`imap_unordered`); :meth:`close` stops the
-    workers (pieces not begun are dropped). Without workers nothing runs
+    workers (the pieces being computed are interrupted, those not begun
+    dropped). Without workers nothing runs
     until :meth:`results`, which then runs the pieces here, in order.
     """
 
@@ -162,16 +212,27 @@ class Started(Generic[T]):
         self._job, self._n, self._what = job, n, what
         self._pool: Any = None
         self._futures: list[Any] = []
+        self._stop: tuple[int, int] | None = None  # a pipe: a byte written stops the piece a worker is on
+        self._workers = 0
         if background == 0 or n == 0 or not sys.platform.startswith("linux"):
             return
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
+        self._stop = os.pipe()
+        self._workers = min(background, n)
         gc.freeze()  # as in imap_unordered: the parent's objects out of the collector's sight while workers live
         try:
-            self._pool = ProcessPoolExecutor(min(background, n), mp_context=multiprocessing.get_context("fork"),
-                                             initializer=_worker_setup, initargs=(job, os.getpid()))
-            self._futures = [self._pool.submit(_run_piece, i) for i in range(n)]
+            # The workers are forked at the first submit; Ctrl-C stays pending in them until their handlers are set
+            # (a KeyboardInterrupt in a worker's setup breaks the pool), and here until the submits are done.
+            mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, _STOP_SIGNAL})
+            try:
+                self._pool = ProcessPoolExecutor(self._workers, mp_context=multiprocessing.get_context("fork"),
+                                                 initializer=_worker_setup,
+                                                 initargs=(job, os.getpid(), self._stop[0], mask))
+                self._futures = [self._pool.submit(_run_piece, i) for i in range(n)]
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         except BaseException:
             self.close()
             raise
@@ -211,16 +272,23 @@ class Started(Generic[T]):
         return out
 
     def close(self) -> None:
-        """Stop the workers (the pieces they began are finished first, those not begun dropped); nothing if
-        none were started."""
-        if self._pool is None:
+        """Stop the workers: pieces not begun are dropped, and those being computed are interrupted (as by
+        Ctrl-C: a worker stops only between two Python instructions, so a compiled kernel runs to its end);
+        nothing if none were started."""
+        if self._stop is None:
             return
         pool, self._pool = self._pool, None
+        stop, self._stop = self._stop, None
         try:
             for fut in self._futures:
                 fut.cancel()
-            pool.shutdown(wait=True)
+            if pool is not None and not all(fut.done() for fut in self._futures):
+                os.write(stop[1], b"x" * self._workers)  # one byte per worker; the pipe holds 64 KiB
+            if pool is not None:
+                pool.shutdown(wait=True)
         finally:
+            os.close(stop[0])
+            os.close(stop[1])
             gc.unfreeze()
 
 
