@@ -119,6 +119,46 @@ def test_empty_path_option_is_refused(tmp_path, capsys, monkeypatch, argv):
     assert list(tmp_path.iterdir()) == []
 
 
+def _commands(cmd, path=()):
+    """Every (sub)command of the CLI, as (names, click command)."""
+    import typer
+
+    if isinstance(cmd, typer.core.TyperGroup):
+        for name in cmd.list_commands(None):
+            sub = cmd.get_command(None, name)
+            sub = sub.real() if isinstance(sub, cli_module.LazyCommand) else sub
+            yield from _commands(sub, (*path, name))
+    else:
+        yield path, cmd
+
+
+def _is_path(hint) -> bool:
+    import pathlib
+    import types
+    import typing
+
+    if typing.get_origin(hint) is typing.Annotated:
+        return _is_path(typing.get_args(hint)[0])
+    if typing.get_origin(hint) in (typing.Union, types.UnionType, list):
+        return any(_is_path(a) for a in typing.get_args(hint))
+    return hint is pathlib.Path
+
+
+def test_the_empty_path_check_knows_every_path_option():
+    """The options refused with an empty value (``_PATH_OPTIONS``, kept by hand) are exactly those annotated as
+    paths in the commands' signatures: a new path option must be added to the list."""
+    import inspect
+    import typing
+
+    found = set()
+    for _, cmd in _commands(cli_module._command()):
+        hints = typing.get_type_hints(inspect.unwrap(cmd.callback), include_extras=True)
+        found |= {o for p in cmd.params if p.param_type_name == "option" and _is_path(hints[p.name])
+                  for o in p.opts + p.secondary_opts}
+    assert "--out" in found and "--store" in found
+    assert found == cli_module._PATH_OPTIONS
+
+
 @pytest.mark.parametrize("argv, name", [
     (["polar", ""], "FRAMES"),
     (["polar", "a.tiff", "", "--out", "o"], "FRAMES"),
