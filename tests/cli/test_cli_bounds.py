@@ -119,6 +119,26 @@ def test_empty_path_option_is_refused(tmp_path, capsys, monkeypatch, argv):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("argv", [
+    ["plan", "--time", TIME, "--field", "", "--out", "o"],
+    ["windows", "--date", "2021-05-13", "--field", " ", "--out", "o"],
+])
+def test_empty_field_is_named(tmp_path, capsys, monkeypatch, argv):
+    # '' became Path('.'): "--field .: is a directory, not a heliostat CSV file"
+    monkeypatch.chdir(tmp_path)
+    _refused(capsys, argv, "--field is empty: give nsttf-like or a heliostat CSV file")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_empty_field_is_named_for_a_campaign():
+    from pihim.cli.campaign import _field_spec
+    from pihim.errors import PihimInputError
+
+    with pytest.raises(PihimInputError, match="--field is empty"):
+        _field_spec("", None)
+    assert _field_spec("NSTTF", None) == ("nsttf-like", None)
+
+
 def _commands(cmd, path=()):
     """Every (sub)command of the CLI, as (names, click command)."""
     import typer

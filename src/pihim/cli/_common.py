@@ -73,23 +73,36 @@ def report_error(message: str) -> None:
     print(f"pihim: error: {message}", file=sys.stderr)
 
 
-def load_field_option(spec: str, facets: "Path | None", *, nsttf_tower: bool = True) -> "Field":
-    """``--field nsttf-like|HELIOSTATS.csv`` (and ``--facets``) to a :class:`pihim.field.Field`."""
-    from pathlib import Path
+def field_csv_option(spec: str, facets: "Path | None") -> "Path | None":
+    """``--field nsttf-like|HELIOSTATS.csv`` (and ``--facets``): None for the embedded field, else the CSV file.
 
-    from pihim.field import NSTTF_TOWER, load_field, nsttf_like_field
+    Both files are checked (one-line :class:`PihimInputError`); nothing is read.
+    """
+    from pathlib import Path
 
     key = spec.strip()
     if key.lower() in ("nsttf-like", "nsttf"):
         if facets is not None:
             raise PihimInputError("--facets needs --field HELIOSTATS.csv (the nsttf-like field has its own facets)")
-        return nsttf_like_field()
+        return None
+    if not key:
+        raise PihimInputError("--field is empty: give nsttf-like or a heliostat CSV file")
     path = Path(key)
     if not path.exists():
         raise PihimInputError(f"--field {spec!r}: neither 'nsttf-like' nor an existing heliostat CSV file")
     check_regular_file(path, "heliostat CSV file", option="--field")
     if facets is not None:
         check_regular_file(facets, "facet CSV file", option="--facets")
+    return path
+
+
+def load_field_option(spec: str, facets: "Path | None", *, nsttf_tower: bool = True) -> "Field":
+    """``--field nsttf-like|HELIOSTATS.csv`` (and ``--facets``) to a :class:`pihim.field.Field`."""
+    from pihim.field import NSTTF_TOWER, load_field, nsttf_like_field
+
+    path = field_csv_option(spec, facets)
+    if path is None:
+        return nsttf_like_field()
     return load_field(path, facets, tower=NSTTF_TOWER if nsttf_tower else None)
 
 

@@ -44,21 +44,11 @@ def _bars(enabled: bool) -> Iterator[Any]:
 
 
 def _field_spec(field: str, facets: Path | None) -> tuple[str, str | None]:
-    from pihim._inputs import check_regular_file
+    from pihim.cli._common import field_csv_option, load_field_option
 
-    key = field.strip()
-    if key.lower() in ("nsttf-like", "nsttf"):
-        if facets is not None:
-            raise PihimInputError("--facets needs --field HELIOSTATS.csv (the nsttf-like field has its own facets)")
+    p = field_csv_option(field, facets)
+    if p is None:
         return ("nsttf-like", None)
-    p = Path(key)
-    if not p.exists():
-        raise PihimInputError(f"--field {field!r}: neither 'nsttf-like' nor an existing heliostat CSV file")
-    check_regular_file(p, "heliostat CSV file", option="--field")
-    if facets is not None:
-        check_regular_file(facets, "facet CSV file", option="--facets")
-    from pihim.cli._common import load_field_option
-
     load_field_option(field, facets)  # one-line error now for a malformed field
     return (str(p.resolve()), None if facets is None else str(facets.resolve()))
 
