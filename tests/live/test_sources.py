@@ -105,6 +105,7 @@ def test_folder_sidecar_exposure_travels(frame_folder):
     ("frames", {"size": (64, 48)}, "--size does not apply to a folder or a camera"),
     ("genicam", {"width": 8, "bit_depth": 12}, "--width and --bit-depth do not apply to a GenICam camera"),
     ("frames", {"pixel_format": "Bogus"}, "unknown pixel format 'Bogus'"),  # was 'applies only to .raw' for TIFFs
+    (" ", {}, "--source is empty"),  # was "--source : no frames in the folder": the working directory
 ])
 def test_options_of_another_source_are_refused(spec, options, says):
     with pytest.raises(PihimInputError, match=says):

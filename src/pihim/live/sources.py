@@ -928,6 +928,9 @@ def check_source_options(spec: str, *, size: tuple[int, int] | None = None, pixe
         ``"--width does not apply to a synthetic source"`` and the like.
     """
     low = spec.strip().lower()
+    if not low:  # Path('') would be the working directory
+        raise PihimInputError("--source is empty: give a folder of raw frames, synthetic, synthetic:DIR or "
+                              "genicam[:SERIAL]")
     raw_options = {"--width": width, "--height": height, "--bit-depth": bit_depth}
     if low == "synthetic" or low.startswith("synthetic:"):
         _refuse_unused({"--pixel-format": pixel_format, **raw_options}, "a synthetic source")
