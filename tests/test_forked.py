@@ -231,3 +231,105 @@ def test_a_run_that_ignores_ctrl_c_goes_on():
         if child.poll() is None:
             os.killpg(child.pid, signal.SIGKILL)
     assert (child.returncode, out, err) == (0, "done\n", "")
+
+
+_SCRIPT = """
+import signal, sys, time
+from pihim import _forked
+case = sys.argv[1]
+
+def busy(j):  # calls of about 0.25 s into C, which a signal cannot cut, for good
+    import hashlib
+    while True:
+        hashlib.pbkdf2_hmac("sha256", b"x", b"y", 1_000_000)
+
+def nested(i):  # each piece runs a pool of its own
+    return sum(v for _, v in _forked.imap_unordered(busy, 4, 2))
+
+if case == "graceful":  # a program's own Ctrl-C: finish what is being done
+    stop = []
+    signal.signal(signal.SIGINT, lambda s, f: stop.append(s))
+    print("start", flush=True)
+    print(_forked.map_pieces(lambda i: time.sleep(1.0) or i, 4, 2), bool(stop), flush=True)
+elif case == "nested":
+    print("start", flush=True)
+    try:
+        _forked.map_pieces(nested, 4, 2)
+    except KeyboardInterrupt:
+        print("interrupted", flush=True)
+        sys.exit(130)
+elif case == "masked":  # a caller that blocks SIGUSR1 (the workers' stop signal)
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGUSR1})
+    started = _forked.start(lambda i: time.sleep(60) or i, 4, 2)
+    time.sleep(0.5)
+    t = time.perf_counter()
+    started.close()
+    print("closed", round(time.perf_counter() - t), flush=True)
+"""
+
+
+def _run_script(case, signal_group_after=None):
+    import subprocess
+
+    child = subprocess.Popen([sys.executable, "-c", _SCRIPT, case], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True, start_new_session=True)
+    try:
+        if signal_group_after is not None:
+            assert child.stdout.readline() == "start\n"
+            time.sleep(signal_group_after)
+            os.killpg(child.pid, signal.SIGINT)
+        out, err = child.communicate(timeout=20)
+    finally:
+        if child.poll() is None:
+            os.killpg(child.pid, signal.SIGKILL)
+    return child.returncode, out, err
+
+
+@linux
+def test_workers_leave_ctrl_c_to_the_caller():
+    """A caller whose own SIGINT handler does not raise gets its pieces: the workers ignore Ctrl-C."""
+    rc, out, err = _run_script("graceful", signal_group_after=0.3)
+    assert (rc, out, err) == (0, "[0, 1, 2, 3] True\n", "")
+
+
+@linux
+def test_ctrl_c_stops_pools_run_by_pieces():
+    """Ctrl-C to the group while the workers' pieces run pools of their own: all stop at once."""
+    t0 = time.perf_counter()
+    rc, out, err = _run_script("nested", signal_group_after=1.0)
+    assert (rc, out, err) == (130, "interrupted\n", "")
+    assert time.perf_counter() - t0 < 10.0
+
+
+@linux
+def test_a_caller_blocking_the_stop_signal_still_stops_its_workers():
+    rc, out, err = _run_script("masked")
+    assert (rc, out, err) == (0, "closed 0\n", "")
+
+
+def test_signals_deferred_hands_the_first_signal_over_after_the_block():
+    seen = []
+    previous = signal.signal(signal.SIGTERM, lambda s, f: seen.append(s))
+    try:
+        with _forked.signals_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+            assert seen == []  # nothing raised or handled inside
+        pytest.fail("the SIGINT noted in the block was not raised after it")
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert seen == []  # only the first signal is handed over
+
+
+def test_signals_deferred_keeps_an_ignored_signal_ignored():
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with _forked.signals_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+        time.sleep(0.05)
+    finally:
+        signal.signal(signal.SIGINT, previous)

@@ -20,6 +20,7 @@ hands pieces to workers that work on while the caller does something else
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 import signal
@@ -68,24 +69,22 @@ def _worker_setup(job: Callable[[int], Any], parent_pid: int, stop_fd: int, mask
     """Start a forked worker.
 
     It keeps ``job``; runs compiled kernels without threads (GNU OpenMP does
-    not survive ``fork``); stops the piece it is on at Ctrl-C, unless the
-    parent ignores SIGINT, and when the parent writes a byte to ``stop_fd``
-    (:meth:`Started.close`; see :func:`_on_interrupt`); dies outright on
-    SIGTERM (the parent then takes over its pieces); dies with the parent
-    (Linux ``PR_SET_PDEATHSIG``), so that a killed run leaves no orphan;
-    writes to the real stdout and stderr, not to a progress display's
-    proxies copied by the fork; and then takes the parent's signal ``mask``
-    back (signals were held back since the fork: a KeyboardInterrupt here
-    would break the pool).
+    not survive ``fork``); leaves Ctrl-C to the parent, which stops the pool,
+    and stops the piece it is on when the parent writes a byte to ``stop_fd``
+    (:meth:`Started.close`; see :func:`_on_stop`); dies outright on SIGTERM
+    (the parent then takes over its pieces); dies with the parent (Linux
+    ``PR_SET_PDEATHSIG``), so that a killed run leaves no orphan; writes to
+    the real stdout and stderr, not to a progress display's proxies copied
+    by the fork; and then takes the parent's signal ``mask`` back (the
+    signals were held back since the fork, see :func:`signals_deferred`).
     """
     import threading
 
-    global _WORKER_JOB, _IN_PIECE, _INTERRUPTED
-    _IN_PIECE = _INTERRUPTED = False  # a worker forked by a worker's piece starts afresh
-    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # a process started in the background ignores it
-        signal.signal(signal.SIGINT, _on_interrupt)
-    signal.signal(_STOP_SIGNAL, _on_interrupt)
+    global _WORKER_JOB, _IN_PIECE, _STOPPED
+    _IN_PIECE = _STOPPED = False  # a worker forked by a worker's piece starts afresh
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(_STOP_SIGNAL, _on_stop)
     try:
         import ctypes
 
@@ -109,27 +108,73 @@ def _worker_setup(job: Callable[[int], Any], parent_pid: int, stop_fd: int, mask
 
     main = threading.main_thread().ident
     threading.Thread(target=watch, name="pihim-stop", daemon=True).start()
-    signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+    signal.pthread_sigmask(signal.SIG_SETMASK, set(mask) - {_STOP_SIGNAL})
 
 
 #: The signal a worker's own thread sends it when the parent stops the pool.
 _STOP_SIGNAL: int = getattr(signal, "SIGUSR1", 10)
-#: In a forked worker: whether a piece is being computed, and whether Ctrl-C (or the parent's stop) arrived.
+#: In a forked worker: whether a piece is being computed, and whether the parent stopped the pool.
 _IN_PIECE = False
-_INTERRUPTED = False
+_STOPPED = False
 
 
-def _on_interrupt(signum: int, frame: Any) -> None:  # noqa: ARG001
-    """A worker's handler of SIGINT and of the parent's stop: end the piece being computed (it ends in KeyboardInterrupt, which goes back
-    to the parent as its result) and every later one.
+def _on_stop(signum: int, frame: Any) -> None:  # noqa: ARG001
+    """A worker's handler of the parent's stop: end the piece being computed (in KeyboardInterrupt, which goes
+    back to the parent as its result) and refuse every later one.
 
     Outside a piece (waiting for one, or sending a result back through the pool's pipe) it only takes note:
-    raising there could leave half a message in the pipe, on which the parent would wait for good.
+    raising there could leave half a message in the pipe, on which the parent would wait for good. It raises
+    once: a second exception could cut short the clean-up of the first (a pool that the piece itself runs).
     """
-    global _INTERRUPTED
-    _INTERRUPTED = True
-    if _IN_PIECE:
+    global _STOPPED
+    first = not _STOPPED
+    _STOPPED = True
+    if _IN_PIECE and first:
         raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[set[int]]:
+    """Hold Ctrl-C (SIGINT) and SIGTERM back during the block; the first that came is then handled as usual.
+
+    Yields the calling thread's signal mask from before the block.
+
+    For steps that must not be cut short: forking workers (a KeyboardInterrupt
+    inside ``fork`` or in a worker before its setup breaks the pool or hangs
+    the exit), stopping them and removing temporary files. In the main thread
+    the Python handlers are swapped for one that takes note (a signal may go
+    to any thread); the calling thread's mask holds both signals, so that
+    processes forked in the block start with them blocked. An ignored signal
+    stays ignored. Elsewhere than in the main thread only the mask applies.
+    """
+    import threading
+
+    held = {signal.SIGINT, signal.SIGTERM}
+    came: list[tuple[int, Any]] = []
+
+    def note(signum: int, frame: Any) -> None:
+        came.append((signum, frame))
+
+    previous: dict[int, Any] = {}
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, held | {_STOP_SIGNAL})
+    try:
+        if threading.current_thread() is threading.main_thread():
+            for sig in held:
+                handler = signal.getsignal(sig)
+                if handler is not signal.SIG_IGN and handler is not None:
+                    previous[sig] = signal.signal(sig, note)
+        yield set(mask)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # those pending for this thread are noted here
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        if came:
+            signum, frame = came[0]
+            handler = previous[signum]
+            if callable(handler):
+                handler(signum, frame)
+            else:  # SIG_DFL: as if it came now
+                signal.raise_signal(signum)
 
 
 def _run_piece(i: int) -> tuple[int, Any]:
@@ -139,7 +184,7 @@ def _run_piece(i: int) -> tuple[int, Any]:
         raise RuntimeError("a forked worker started without its job")
     try:
         _IN_PIECE = True
-        if _INTERRUPTED:  # a piece queued before the stop: not begun
+        if _STOPPED:  # a piece queued before the stop: not begun
             raise KeyboardInterrupt
         return i, _WORKER_JOB(i)
     finally:
@@ -223,16 +268,11 @@ class Started(Generic[T]):
         self._workers = min(background, n)
         gc.freeze()  # as in imap_unordered: the parent's objects out of the collector's sight while workers live
         try:
-            # The workers are forked at the first submit; Ctrl-C stays pending in them until their handlers are set
-            # (a KeyboardInterrupt in a worker's setup breaks the pool), and here until the submits are done.
-            mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, _STOP_SIGNAL})
-            try:
+            with signals_deferred() as mask:  # the workers are forked at the first submit
                 self._pool = ProcessPoolExecutor(self._workers, mp_context=multiprocessing.get_context("fork"),
                                                  initializer=_worker_setup,
                                                  initargs=(job, os.getpid(), self._stop[0], mask))
                 self._futures = [self._pool.submit(_run_piece, i) for i in range(n)]
-            finally:
-                signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         except BaseException:
             self.close()
             raise
@@ -245,14 +285,19 @@ class Started(Generic[T]):
     def as_completed(self) -> Iterator[tuple[int, T]]:
         """``(i, job(i))`` in order of completion, then the pieces a dead worker left (run here, with a
         warning); the workers are stopped when it ends (or is closed early)."""
-        from concurrent.futures import as_completed
+        import queue
         from concurrent.futures.process import BrokenProcessPool
 
         done: set[int] = set()
         if self._pool is not None:
+            # Each future puts itself in a queue when done (in the pool's thread); waiting on the queue holds no
+            # lock that Ctrl-C could leave taken (as concurrent.futures.as_completed's clean-up could).
+            finished: queue.SimpleQueue[Any] = queue.SimpleQueue()
             try:
-                for fut in as_completed(self._futures):
-                    i, result = fut.result()
+                for fut in self._futures:
+                    fut.add_done_callback(finished.put)
+                for _ in range(self._n):
+                    i, result = finished.get().result()
                     done.add(i)
                     yield i, result
             except BrokenProcessPool:
@@ -272,24 +317,25 @@ class Started(Generic[T]):
         return out
 
     def close(self) -> None:
-        """Stop the workers: pieces not begun are dropped, and those being computed are interrupted (as by
-        Ctrl-C: a worker stops only between two Python instructions, so a compiled kernel runs to its end);
-        nothing if none were started."""
+        """Stop the workers: pieces not begun are dropped, and those being computed are interrupted (a worker
+        stops between two Python instructions, so a compiled kernel runs to its end); nothing if none were
+        started. Ctrl-C and SIGTERM wait until the workers are gone (:func:`signals_deferred`)."""
         if self._stop is None:
             return
         pool, self._pool = self._pool, None
         stop, self._stop = self._stop, None
-        try:
-            for fut in self._futures:
-                fut.cancel()
-            if pool is not None and not all(fut.done() for fut in self._futures):
-                os.write(stop[1], b"x" * self._workers)  # one byte per worker; the pipe holds 64 KiB
-            if pool is not None:
-                pool.shutdown(wait=True)
-        finally:
-            os.close(stop[0])
-            os.close(stop[1])
-            gc.unfreeze()
+        with signals_deferred():
+            try:
+                for fut in self._futures:
+                    fut.cancel()
+                if pool is not None and not all(fut.done() for fut in self._futures):
+                    os.write(stop[1], b"x" * self._workers)  # one byte per worker; the pipe holds 64 KiB
+                if pool is not None:
+                    pool.shutdown(wait=True)
+            finally:
+                os.close(stop[0])
+                os.close(stop[1])
+                gc.unfreeze()
 
 
 def start(job: Callable[[int], T], n: int, background: int, *, what: str = "pieces") -> Started[T]:

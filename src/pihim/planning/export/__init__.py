@@ -348,14 +348,15 @@ def export_all(
         for path, temp in staged.values():
             os.replace(temp, output_target(path))
     except BaseException:
-        try:
-            results.close()  # the workers stopped first: what they were writing is then stale (below)
-        finally:
-            # the temporaries not renamed (a file already renamed stays: it replaced the earlier one for good)
-            known = [temp for r in done if isinstance(r, dict) for _, temp in r.values()]  # made by workers
-            _unlink([*made, *known])
-            clean_stale_temporaries(out)  # those of pieces a stopped worker finished: its process is gone
-            remove_empty_dirs(created)
+        with _forked.signals_deferred():  # a second Ctrl-C waits until the workers are gone and the folder clean
+            try:
+                results.close()  # the workers stopped first: what they were writing is then stale (below)
+            finally:
+                # the temporaries not renamed (a file already renamed stays: it replaced the earlier one for good)
+                known = [temp for r in done if isinstance(r, dict) for _, temp in r.values()]  # made by workers
+                _unlink([*made, *known])
+                clean_stale_temporaries(out)  # those of pieces a stopped worker finished: its process is gone
+                remove_empty_dirs(created)
         raise
     clean_stale_temporaries(out)  # a worker that died (its pieces ran again here) left its temporary behind
     return {key: path for key, (path, _) in staged.items()}
