@@ -307,21 +307,60 @@ def test_a_caller_blocking_the_stop_signal_still_stops_its_workers():
     assert (rc, out, err) == (0, "closed 0\n", "")
 
 
-def test_signals_deferred_hands_the_first_signal_over_after_the_block():
+def test_signals_deferred_hands_every_signal_over_after_the_block():
     seen = []
     previous = signal.signal(signal.SIGTERM, lambda s, f: seen.append(s))
     try:
-        with _forked.signals_deferred():
-            os.kill(os.getpid(), signal.SIGINT)
-            os.kill(os.getpid(), signal.SIGTERM)
-            time.sleep(0.05)
-            assert seen == []  # nothing raised or handled inside
-        pytest.fail("the SIGINT noted in the block was not raised after it")
-    except KeyboardInterrupt:
-        pass
+        with pytest.raises(KeyboardInterrupt):
+            with _forked.signals_deferred():
+                os.kill(os.getpid(), signal.SIGINT)
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)
+                assert seen == []  # nothing raised or handled inside
+        time.sleep(0.01)
+        assert seen == [signal.SIGTERM]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     finally:
         signal.signal(signal.SIGTERM, previous)
-    assert seen == []  # only the first signal is handed over
+
+
+def test_signals_deferred_lets_a_default_sigterm_end_the_process():
+    """A program's own Ctrl-C handler that does not raise, then SIGTERM left to its default: the process ends."""
+    import subprocess
+
+    script = """
+import os, signal, time
+from pihim import _forked
+got = []
+signal.signal(signal.SIGINT, lambda s, f: got.append(s))
+with _forked.signals_deferred():
+    os.kill(os.getpid(), signal.SIGINT)
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(0.05)
+time.sleep(0.5)
+print("still running", got)
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=30)
+    assert done.returncode == -signal.SIGTERM and done.stdout == "", (done.returncode, done.stdout)
+
+
+def test_signals_deferred_restores_the_handlers_when_one_raises_on_the_way_out():
+    import threading
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    term = signal.getsignal(signal.SIGTERM)
+    previous = signal.signal(signal.SIGUSR1, stop)  # held back in the block too (the workers' stop signal)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with _forked.signals_deferred():
+                signal.pthread_kill(threading.get_ident(), signal.SIGUSR1)  # pending here until the block ends
+                time.sleep(0.05)
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        assert signal.getsignal(signal.SIGTERM) is term
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
 
 
 def test_signals_deferred_keeps_an_ignored_signal_ignored():

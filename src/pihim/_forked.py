@@ -135,7 +135,7 @@ def _on_stop(signum: int, frame: Any) -> None:  # noqa: ARG001
 
 @contextlib.contextmanager
 def signals_deferred() -> Iterator[set[int]]:
-    """Hold Ctrl-C (SIGINT) and SIGTERM back during the block; the first that came is then handled as usual.
+    """Hold Ctrl-C (SIGINT) and SIGTERM back during the block; those that came are then handled as usual.
 
     Yields the calling thread's signal mask from before the block.
 
@@ -152,7 +152,7 @@ def signals_deferred() -> Iterator[set[int]]:
     held = {signal.SIGINT, signal.SIGTERM}
     came: list[tuple[int, Any]] = []
 
-    def note(signum: int, frame: Any) -> None:
+    def note(signum: int, frame: Any) -> None:  # noqa: ARG001
         came.append((signum, frame))
 
     previous: dict[int, Any] = {}
@@ -165,16 +165,11 @@ def signals_deferred() -> Iterator[set[int]]:
                     previous[sig] = signal.signal(sig, note)
         yield set(mask)
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # those pending for this thread are noted here
-        for sig, handler in previous.items():
+        for sig, handler in previous.items():  # while the signals are still held back here
             signal.signal(sig, handler)
-        if came:
-            signum, frame = came[0]
-            handler = previous[signum]
-            if callable(handler):
-                handler(signum, frame)
-            else:  # SIG_DFL: as if it came now
-                signal.raise_signal(signum)
+        for sig in dict.fromkeys(sig for sig, _ in came):  # sent again, to this thread
+            signal.pthread_kill(threading.get_ident(), sig)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # each is now handled by its own handler, default or not
 
 
 def _run_piece(i: int) -> tuple[int, Any]:
