@@ -150,10 +150,10 @@ def signals_deferred() -> Iterator[set[int]]:
     import threading
 
     held = {signal.SIGINT, signal.SIGTERM}
-    came: list[tuple[int, Any]] = []
+    came: list[int] = []
 
     def note(signum: int, frame: Any) -> None:  # noqa: ARG001
-        came.append((signum, frame))
+        came.append(signum)
 
     previous: dict[int, Any] = {}
     mask = signal.pthread_sigmask(signal.SIG_BLOCK, held | {_STOP_SIGNAL})
@@ -167,7 +167,7 @@ def signals_deferred() -> Iterator[set[int]]:
     finally:
         for sig, handler in previous.items():  # while the signals are still held back here
             signal.signal(sig, handler)
-        for sig in dict.fromkeys(sig for sig, _ in came):  # sent again, to this thread
+        for sig in dict.fromkeys(came):  # sent again, to this thread
             signal.pthread_kill(threading.get_ident(), sig)
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # each is now handled by its own handler, default or not
 
