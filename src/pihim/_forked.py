@@ -99,7 +99,7 @@ def _worker_setup(job: Callable[[int], Any], parent_pid: int, stop_fd: int, mask
 
     ground.use_serial_kernels(True)
 
-    def watch() -> None:  # one byte from the parent (or the pipe's end)
+    def watch() -> None:  # one byte from the parent (this worker holds a write end too: no end of file)
         try:
             os.read(stop_fd, 1)
         except OSError:  # pragma: no cover - the descriptor is this worker's own
