@@ -14,6 +14,7 @@ from pihim._atomic import (
     atomic_group,
     check_out_dir,
     clean_stale_temporaries,
+    output_dir,
     output_target,
     temp_sibling,
     write_group,
@@ -77,6 +78,33 @@ def test_write_group_runs_every_writer_before_any_rename(tmp_path):
     assert list(tmp_path.iterdir()) == []
     assert write_group({a: lambda p: p.write_text("{}"), b: lambda p: p.write_bytes(b"png")}) == [a, b]
     assert a.read_text() == "{}" and b.read_bytes() == b"png" and len(list(tmp_path.iterdir())) == 2
+
+
+def test_output_dir_removes_the_folders_it_made_when_the_run_fails(tmp_path):
+    out = tmp_path / "a" / "b" / "out"
+    with pytest.raises(KeyboardInterrupt):
+        with output_dir(out) as p:
+            assert p == out and out.is_dir()
+            raise KeyboardInterrupt
+    assert list(tmp_path.iterdir()) == []  # out and the parents made for it
+    with output_dir(out) as p:  # success: kept, even empty
+        pass
+    assert out.is_dir()
+
+
+def test_output_dir_keeps_a_folder_that_was_there_or_holds_anything(tmp_path):
+    there = tmp_path / "there"
+    there.mkdir()
+    with pytest.raises(OSError):
+        with output_dir(there):
+            raise OSError(28, "No space left on device")
+    assert there.is_dir()
+    made = tmp_path / "p" / "made"
+    with pytest.raises(RuntimeError):
+        with output_dir(made):
+            (made / "first.json").write_text("{}")  # a finished result of a batch is never removed
+            raise RuntimeError("second item failed")
+    assert (made / "first.json").read_text() == "{}"
 
 
 def test_an_out_folder_on_a_read_only_file_system_is_named_so(tmp_path, monkeypatch):

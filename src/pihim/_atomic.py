@@ -378,3 +378,21 @@ def make_out_dir(out: str | os.PathLike, *, option: str = "--out") -> Path:
         raise PihimInputError(f"{option} {out}: cannot create the directory ({exc.strerror or exc})") from None
     clean_stale_temporaries(p)
     return p
+
+
+@contextlib.contextmanager
+def output_dir(out: str | os.PathLike, *, option: str = "--out") -> Iterator[Path]:
+    """:func:`make_out_dir` for one run's outputs; if the block fails, the folders made for it go again.
+
+    A run refused, interrupted (Ctrl-C, SIGTERM) or failing before its first
+    file is in place leaves no empty ``out`` (nor the parents made for it)
+    behind. Only folders this call created are removed, and only while empty:
+    a folder that was there before, or that holds anything, stays.
+    """
+    made = missing_dirs(out)
+    p = make_out_dir(out, option=option)
+    try:
+        yield p
+    except BaseException:
+        remove_empty_dirs(made)
+        raise

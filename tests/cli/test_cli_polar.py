@@ -98,7 +98,7 @@ def test_bad_options_one_line_exit_2(frame, tmp_path, capsys, extra, needle):
     err = capsys.readouterr().err.strip()
     assert rc == 2
     assert len(err.splitlines()) == 1 and needle in err.lower()
-    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+    assert not (tmp_path / "o").exists()
 
 
 def test_same_stems_get_distinct_output_names(frame, tmp_path, capsys):
@@ -521,7 +521,9 @@ def test_png_figure_failure_leaves_none_of_the_frame(frame, tmp_path, capsys, mo
 
     def figure(*args, **kw):
         seen.append((args[3], kw.get("atomic")))
-        if len(seen) == 1:  # frame_a's figure, after its TIFFs and bare previews were written
+        # frame_a's figure, after its TIFFs and bare previews were written (picked by name: with two writer
+        # threads either frame's figure can come first)
+        if args[3].name.startswith(".frame_a."):
             raise OSError(28, "No space left on device")
         return real(*args, **kw)
 

@@ -409,5 +409,36 @@ def test_a_full_disk_leaves_none_of_the_maps(tmp_path, capsys, monkeypatch, comm
     out = tmp_path / "o"
     assert main([command, "--sun-zenith", "30", "--sun-azimuth", "0", *args, "--out", str(out)]) == 1
     assert _one_error_line(capsys.readouterr().err) == "pihim: error: no space left on the device"
-    assert list(out.iterdir()) == []  # not the first plot alone, and no temporary
+    assert not out.exists()  # not the first plot alone, no temporary, and no empty folder
     assert len(calls) == 2 and all(".part" in p.name for p in calls)
+
+
+def test_a_full_disk_leaves_neither_windows_file(tmp_path, capsys, monkeypatch):
+    # windows.csv used to be written, and kept, before the figure
+    import pihim.planning.windows as windows
+
+    def plot(sweep, path, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(windows, "write_windows_png", plot)
+    out = tmp_path / "o"
+    assert main(["windows", "--date", "2021-05-13", "--step-min", "180", "--out", str(out)]) == 1
+    assert _one_error_line(capsys.readouterr().err) == "pihim: error: no space left on the device"
+    assert not out.exists()
+    existing = tmp_path / "e"
+    existing.mkdir()
+    assert main(["windows", "--date", "2021-05-13", "--step-min", "180", "--out", str(existing)]) == 1
+    assert list(existing.iterdir()) == []  # a folder that was there stays, without windows.csv
+
+
+def test_plan_interrupted_while_writing_leaves_no_empty_out(tmp_path, capsys, monkeypatch):
+    import pihim.planning.export as export
+
+    def interrupted(plan, out, **kwargs):
+        assert Path(out).is_dir()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(export, "export_all", interrupted)
+    out = tmp_path / "new" / "plan"
+    assert main(["plan", "--time", TIME, "--heliostats", "8E3", "--out", str(out)]) == 130
+    assert list(tmp_path.iterdir()) == []

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from pihim._atomic import check_not_an_input, check_out_dir, make_out_dir, output_target  # noqa: F401 - the commands import them from here
+from pihim._atomic import check_not_an_input, check_out_dir, make_out_dir, output_dir, output_target  # noqa: F401 - the commands import them from here
 from pihim._inputs import check_regular_file
 from pihim.camera.layout import MosaicLayout
 from pihim.errors import PihimInputError

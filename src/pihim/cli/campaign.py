@@ -255,9 +255,8 @@ def export(
     json_out: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
 ) -> int:
     """Export the store's tables to CSV or Parquet."""
-    from pihim._atomic import missing_dirs, remove_empty_dirs
     from pihim.campaign.store import open_store
-    from pihim.cli._common import make_out_dir
+    from pihim.cli._common import output_dir
 
     if fmt not in ("csv", "parquet"):
         raise PihimInputError(f"--format must be csv or parquet, got {fmt!r}")
@@ -268,13 +267,8 @@ def export(
             if not rows:
                 raise PihimInputError(f"{store}: no campaign {campaign!r}")
             cid = int(rows[0]["id"])
-        made = missing_dirs(out)
-        make_out_dir(out)
-        try:
+        with output_dir(out):  # e.g. Parquet without pyarrow: no empty --out left behind
             paths = st.export(out, fmt=fmt, campaign_id=cid)
-        except BaseException:
-            remove_empty_dirs(made)  # e.g. Parquet without pyarrow: no empty --out left behind
-            raise
         rows_per = {t: len(st.table_rows(t, cid)[1]) for t in paths}
     if json_out:
         emit_json({"schema": "pihim.campaign-export/1", "store": str(store), "format": fmt,

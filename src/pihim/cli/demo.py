@@ -17,7 +17,7 @@ import typer
 
 from pihim._atomic import clean_stale_temporaries_tree
 from pihim._resources import available_memory, require_memory
-from pihim.cli._common import emit_json, make_out_dir, progress, stderr_console
+from pihim.cli._common import emit_json, output_dir, progress, stderr_console
 from pihim.errors import PihimInputError
 
 #: Peak bytes of a demo per frame pixel and its about constant part (plan, scene, libraries): the peak resident
@@ -56,11 +56,13 @@ def demo(
         avail = available_memory()
         compile_helper = avail is None or avail >= need + HELPER_BYTES
     settings = DemoSettings(time=DEMO_TIME, pairs=pairs, seed=seed, width_px=w, height_px=h)
-    make_out_dir(out)  # one line if it cannot be made; removes the temporaries killed runs left in DIR
-    clean_stale_temporaries_tree(out, depth=2)  # ... and in DIR/plan, DIR/pairs/NN_HUA-TARGET
-    stderr_console.print(f"[bold]pihim demo[/bold]: planning the NSTTF-like field at {DEMO_TIME} ...")
-    doc = run_demo(out, settings, steps=lambda items, desc: progress(items, desc, min_items=1),
-                   compile_helper=compile_helper)
+    # one line if DIR cannot be made; removes the temporaries killed runs left in it, and DIR itself if made here
+    # and the run stops before writing anything
+    with output_dir(out):
+        clean_stale_temporaries_tree(out, depth=2)  # ... and in DIR/plan, DIR/pairs/NN_HUA-TARGET
+        stderr_console.print(f"[bold]pihim demo[/bold]: planning the NSTTF-like field at {DEMO_TIME} ...")
+        doc = run_demo(out, settings, steps=lambda items, desc: progress(items, desc, min_items=1),
+                       compile_helper=compile_helper)
     sm, plan = doc["summary"], doc["plan"]
     from pihim.planning.scoring import images_text
 

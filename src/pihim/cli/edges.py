@@ -8,7 +8,6 @@ dark level, bit depth): never its ``truth``.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import time as _time
 from collections.abc import Callable, Mapping
@@ -22,7 +21,7 @@ from pihim._atomic import describe_os_error, write_group
 from pihim.camera.frames import RAW_SUFFIXES, read_frame
 from pihim.camera.model import CameraModel
 from pihim.camera.pipeline import DEMOSAIC_METHODS, polar_image
-from pihim.cli._common import check_out_dir, emit_json, make_out_dir, report_error, stderr_console
+from pihim.cli._common import check_out_dir, emit_json, output_dir, report_error, stderr_console
 from pihim.errors import PihimInputError
 from pihim.inspection._log import sensor_entries
 from pihim.inspection.edges import EDGE_METHODS, IMAGE_TYPES, EdgeMaps, edge_maps, noise_sigmas, sensor_noise
@@ -74,16 +73,9 @@ def sensor_settings(log: Mapping[str, Any], meta: Path) -> dict[str, Any]:
 
 
 def _write_all(out_dir: Path, writers: dict[Path, Callable[[Path], None]]) -> None:
-    """Create ``out_dir`` and write every file as one atomic group; on failure remove a directory just made."""
-    created = not out_dir.exists()
-    try:
-        make_out_dir(out_dir)
+    """Create ``out_dir`` and write every file as one atomic group; on failure remove the folders just made."""
+    with output_dir(out_dir):
         write_group(writers)
-    except BaseException:
-        if created:
-            with contextlib.suppress(OSError):
-                out_dir.rmdir()
-        raise
 
 
 def _png_writer(mask: np.ndarray) -> Callable[[Path], None]:

@@ -31,7 +31,7 @@ import typer
 
 from pihim._atomic import write_group
 from pihim._resources import require_memory
-from pihim.cli._common import check_out_dir, emit_json, make_out_dir, stderr_console
+from pihim.cli._common import check_out_dir, emit_json, output_dir, stderr_console
 from pihim.cli.sky import resolve_sun
 from pihim.errors import PihimInputError
 
@@ -177,7 +177,6 @@ def ground(
     if monte_carlo:
         with stderr_console.status(f"pihim ground: Monte Carlo over {facets:,} microfacets ..."):
             mc = ground_model.monte_carlo(sun.vector, sky, n_facets=facets, bin_deg=resolution, seed=seed)
-    make_out_dir(out)
     title = f"sun zen {float(sun.zenith_deg):.1f} az {float(sun.azimuth_deg):.1f}, sigma {sigma:g}"
     sun_marker = ((float(sun.azimuth_deg), float(sun.zenith_deg), "*", "sun"),)
     plots = {  # key: (file, values, style, colour-bar label, title)
@@ -203,8 +202,9 @@ def ground(
                                        markers=sun_marker, atomic=False)
 
     # all files or none (a full disk used to leave the first plots without the rest)
-    write_group({**{files[key]: plot(spec) for key, spec in plots.items()},
-                 files["npz"]: lambda p: np.savez_compressed(p, **arrays, aop_reference=np.str_(AOP_REFERENCE))})
+    with output_dir(out):
+        write_group({**{files[key]: plot(spec) for key, spec in plots.items()},
+                     files["npz"]: lambda p: np.savez_compressed(p, **arrays, aop_reference=np.str_(AOP_REFERENCE))})
     if json_out:
         emit_json({
             "schema": SCHEMA_ID,

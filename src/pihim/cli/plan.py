@@ -16,7 +16,7 @@ from typing import Annotated, Any
 
 import typer
 
-from pihim.cli._common import check_out_dir, emit_json, load_field_option, make_out_dir, parse_point, stderr_console
+from pihim.cli._common import check_out_dir, emit_json, load_field_option, output_dir, parse_point, stderr_console
 from pihim.errors import PihimInputError
 
 SCHEMA_ID = "pihim.plan-summary/1"
@@ -113,8 +113,9 @@ def plan(
                               progress=stage, workers=workers)
         the_plan = dataclasses.replace(the_plan, site={**the_plan.site, "geoid_undulation_m": undulation})
         stage(f"writing plan.json, plan.kml, plan.png and {len(the_plan.flights)} flights' missions")
-        files = export_all(the_plan, make_out_dir(out), field=fld, max_mission_items=max_mission_items,
-                           workers=workers, **options)
+        with output_dir(out) as out_path:  # interrupted or failed: no empty --out left behind
+            files = export_all(the_plan, out_path, field=fld, max_mission_items=max_mission_items,
+                               workers=workers, **options)
     summary = the_plan.summary
     summary["seconds"]["total_with_export"] = round(_time.perf_counter() - t0, 4)
     if json_out:

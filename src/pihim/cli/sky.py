@@ -32,7 +32,7 @@ import typer
 
 from pihim._atomic import write_group
 from pihim._resources import require_memory
-from pihim.cli._common import check_out_dir, emit_json, make_out_dir, stderr_console
+from pihim.cli._common import check_out_dir, emit_json, output_dir, stderr_console
 from pihim.errors import PihimInputError
 from pihim.sky.berry import neutral_points
 from pihim.sky.model import SkyMap, SkyModel, _grid_size, sky_map
@@ -131,7 +131,6 @@ def plot_polar(
 def write_outputs(result: SkyMap, out: Path, *, sun: SunPosition, title: str) -> dict[str, str]:
     """Write the two PNGs and the npz as one group (all or none, :func:`pihim._atomic.write_group`); returns
     the written paths."""
-    make_out_dir(out)
     markers = [(float(sun.azimuth_deg), float(sun.zenith_deg), "*", "sun")]
     if result.model.kind == "berry":
         pts = neutral_points(result.sun_dir, result.model.neutral_point_separation_deg)
@@ -153,13 +152,14 @@ def write_outputs(result: SkyMap, out: Path, *, sun: SunPosition, title: str) ->
             aop_reference=np.str_(AOP_REFERENCE),
         )
 
-    write_group({
-        written["dolp_png"]: lambda p: plot_polar(result, "dolp", p, title=f"DoLP -- {title}", markers=markers,
-                                                  atomic=False),
-        written["aop_png"]: lambda p: plot_polar(result, "aop_deg", p, title=f"AoP -- {title}", markers=markers,
-                                                 atomic=False),
-        written["npz"]: npz,
-    })
+    with output_dir(out):
+        write_group({
+            written["dolp_png"]: lambda p: plot_polar(result, "dolp", p, title=f"DoLP -- {title}", markers=markers,
+                                                      atomic=False),
+            written["aop_png"]: lambda p: plot_polar(result, "aop_deg", p, title=f"AoP -- {title}",
+                                                     markers=markers, atomic=False),
+            written["npz"]: npz,
+        })
     return {k: str(v) for k, v in written.items()}
 
 

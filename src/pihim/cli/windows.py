@@ -40,7 +40,8 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from pihim.cli._common import check_out_dir, emit_json, load_field_option, make_out_dir, parse_point, stderr_console
+from pihim._atomic import write_group
+from pihim.cli._common import check_out_dir, emit_json, load_field_option, output_dir, parse_point, stderr_console
 from pihim.errors import PihimInputError
 
 SCHEMA_ID = "pihim.windows/1"
@@ -99,9 +100,10 @@ def windows(
     if len(sweep) and len(sweep.planner_errors) == len(sweep):  # nothing planned: no windows to report
         when, why = sweep.planner_errors[0]
         raise PihimInputError(f"the planner refused all {len(sweep)} times of the day; at {when[11:16]}: {why}")
-    make_out_dir(out)
-    csv_path = write_windows_csv(sweep, out / "windows.csv")
-    png_path = write_windows_png(sweep, out / "windows.png", threshold=threshold, relative=relative)
+    csv_path, png_path = out / "windows.csv", out / "windows.png"
+    with output_dir(out):  # both files or neither, and no empty --out left behind
+        write_group({csv_path: lambda p: write_windows_csv(sweep, p),
+                     png_path: lambda p: write_windows_png(sweep, p, threshold=threshold, relative=relative)})
     if json_out:
         emit_json({
             "schema": SCHEMA_ID,
