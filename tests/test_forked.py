@@ -258,6 +258,37 @@ elif case == "nested":
     except KeyboardInterrupt:
         print("interrupted", flush=True)
         sys.exit(130)
+elif case == "callbacks":  # pieces that spend their time in Python called back from C (libc's qsort)
+    import ctypes, os
+
+    compare_type = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.POINTER(ctypes.c_double), ctypes.POINTER(ctypes.c_double))
+
+    @compare_type
+    def compare(a, b):
+        time.sleep(0.002)
+        return (a[0] > b[0]) - (a[0] < b[0])
+
+    sorting_now = os.pipe()
+
+    def sorting(i):  # a sort of about 0.4 s in the callback, then 0.2 s of Python of its own, for good
+        while True:
+            values = (ctypes.c_double * 64)(*range(64, 0, -1))
+            os.write(sorting_now[1], b"s")
+            ctypes.CDLL(None).qsort(values, 64, ctypes.sizeof(ctypes.c_double), compare)
+            t = time.perf_counter()
+            while time.perf_counter() - t < 0.2:
+                pass
+
+    started = _forked.start(sorting, 2, 2)
+    os.read(sorting_now[0], 1), os.read(sorting_now[0], 1)  # both sorting: the stop lands in a callback
+    t = time.perf_counter()
+    started.close()
+    print("closed", round(time.perf_counter() - t), flush=True)
+elif case == "unclosed":  # a pool its caller never closed (a Ctrl-C cut its close() short)
+    started = _forked.start(lambda i: time.sleep(60) or i, 2, 2)
+    time.sleep(0.5)
+    t = time.perf_counter()
+    print("closed", _forked.close_all(), _forked.close_all(), round(time.perf_counter() - t), flush=True)
 elif case == "masked":  # a caller that blocks SIGUSR1 (the workers' stop signal)
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGUSR1})
     started = _forked.start(lambda i: time.sleep(60) or i, 4, 2)
@@ -299,6 +330,21 @@ def test_ctrl_c_stops_pools_run_by_pieces():
     rc, out, err = _run_script("nested", signal_group_after=1.0)
     assert (rc, out, err) == (130, "interrupted\n", "")
     assert time.perf_counter() - t0 < 10.0
+
+
+@linux
+def test_a_stop_that_lands_in_a_callback_from_c_is_raised_again():
+    """The stop raised in Python called back from C is swallowed there ("Exception ignored in ...", printed by
+    the worker) and the piece went on: close() waited for its end (here: for good). It is now raised again
+    until it lands outside the callback (in the piece's own Python, within 0.4 s here)."""
+    rc, out, err = _run_script("callbacks")
+    assert (rc, out, err) == (0, "closed 0\n", "") or (rc, out, err) == (0, "closed 1\n", "")
+
+
+@linux
+def test_close_all_stops_the_pools_left_open():
+    rc, out, err = _run_script("unclosed")
+    assert (rc, out, err) == (0, "closed 1 0 0\n", "")
 
 
 @linux

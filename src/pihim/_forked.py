@@ -25,7 +25,10 @@ import gc
 import os
 import signal
 import sys
+import threading
+import time
 import warnings
+import weakref
 from collections.abc import Callable, Iterator
 from typing import Any, Generic, TypeVar
 
@@ -78,10 +81,9 @@ def _worker_setup(job: Callable[[int], Any], parent_pid: int, stop_fd: int, mask
     by the fork; and then takes the parent's signal ``mask`` back (the
     signals were held back since the fork, see :func:`signals_deferred`).
     """
-    import threading
-
-    global _WORKER_JOB, _IN_PIECE, _STOPPED
-    _IN_PIECE = _STOPPED = False  # a worker forked by a worker's piece starts afresh
+    global _WORKER_JOB, _IN_PIECE, _STOPPED, _RAISED, _AGAIN
+    _IN_PIECE = _STOPPED = _RAISED = False  # a worker forked by a worker's piece starts afresh
+    _AGAIN = threading.Event()  # not the parent's: another thread may have held its lock at the fork
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     signal.signal(_STOP_SIGNAL, _on_stop)
@@ -104,18 +106,29 @@ def _worker_setup(job: Callable[[int], Any], parent_pid: int, stop_fd: int, mask
             os.read(stop_fd, 1)
         except OSError:  # pragma: no cover - the descriptor is this worker's own
             pass
-        signal.pthread_kill(main, _STOP_SIGNAL)  # a real signal: it also ends a blocking call
+        while True:
+            signal.pthread_kill(main, _STOP_SIGNAL)  # a real signal: it also ends a blocking call
+            _AGAIN.wait()  # set when the stop was swallowed (_swallowed_stop): signal once more
+            _AGAIN.clear()
+            time.sleep(_AGAIN_DELAY_S)
 
     main = threading.main_thread().ident
+    sys.unraisablehook = _swallowed_stop
     threading.Thread(target=watch, name="pihim-stop", daemon=True).start()
     signal.pthread_sigmask(signal.SIG_SETMASK, set(mask) - {_STOP_SIGNAL})
 
 
 #: The signal a worker's own thread sends it when the parent stops the pool.
 _STOP_SIGNAL: int = getattr(signal, "SIGUSR1", 10)
-#: In a forked worker: whether a piece is being computed, and whether the parent stopped the pool.
+#: In a forked worker: whether a piece is being computed, whether the parent stopped the pool, and whether the
+#: stop was raised in the piece.
 _IN_PIECE = False
 _STOPPED = False
+_RAISED = False
+#: In a forked worker: set when the stop raised in the piece was swallowed; the watcher thread then signals again
+#: after :data:`_AGAIN_DELAY_S`.
+_AGAIN = threading.Event()
+_AGAIN_DELAY_S = 0.01
 
 
 def _on_stop(signum: int, frame: Any) -> None:  # noqa: ARG001
@@ -124,13 +137,32 @@ def _on_stop(signum: int, frame: Any) -> None:  # noqa: ARG001
 
     Outside a piece (waiting for one, or sending a result back through the pool's pipe) it only takes note:
     raising there could leave half a message in the pipe, on which the parent would wait for good. It raises
-    once: a second exception could cut short the clean-up of the first (a pool that the piece itself runs).
+    once: a second exception could cut short the clean-up of the first (a pool that the piece itself runs) --
+    unless the first was swallowed (:func:`_swallowed_stop`).
     """
-    global _STOPPED
-    first = not _STOPPED
+    global _STOPPED, _RAISED
     _STOPPED = True
-    if _IN_PIECE and first:
+    if _IN_PIECE and not _RAISED:
+        _RAISED = True
         raise KeyboardInterrupt
+
+
+def _swallowed_stop(unraisable: Any) -> None:
+    """A worker's ``sys.unraisablehook``: the stop raised where Python cannot pass it on is raised again.
+
+    The signal can come while a compiled library calls back into Python
+    (numba's cache through llvmlite's ``ctypes`` callbacks); the
+    KeyboardInterrupt raised there is only printed ("Exception ignored in
+    ...", a traceback beside the parent's one-line message) and the piece
+    went on to its end. It is now dropped silently and raised again at the
+    next signal, which the watcher thread sends a moment later.
+    """
+    global _RAISED
+    if _STOPPED and isinstance(unraisable.exc_value, KeyboardInterrupt):
+        _RAISED = False
+        _AGAIN.set()
+        return
+    sys.__unraisablehook__(unraisable)
 
 
 @contextlib.contextmanager
@@ -147,8 +179,6 @@ def signals_deferred() -> Iterator[set[int]]:
     processes forked in the block start with them blocked. An ignored signal
     stays ignored. Elsewhere than in the main thread only the mask applies.
     """
-    import threading
-
     held = {signal.SIGINT, signal.SIGTERM}
     came: list[int] = []
 
@@ -261,6 +291,7 @@ class Started(Generic[T]):
 
         self._stop = os.pipe()
         self._workers = min(background, n)
+        _OPEN.add(self)
         gc.freeze()  # as in imap_unordered: the parent's objects out of the collector's sight while workers live
         try:
             with signals_deferred() as mask:  # the workers are forked at the first submit
@@ -315,11 +346,12 @@ class Started(Generic[T]):
         """Stop the workers: pieces not begun are dropped, and those being computed are interrupted (a worker
         stops between two Python instructions, so a compiled kernel runs to its end); nothing if none were
         started. Ctrl-C and SIGTERM wait until the workers are gone (:func:`signals_deferred`)."""
-        if self._stop is None:
-            return
-        pool, self._pool = self._pool, None
-        stop, self._stop = self._stop, None
-        with signals_deferred():
+        with signals_deferred():  # from here on: a Ctrl-C at the wrong moment left the pool running, unclosed
+            if self._stop is None:
+                return
+            pool, self._pool = self._pool, None
+            stop, self._stop = self._stop, None
+            _OPEN.discard(self)
             try:
                 for fut in self._futures:
                     fut.cancel()
@@ -331,6 +363,24 @@ class Started(Generic[T]):
                 os.close(stop[0])
                 os.close(stop[1])
                 gc.unfreeze()
+
+
+#: The pools started and not yet closed.
+_OPEN: weakref.WeakSet[Started[Any]] = weakref.WeakSet()
+
+
+def close_all() -> int:
+    """Stop every pool of workers still open (:meth:`Started.close`); returns how many there were.
+
+    For the end of a command: a Ctrl-C that comes while a pool is being
+    closed can cut its :meth:`~Started.close` short before the signals are
+    held back, leaving workers that compute on (and that the interpreter's
+    exit then waits for).
+    """
+    pools = list(_OPEN)
+    for started in pools:
+        started.close()
+    return len(pools)
 
 
 def start(job: Callable[[int], T], n: int, background: int, *, what: str = "pieces") -> Started[T]:
