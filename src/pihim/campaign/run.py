@@ -234,24 +234,29 @@ def _quiet_interrupt() -> Callable[[], None]:
     closes. While the run is on, SIGINT raises their loggers to CRITICAL
     before raising KeyboardInterrupt, so the command's own line (exit 130)
     is all that is said. Only in the main thread, and only over Python's
-    default handler; the returned function (called once the cluster is
-    closed) puts that handler and the loggers' levels back.
+    default handler or the command line's (:class:`pihim.__main__.Interrupts`,
+    which then decides: a press repeated at once is absorbed); the returned
+    function (called once the cluster is closed) puts that handler and the
+    loggers' levels back.
     """
     import logging
     import signal
     import threading
 
+    from pihim.__main__ import Interrupts
+
+    previous = signal.getsignal(signal.SIGINT)
     if threading.current_thread() is not threading.main_thread() \
-            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+            or not (previous is signal.default_int_handler or isinstance(previous, Interrupts)):
         return lambda: None
     silenced: dict[str, int] = {}
 
     def interrupt(signum: int, frame: Any) -> None:
         silenced.update({k: v for k, v in _silence_dask_logs().items() if k not in silenced})
-        raise KeyboardInterrupt
+        previous(signum, frame)  # type: ignore[operator]
 
     def undo() -> None:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGINT, previous)
         for name, level in silenced.items():
             logging.getLogger(name).setLevel(level)
 
