@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Callable
 
 #: Address space the command line takes once its libraries are loaded (``VmSize`` after ``import pihim.cli``:
 #: 1.05 GB on a 2-core Linux machine, thread pools included; with 0.92 GB a library aborted, with 1.02 GB the
@@ -62,79 +61,23 @@ def run() -> int:
         return 1
     import signal
 
+    from pihim._interrupts import Interrupts, exit_on_signals
+
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not where Ctrl-C is ignored (a background job)
-        signal.signal(signal.SIGINT, Interrupts())
+        Interrupts().install()
     try:
         status = main()
     except KeyboardInterrupt:  # the first Ctrl-C, come as the command ended
         print("pihim: aborted", file=sys.stderr)
         status = 130
-    _finish(status)
-    return status
-
-
-#: Ctrl-C pressed again within this many seconds of the first one is taken for the same request.
-REPEAT_S = 1.0
-
-
-def _flush_and_exit(status: int) -> None:
-    """End the process at once with ``status`` (what was printed is flushed first)."""
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except Exception:  # noqa: BLE001, S110 - a closed pipe, or a write this interrupted: nothing more to say
-            pass
-    os._exit(status)
-
-
-class Interrupts:
-    """The ``pihim`` process's Ctrl-C (SIGINT) handler.
-
-    The first Ctrl-C raises KeyboardInterrupt, as Python's own handler does:
-    the command stops its workers, removes its temporaries and the folders
-    it made, and exits with status 130. People press it two or three times;
-    before, each later press interrupted that clean-up -- "Exception ignored"
-    tracebacks under the one-line message, temporaries left, and in 2 of 90
-    runs of a stress test a process that waited for good on workers no
-    longer told to stop. Presses within :data:`REPEAT_S` of the first are
-    now taken for the same request; one after that ends the process at once
-    (status 130; its workers die with it, ``PR_SET_PDEATHSIG``; temporaries
-    it was writing are removed by the next run writing there).
-    """
-
-    def __init__(self, clock: Callable[[], float] | None = None,
-                 stop: Callable[[int], None] = _flush_and_exit) -> None:
-        import time
-
-        self._clock = time.monotonic if clock is None else clock
-        self._stop = stop
-        self.first: float | None = None
-
-    def __call__(self, signum: int, frame: object) -> None:  # noqa: ARG002
-        now = self._clock()
-        if self.first is None:
-            self.first = now
-            raise KeyboardInterrupt
-        if now - self.first >= REPEAT_S:
-            self._stop(130)
-
-
-def _finish(status: int) -> None:
-    """After the command: stop any pool of workers left open; a Ctrl-C or SIGTERM from now on exits at once.
-
-    The command's files are in place (or removed) when it returns; what is
-    left is the interpreter's own exit (joining the worker pools' threads,
-    running finalizers), which a signal would only interrupt, with a
-    traceback. It now ends the process with the command's exit status.
-    """
-    import signal
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        if signal.getsignal(sig) is not signal.SIG_IGN:  # a job started with Ctrl-C ignored keeps ignoring it
-            signal.signal(sig, lambda signum, frame: _flush_and_exit(status))
+    # The command's files are in place (or removed). What is left is the interpreter's own exit (joining the worker
+    # pools' threads, running finalizers), which a signal would only interrupt, with a traceback: from now on one
+    # ends the process at once, with the command's status. A pool still open (its close cut short) is closed.
+    exit_on_signals(status)
     forked = sys.modules.get("pihim._forked")
     if forked is not None:
         forked.close_all()
+    return status
 
 
 if __name__ == "__main__":

@@ -28,7 +28,6 @@ import sys
 import threading
 import time
 import warnings
-import weakref
 from collections.abc import Callable, Iterator
 from typing import Any, Generic, TypeVar
 
@@ -195,10 +194,17 @@ def signals_deferred() -> Iterator[set[int]]:
                     previous[sig] = signal.signal(sig, note)
         yield set(mask)
     finally:
+        # Those still with the kernel came while every thread held them back (threads started in the block
+        # inherit the mask); they are handled when the mask goes below.
+        pending = signal.sigpending() & held if hasattr(signal, "sigpending") else set()
         for sig, handler in previous.items():  # while the signals are still held back here
             signal.signal(sig, handler)
-        for sig in dict.fromkeys(came):  # sent again, to this thread
-            signal.pthread_kill(threading.get_ident(), sig)
+        for sig in dict.fromkeys([*came, *pending]):
+            held_back = getattr(signal.getsignal(sig), "held_back", None)
+            if held_back is not None:  # a handler that counts presses (pihim._interrupts.Interrupts)
+                held_back()
+            if sig not in pending:
+                signal.pthread_kill(threading.get_ident(), sig)  # sent again, to this thread
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # each is now handled by its own handler, default or not
 
 
@@ -316,10 +322,10 @@ class Started(Generic[T]):
 
         done: set[int] = set()
         if self._pool is not None:
-            # Each future puts itself in a queue when done (in the pool's thread); waiting on the queue holds no
-            # lock that Ctrl-C could leave taken (as concurrent.futures.as_completed's clean-up could).
-            finished: queue.SimpleQueue[Any] = queue.SimpleQueue()
-            try:
+            try:  # at once: a Ctrl-C before the try left the pool running (then only close_all() stops it)
+                # Each future puts itself in a queue when done (in the pool's thread); waiting on the queue holds
+                # no lock that Ctrl-C could leave taken (as concurrent.futures.as_completed's clean-up could).
+                finished: queue.SimpleQueue[Any] = queue.SimpleQueue()
                 for fut in self._futures:
                     fut.add_done_callback(finished.put)
                 for _ in range(self._n):
@@ -365,8 +371,8 @@ class Started(Generic[T]):
                 gc.unfreeze()
 
 
-#: The pools started and not yet closed.
-_OPEN: weakref.WeakSet[Started[Any]] = weakref.WeakSet()
+#: The pools started and not yet closed (held here until they are: one dropped unclosed still has workers).
+_OPEN: set[Started[Any]] = set()
 
 
 def close_all() -> int:

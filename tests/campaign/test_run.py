@@ -532,6 +532,34 @@ def test_quiet_interrupt_silences_dask_then_puts_everything_back() -> None:
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
+def test_quiet_interrupt_sits_over_the_command_lines_handler() -> None:
+    """Under the pihim process's handler (pihim._interrupts.Interrupts, also when run as ``python -m pihim``) the
+    dask loggers are silenced too, the press goes on to that handler, and undo puts it back."""
+    import logging
+
+    from pihim._interrupts import Interrupts
+    from pihim.campaign.run import _quiet_interrupt
+
+    presses = Interrupts(stop=lambda status: None)
+    previous = signal.signal(signal.SIGINT, presses)
+    try:
+        logging.getLogger("distributed.client").setLevel(logging.WARNING)
+        undo = _quiet_interrupt()
+        try:
+            assert signal.getsignal(signal.SIGINT) is not presses
+            with pytest.raises(KeyboardInterrupt):
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(1)
+            assert presses.first is not None  # the press reached the command line's handler
+            assert logging.getLogger("distributed.client").level == logging.CRITICAL
+        finally:
+            undo()
+        assert signal.getsignal(signal.SIGINT) is presses
+        assert logging.getLogger("distributed.client").level == logging.WARNING
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def test_ctrl_c_stops_the_run_quietly_exit_130(flight_copy, tmp_path) -> None:
     """SIGINT to the whole process group, as a terminal's Ctrl-C: the workers ignore it, the client stops the run
     and closes the cluster; no worker or dask shutdown traceback (there used to be 60-120 lines)."""

@@ -234,7 +234,7 @@ def _quiet_interrupt() -> Callable[[], None]:
     closes. While the run is on, SIGINT raises their loggers to CRITICAL
     before raising KeyboardInterrupt, so the command's own line (exit 130)
     is all that is said. Only in the main thread, and only over Python's
-    default handler or the command line's (:class:`pihim.__main__.Interrupts`,
+    default handler or the command line's (:class:`pihim._interrupts.Interrupts`,
     which then decides: a press repeated at once is absorbed); the returned
     function (called once the cluster is closed) puts that handler and the
     loggers' levels back.
@@ -243,7 +243,7 @@ def _quiet_interrupt() -> Callable[[], None]:
     import signal
     import threading
 
-    from pihim.__main__ import Interrupts
+    from pihim._interrupts import Interrupts
 
     previous = signal.getsignal(signal.SIGINT)
     if threading.current_thread() is not threading.main_thread() \
