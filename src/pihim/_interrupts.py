@@ -57,14 +57,22 @@ class Interrupts:
     A KeyboardInterrupt raised while a compiled library calls back into
     Python is swallowed there (printed as "Exception ignored ...") and the
     command went on; :meth:`install` hooks ``sys.unraisablehook`` so that
-    it is raised again instead (:meth:`swallowed`).
+    the stop is raised again 10 ms later, and again, until it lands
+    (:meth:`swallowed`). Presses of the user's meanwhile follow the rule
+    above: one a second after the first ends the process, so that a long
+    C call that keeps calling back cannot hold the process for good.
     """
 
     def __init__(self, clock: Callable[[], float] | None = None,
                  stop: Callable[[int], None] = flush_and_exit) -> None:
         self._clock = time.monotonic if clock is None else clock
         self._stop = stop
-        self._held = False
+        self._held = False  # the next signal was held back (held_back)
+        self._raised: BaseException | None = None  # the stop raised, to know it in the hook
+        self._owed = False  # that stop was swallowed: the next signal sent by the re-raiser raises it again
+        self._resent = False  # the next signal is the re-raiser's, not a press
+        self._in_hook = False
+        self._wake = threading.Event()
         self.first: float | None = None
 
     def held_back(self) -> None:
@@ -77,35 +85,50 @@ class Interrupts:
         self._held = True
 
     def __call__(self, signum: int, frame: Any) -> None:  # noqa: ARG002
-        now, held, self._held = self._clock(), self._held, False
-        if self.first is None:
-            self.first = now
-            raise KeyboardInterrupt
-        if not held and now - self.first >= REPEAT_S:
+        now, held, resent = self._clock(), self._held, self._resent
+        self._held = self._resent = False
+        if self._in_hook:  # the hook is noting a swallowed stop: it will be raised again
+            return
+        if self.first is None or (resent and self._owed):
+            self.first = now if self.first is None else self.first
+            self._owed = False
+            self._raised = KeyboardInterrupt()
+            raise self._raised
+        if not resent and not held and now - self.first >= REPEAT_S:
             self._stop(130)
 
     def swallowed(self) -> None:
-        """The KeyboardInterrupt raised was swallowed: raise it again at the next signal, sent in a moment."""
-        self.first = None
-        main = threading.main_thread().ident
-        if main is not None:
-            timer = threading.Timer(AGAIN_S, signal.pthread_kill, (main, signal.SIGINT))
-            timer.daemon = True
-            timer.start()
+        """The stop raised was swallowed: the re-raiser thread (:meth:`install`) sends the signal again."""
+        self._in_hook = True
+        try:
+            self._owed = True
+            self._wake.set()
+        finally:
+            self._in_hook = False
+
+    def _reraiser(self, main: int) -> None:
+        while True:
+            self._wake.wait()
+            self._wake.clear()
+            time.sleep(AGAIN_S)
+            self._resent = True
+            signal.pthread_kill(main, signal.SIGINT)
 
     def install(self) -> None:
-        """Make this the SIGINT handler (main thread) and hook ``sys.unraisablehook`` for swallowed stops."""
+        """Make this the SIGINT handler (main thread only); hook ``sys.unraisablehook`` for swallowed stops and
+        start the thread that raises them again."""
         signal.signal(signal.SIGINT, self)
         previous = sys.unraisablehook
 
         def hook(unraisable: Any) -> None:
-            if (isinstance(unraisable.exc_value, KeyboardInterrupt) and self.first is not None
-                    and signal.getsignal(signal.SIGINT) is self):
+            if self._raised is not None and unraisable.exc_value is self._raised:
                 self.swallowed()
                 return
             previous(unraisable)
 
         sys.unraisablehook = hook
+        main = threading.main_thread().ident
+        threading.Thread(target=self._reraiser, args=(main,), name="pihim-interrupts", daemon=True).start()
 
 
 def exit_on_signals(status: int) -> None:

@@ -255,6 +255,9 @@ def _quiet_interrupt() -> Callable[[], None]:
         silenced.update({k: v for k, v in _silence_dask_logs().items() if k not in silenced})
         previous(signum, frame)  # type: ignore[operator]
 
+    if hasattr(previous, "held_back"):  # presses held back by pihim._forked.signals_deferred, told to it
+        interrupt.held_back = previous.held_back  # type: ignore[attr-defined]
+
     def undo() -> None:
         signal.signal(signal.SIGINT, previous)
         for name, level in silenced.items():
