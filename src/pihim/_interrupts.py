@@ -57,7 +57,7 @@ class Interrupts:
     A KeyboardInterrupt raised while a compiled library calls back into
     Python is swallowed there (printed as "Exception ignored ...") and the
     command went on; :meth:`install` hooks ``sys.unraisablehook`` so that
-    the stop is raised again 10 ms later, and again, until it lands
+    the stop is raised again 10 ms later (a timer, SIGALRM), and again, until it lands
     (:meth:`swallowed`). Presses of the user's meanwhile follow the rule
     above: one a second after the first ends the process, so that a long
     C call that keeps calling back cannot hold the process for good.
@@ -70,9 +70,8 @@ class Interrupts:
         self._held = False  # the next signal was held back (held_back)
         self._raised: BaseException | None = None  # the stop raised, to know it in the hook
         self._owed = False  # that stop was swallowed: the next signal sent by the re-raiser raises it again
-        self._resent = False  # the next signal is the re-raiser's, not a press
+        self._resent = False  # the next signal is the timer's (raising a swallowed stop again), not a press
         self._in_hook = False
-        self._wake = threading.Event()
         self.first: float | None = None
 
     def held_back(self) -> None:
@@ -87,7 +86,8 @@ class Interrupts:
     def __call__(self, signum: int, frame: Any) -> None:  # noqa: ARG002
         now, held, resent = self._clock(), self._held, self._resent
         self._held = self._resent = False
-        if self._in_hook:  # the hook is noting a swallowed stop: it will be raised again
+        if self._in_hook:  # the hook is noting a swallowed stop: raised again a moment later
+            self._again()
             return
         if self.first is None or (resent and self._owed):
             self.first = now if self.first is None else self.first
@@ -98,26 +98,29 @@ class Interrupts:
             self._stop(130)
 
     def swallowed(self) -> None:
-        """The stop raised was swallowed: the re-raiser thread (:meth:`install`) sends the signal again."""
+        """The stop raised was swallowed: it is raised again :data:`AGAIN_S` later (:meth:`_again`)."""
         self._in_hook = True
         try:
             self._owed = True
-            self._wake.set()
+            self._again()
         finally:
             self._in_hook = False
 
-    def _reraiser(self, main: int) -> None:
-        while True:
-            self._wake.wait()
-            self._wake.clear()
-            time.sleep(AGAIN_S)
-            self._resent = True
-            signal.pthread_kill(main, signal.SIGINT)
+    def _again(self) -> None:
+        """Send SIGINT to the main thread again in :data:`AGAIN_S`: a one-shot timer (SIGALRM, see
+        :meth:`install`), so that nothing here blocks or raises (in the hook, an exception is only printed)."""
+        signal.setitimer(signal.ITIMER_REAL, AGAIN_S)
+
+    def _resend(self, signum: int, frame: Any) -> None:  # noqa: ARG002
+        """SIGALRM's handler: the timer of :meth:`_again` is up."""
+        self._resent = True
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)  # type: ignore[arg-type]
 
     def install(self) -> None:
-        """Make this the SIGINT handler (main thread only); hook ``sys.unraisablehook`` for swallowed stops and
-        start the thread that raises them again."""
+        """Make this the SIGINT handler, hook ``sys.unraisablehook`` for swallowed stops, and take SIGALRM for
+        raising them again (main thread only; the ``pihim`` process uses no other timer)."""
         signal.signal(signal.SIGINT, self)
+        signal.signal(signal.SIGALRM, self._resend)
         previous = sys.unraisablehook
 
         def hook(unraisable: Any) -> None:
@@ -127,8 +130,6 @@ class Interrupts:
             previous(unraisable)
 
         sys.unraisablehook = hook
-        main = threading.main_thread().ident
-        threading.Thread(target=self._reraiser, args=(main,), name="pihim-interrupts", daemon=True).start()
 
 
 def exit_on_signals(status: int) -> None:
