@@ -206,3 +206,12 @@ def test_the_handler_starts_no_thread():
             "print(threading.active_count())")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert (done.returncode, done.stdout, done.stderr) == (0, "1\n", "")
+
+
+def test_the_process_leaves_its_objects_to_the_operating_system():
+    """After the command the objects are frozen (gc.freeze): the interpreter's exit does not walk them (3.9 s after a
+    Ctrl-C'd plan of 100,000 heliostats)."""
+    code = ("import atexit, gc, sys; atexit.register(lambda: print(gc.get_freeze_count() > 10000)); "
+            "from pihim.__main__ import run; sys.argv = ['pihim', '--help']; sys.exit(run())")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and done.stdout.strip().endswith("True"), done.stdout[-200:]

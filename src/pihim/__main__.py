@@ -77,6 +77,12 @@ def run() -> int:
     forked = sys.modules.get("pihim._forked")
     if forked is not None:
         forked.close_all()
+    # The interpreter's exit collects garbage over every object the command made, only for the process to end:
+    # 3.9 s of a Ctrl-C'd 100,000-heliostat `pihim plan` (4.38 s from Ctrl-C to exit, 0.49 s frozen). Frozen, the
+    # objects are left to the operating system; what the commands write is closed and renamed before they return.
+    import gc
+
+    gc.freeze()
     return status
 
 
