@@ -76,22 +76,14 @@ def test_canting_outputs_schema_valid(run):
     assert "pihim canting" in err and "facets used" in err
 
 
-@pytest.mark.xfail(strict=True, reason="measured 0.41 mrad az / 1.08 mrad el RMS: with the refined (not the true) "
-                   "camera pose facet 18 locks 2.5 mrad off in elevation (pose turn/shift ambiguity on the HUA plane); "
-                   "0.35 / 0.02 mrad from the true pose")
 def test_canting_agrees_with_truth(frame, run):
     rc, record, *_ = run
     assert rc == 0
     err_az, err_el = _truth_errors(frame, record)
-    assert np.sqrt(np.mean(err_az**2)) < 0.6
-    assert np.sqrt(np.mean(err_el**2)) < 0.6
-
-
-def test_canting_azimuth_agrees_with_truth(frame, run):
-    rc, record, *_ = run
-    assert rc == 0
-    err_az, _ = _truth_errors(frame, record)
-    assert np.sqrt(np.mean(err_az**2)) < 0.6  # measured 0.41 mrad
+    # measured 0.004 / 0.048 mrad RMS over facets 13, 17 and 18; 0.41 / 1.08 over 4 before the facets' final fits
+    # tried the neighbouring basins (facet 18 was 1.9 mrad off in elevation; facet 8 is now left ambiguous)
+    assert np.sqrt(np.mean(err_az**2)) < 0.3
+    assert np.sqrt(np.mean(err_el**2)) < 0.3
 
 
 def _bad(tmp_path, capsys, argv):

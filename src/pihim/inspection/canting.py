@@ -39,7 +39,10 @@ Then for each facet:
 2. **Refinement**: from the best grid node, Levenberg-Marquardt on the
    point-to-line distances between the image's sub-pixel edge points inside
    the facet and the projected reflected outlines, re-matched with a
-   shrinking gate; the uncertainty is a delete-one-segment jackknife of the
+   shrinking gate; then again from a grid step away along each axis, as the
+   outline's parallel edges leave local minima a step apart (the best
+   supported fit wins; two distinct fits supported alike leave the facet
+   ambiguous). The uncertainty is a delete-one-segment jackknife of the
    last round over the target outline's segments the facet shows
    (:mod:`pihim.inspection.uncertainty`).
 
@@ -59,18 +62,19 @@ Status (measured on 20 rendered NSTTF UFACET frames, ``benchmarks/canting_qualit
 -----------------------------------------------------------------------------------
 From the issue's GPS 1.5 m / attitude 1 deg priors (pose refined to 0.27 px
 median at the HUA's corners) and S0 edge points (the DoLP of the dark target
-back is too noisy at 39 dB to add its edges unweighted), 0-11 facets per
-frame pass the quality gates (87 on 20 frames) and their deviations are
-recovered to 0.15 / 0.16 mrad RMS (azimuth / elevation; the HUA's drive-angle
-correction to 0.13 / 0.18 mrad) against 0.64 / 0.46 mrad for the paper's grid
-search on the same frames; a median 2.6 s per frame for the whole chain
-(1.8 s of it this step's CPU; 2026-11-26). Five of the 87 facets lock 0.8-1.3
-mrad off onto a repeat of the target's edges, which also moves the other
-facets of their frame (every value is relative to the mean). With every
-heliostat's logged drive angles off by N(0, 5 mrad),
-``target_orientation=True`` measures 40 facets on 10 frames (44 without the
-error) to 0.33 / 0.54 mrad at about 2 s more CPU; without it, 7
-(BENCHMARKS.md). Not yet: polarimetric edge points. Edge points from
+back is too noisy at 39 dB to add its edges unweighted), 0-10 facets per
+frame pass the quality gates (78 on 20 frames) and their deviations are
+recovered to 0.012 / 0.018 mrad RMS (azimuth / elevation; the largest error
+0.08 mrad; the HUA's drive-angle correction to 0.10 / 0.08 mrad) against
+0.82 / 0.48 mrad for the paper's grid search on the same facets; about 1.6 s
+of CPU per frame for this step (2026-11-28). Before the final fits tried the
+neighbouring basins: 87 facets at 0.15 / 0.16 mrad, five of them 0.8-1.3
+mrad off in a basin next to the true one, which also moved the other facets
+of their frame (every value is relative to the mean), 1.1 s of CPU. With
+every heliostat's logged drive angles off by N(0, 5 mrad),
+``target_orientation=True`` measures 32 facets on 10 frames to 0.14 / 0.11
+mrad (37 at 0.35 / 0.33 before) at about 3.5 s more CPU; without it, 3
+facets (5 before; BENCHMARKS.md). Not yet: polarimetric edge points. Edge points from
 a gradient of S0, DoLP and AoP each divided by its pixel's noise
 (:func:`pihim.inspection.edges.noise_sigmas`) were tried on 8 of those
 frames: 2 facets measured instead of 33, one pose failure, 10.8 s instead of
@@ -81,7 +85,12 @@ from the peaks of a grid four times finer than the paper's (tolerance 3 px),
 the fit with the most matched points kept: 148 facets measured instead of
 87, 3 of them locked 1.7-2.4 mrad off instead of 5 at 0.8-1.3 mrad, but
 about 3.8 s of CPU per frame for this step, over the 3 s budget of the whole
-chain; not kept.
+chain; not kept. Tried on 2026-11-28 and not kept: the neighbouring basins
+in every fit, also those that choose the HUA's turn and the target's
+correction (84 facets at 0.028 / 0.029 mrad, but one HUA's drive-angle
+correction went 2.6 mrad off in elevation, and with the target's correction
+at drive-angle errors of 5 mrad one facet 4.7 mrad off), and from fits that
+fail the gates (5 more facets, one of them 0.8 mrad off).
 
 References
 ----------
@@ -133,6 +142,8 @@ __all__ = ["CantingResult", "FacetCanting", "OrientationSearch", "PAPER_GRID_STE
 
 #: Scale of the two canting angles in the refinement, mrad.
 _X_SCALE = np.array([0.1, 0.1])
+#: Rounds of refinements from the neighbouring basins in the facets' final fits (:func:`_fit_facet`).
+FACET_HOPS = 2
 
 
 @dataclass(frozen=True)
@@ -226,7 +237,8 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
                step_mrad: float, gates_px: tuple[float, ...], grid_tol_px: float = 5.0,
                centre_mrad: tuple[float, float] = (0.0, 0.0), prefer_mrad: tuple[float, float] | None = None,
                ambiguity: float = 0.05, matches: list | None = None, max_peaks: int = 3,
-               support_margin: float = 0.05) -> tuple:
+               support_margin: float = 0.05, hops: int = FACET_HOPS,
+               gates: tuple[int, float, float] | None = None) -> tuple:
     """(grid az, grid el, az, el, model, (matches, segments), points, rms, support) for one facet (raw).
 
     The grid spans ``+-span_mrad`` around ``centre_mrad`` (default the
@@ -240,7 +252,18 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     one period away (5-30 mrad at UFACET distances). The refined fit whose
     reflected outline lies best on the image's edges (support, the share
     within 1.5 px) wins; a farther peak must beat a nearer one by
-    ``support_margin``. Two fits more than a grid step apart whose supports
+    ``support_margin``. Then the neighbouring basins: the outline's parallel
+    edges (a target facet's two sides, the gaps, the crossbars) give the
+    refinement local minima about a grid step on either side of the true
+    one, and the grid's best node may be a step off; four refinements
+    started a grid step from the winner along each axis compete with it on
+    the same terms, again from a new winner, ``hops`` rounds at most. Given
+    ``gates`` (fewest matched points, largest RMS residual, px, and least
+    support of an accepted facet), only from a winner that passes them: a
+    fit that has not found the target's outline has nothing to improve, and
+    a basin found from it is a guess (on 20 rendered frames such rescues
+    added 5 facets, one of them 0.8 mrad off; 2026-11-28).
+    Two fits more than a grid step apart whose supports
     are within ``support_margin`` of each other leave the facet ambiguous:
     it is skipped (raises). Given a list ``matches``, the
     last round's matched model points (world), image points and line normals
@@ -299,6 +322,24 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     for fit in fits[1:]:  # a farther peak must be clearly better supported to displace a nearer one
         if fit[4] > best[4] + support_margin:
             best = fit
+    # 3. the neighbouring basins: the reflected outline's parallel edges (a target facet's sides, the gaps
+    #    between facets, the crossbars) leave the refinement a local minimum about a grid step on either side
+    #    of the true one, and the grid's best node can be a step off; refinements started a step away along
+    #    each axis compete with the winner on the same terms, from each new winner up to ``hops`` times
+    if gates is not None and not (best[2] >= gates[0] and best[3] <= gates[1] and best[4] >= gates[2]):
+        hops = 0  # no facet measurement to improve: a neighbouring basin found from here would be a guess
+    for _ in range(hops):
+        base = best
+        for da, de in ((step_mrad, 0.0), (-step_mrad, 0.0), (0.0, step_mrad), (0.0, -step_mrad)):
+            try:
+                fit = _refine_facet(model, mask, ob, dt, gates_px, base[0] + da, base[1] + de)
+            except PihimInputError:
+                continue
+            fits.append(fit)
+            if fit[4] > best[4] + support_margin:
+                best = fit
+        if best is base:
+            break
     # two distinct fits that the image supports alike: the facet shows too little of the target to tell them
     # apart (a part of its back whose edges repeat), and either would be a made-up number
     for fit in fits:
@@ -505,7 +546,8 @@ def estimate_canting(
         return _FacetModel(camera, pose, field_pose.rotations[h], field_pose.facet_centres[h, f],
                            field_pose.facet_normals_local[h, f], outline["pts"], outline["seg"])
 
-    def fit_facets(prefer: dict[int, tuple[float, float]] | None, collect: list | None = None) -> dict[int, object]:
+    def fit_facets(prefer: dict[int, tuple[float, float]] | None, collect: list | None = None,
+                   hops: int = 0) -> dict[int, object]:
         """Every candidate facet fitted on the current outline, its grid around the design."""
         fits: dict[int, object] = {}
         for f, mask in candidates:
@@ -513,7 +555,8 @@ def estimate_canting(
             found: list = []
             try:
                 fit = _fit_facet(model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px,
-                                 prefer_mrad=None if prefer is None else prefer.get(f), matches=found)
+                                 prefer_mrad=None if prefer is None else prefer.get(f), matches=found, hops=hops,
+                                 gates=(min_points, max_rms_px, min_support))
             except PihimInputError as exc:
                 fits[f + 1] = f"no usable reflection of {target}: {exc}"
                 continue
@@ -587,6 +630,7 @@ def estimate_canting(
         logged_key = (n_used(logged), len(logged_matches), -mean_rms(logged))
     else:
         turned_key, logged_key = (n_used(fits),), (n_used(logged),)
+    final_prefer = None  # the grid peaks' preference of the outline kept (the logged one's, if kept)
     if world is not None and turned_key > logged_key:
         notes.append(f"HUA {hua}'s logged drive angles corrected by the orientation search: az {turn_deg[0]:+.2f}, "
                      f"el {turn_deg[1]:+.2f} deg ({n_used(fits)} facets measured, {n_used(logged)} at the logged "
@@ -597,6 +641,7 @@ def estimate_canting(
             notes.append(f"the orientation search's node (HUA az {turn_deg[0]:+.2f}, el {turn_deg[1]:+.2f} deg) "
                          f"measured {n_used(fits)} facets, the logged angles {n_used(logged)}: kept the logged angles")
         fits, matches, world, turn_deg = logged, logged_matches, None, (0.0, 0.0)
+        final_prefer = prefer
     # The logged orientations (paper sec. 4.4): the target's drive angles and the HUA's turn solved with every
     # facet that found the target's outline (the residual gate aside: a target off its logged angles fails it
     # everywhere), then the facets fitted again on the corrected outline; kept if it measures more facets (or
@@ -637,6 +682,7 @@ def estimate_canting(
         if found is not None:
             fits, total, turn, kept_outline = found
             outline.update(kept_outline)
+            final_prefer = None
             target_corr = (float(total[0]), float(total[1]))
             notes.append(f"target {target}'s logged orientation corrected by az {total[0]:+.3f}, el {total[1]:+.3f} "
                          f"deg, with the HUA's turn at az {turn[0]:+.3f}, el {turn[1]:+.3f} deg")
@@ -646,6 +692,12 @@ def estimate_canting(
             notes.append(f"target {target}'s orientation fit (az {last[0][0]:+.3f}, el {last[0][1]:+.3f} deg, the "
                          f"HUA's turn at az {last[1][0]:+.3f}, el {last[1][1]:+.3f} deg) measured no more facets; kept "
                          "the previous angles")
+    # The facets' final fits, on the outline chosen above, now also from the neighbouring basins (_fit_facet's
+    # ``hops``). The choices above count the facets each outline measures; fits that may move to a neighbouring
+    # basin would blur that count (an outline turned or corrected wrongly gains facets by moving some into a
+    # wrong basin: on 20 rendered frames one HUA's drive-angle correction went 2.6 mrad off in elevation, and at
+    # drive-angle errors of 5 mrad with the target's correction one facet 4.7 mrad off, 2026-11-28).
+    fits = fit_facets(final_prefer, None, hops=FACET_HOPS)
     raw = [(fid, fits[fid] if r is None else r) for fid, r in raw]
     used = [r for r in raw if not isinstance(r[1], str)]
     if used:
