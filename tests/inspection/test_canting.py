@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from pihim.inspection.canting import PAPER_GRID_STEP_MRAD, estimate_canting
+from pihim.inspection.canting_output import reason_code
 from pihim.inspection.features import edge_points
 
 
@@ -43,6 +44,8 @@ def test_canting_recovered_to_a_fraction_of_the_paper_grid_step(ufacet):
     # every skipped facet says why; facet 13's reflection fits two ways 5 mrad apart: skipped, not guessed
     assert all(f.reason for f in res.facets if not f.used)
     assert not res.facets[12].used and "alike" in res.facets[12].reason
+    assert reason_code(res.facets[12].reason) == "AMBIG"  # not NOREF, whose text it starts with
+    assert reason_code("no usable reflection of 7E3: too few edge points inside this facet") == "NOREF"
     assert res.to_dict()["facets"][0]["id"] == 1
 
 

@@ -32,6 +32,7 @@ REASON_CODES: tuple[tuple[str, str, str], ...] = (
     ("not in view", "OUT", "facet not in view"),
     ("saturated", "SAT", "saturated"),
     ("DoLP", "DOLP", "DoLP too low"),
+    ("explain it alike", "AMBIG", "two fits explain it alike"),  # before NOREF: its text starts the same
     ("no usable reflection", "NOREF", "no reflection of the target"),
     ("too few matched", "PTS", "too few edge points"),
     ("sub-pixel", "RMS", "residual too large"),
