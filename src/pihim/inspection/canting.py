@@ -39,10 +39,12 @@ Then for each facet:
 2. **Refinement**: from the best grid node, Levenberg-Marquardt on the
    point-to-line distances between the image's sub-pixel edge points inside
    the facet and the projected reflected outlines, re-matched with a
-   shrinking gate; then again from a grid step away along each axis, as the
-   outline's parallel edges leave local minima a step apart (the best
-   supported fit wins; two distinct fits supported alike leave the facet
-   ambiguous). The uncertainty is a delete-one-segment jackknife of the
+   shrinking gate. Once the HUA's turn and the target's correction are
+   chosen, the final fits start again a grid step away along each axis from
+   every fit that passes the gates, as the outline's parallel edges leave
+   local minima about a step apart (a clearly better supported fit wins; two
+   distinct fits supported alike leave the facet skipped as ambiguous). The
+   uncertainty is a delete-one-segment jackknife of the
    last round over the target outline's segments the facet shows
    (:mod:`pihim.inspection.uncertainty`).
 
@@ -68,8 +70,8 @@ recovered to 0.012 / 0.018 mrad RMS (azimuth / elevation; the largest error
 0.08 mrad; the HUA's drive-angle correction to 0.10 / 0.08 mrad) against
 0.82 / 0.48 mrad for the paper's grid search on the same facets; about 1.6 s
 of CPU per frame for this step (2026-11-28). Before the final fits tried the
-neighbouring basins: 87 facets at 0.15 / 0.16 mrad, five of them 0.8-1.3
-mrad off in a basin next to the true one, which also moved the other facets
+neighbouring basins: 87 facets at 0.15 / 0.16 mrad, six of them 0.6-1.15
+mrad off, mostly in a basin next to the true one, which also moved the other facets
 of their frame (every value is relative to the mean), 1.1 s of CPU. With
 every heliostat's logged drive angles off by N(0, 5 mrad),
 ``target_orientation=True`` measures 32 facets on 10 frames to 0.14 / 0.11
@@ -105,6 +107,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -142,8 +145,22 @@ __all__ = ["CantingResult", "FacetCanting", "OrientationSearch", "PAPER_GRID_STE
 
 #: Scale of the two canting angles in the refinement, mrad.
 _X_SCALE = np.array([0.1, 0.1])
-#: Rounds of refinements from the neighbouring basins in the facets' final fits (:func:`_fit_facet`).
-FACET_HOPS = 2
+
+
+class _Gates(NamedTuple):
+    """What a facet's fit must show to be used (:func:`estimate_canting`'s parameters of the same names)."""
+
+    min_points: int
+    max_rms_px: float
+    min_support: float
+
+    def passed(self, points: int, rms_px: float, support: float) -> bool:
+        return points >= self.min_points and rms_px <= self.max_rms_px and support >= self.min_support
+
+
+#: Rounds of refinements from the neighbouring basins in the facets' final fits (:func:`_fit_facet`); two
+#: measured as good as four on 20 rendered frames (2026-11-28).
+_BASIN_ROUNDS = 2
 
 
 @dataclass(frozen=True)
@@ -237,8 +254,7 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
                step_mrad: float, gates_px: tuple[float, ...], grid_tol_px: float = 5.0,
                centre_mrad: tuple[float, float] = (0.0, 0.0), prefer_mrad: tuple[float, float] | None = None,
                ambiguity: float = 0.05, matches: list | None = None, max_peaks: int = 3,
-               support_margin: float = 0.05, hops: int = FACET_HOPS,
-               gates: tuple[int, float, float] | None = None) -> tuple:
+               support_margin: float = 0.05, basin_rounds: int = 0, gates: _Gates | None = None) -> tuple:
     """(grid az, grid el, az, el, model, (matches, segments), points, rms, support) for one facet (raw).
 
     The grid spans ``+-span_mrad`` around ``centre_mrad`` (default the
@@ -257,12 +273,14 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     refinement local minima about a grid step on either side of the true
     one, and the grid's best node may be a step off; four refinements
     started a grid step from the winner along each axis compete with it on
-    the same terms, again from a new winner, ``hops`` rounds at most. Given
-    ``gates`` (fewest matched points, largest RMS residual, px, and least
-    support of an accepted facet), only from a winner that passes them: a
-    fit that has not found the target's outline has nothing to improve, and
-    a basin found from it is a guess (on 20 rendered frames such rescues
-    added 5 facets, one of them 0.8 mrad off; 2026-11-28).
+    support (the best of them wins if it beats it by ``support_margin``),
+    again from a new winner, ``basin_rounds`` rounds at most. Given
+    ``gates`` (an accepted facet's fewest matched points, largest RMS
+    residual and least support), only from a winner that passes them, and
+    only a fit that passes them can win (all count for the ambiguity test
+    below): a fit that has not found the target's outline has nothing to
+    improve, and a basin found from it is a guess (on 20 rendered frames
+    such rescues added 5 facets, one of them 0.8 mrad off; 2026-11-28).
     Two fits more than a grid step apart whose supports
     are within ``support_margin`` of each other leave the facet ambiguous:
     it is skipped (raises). Given a list ``matches``, the
@@ -324,25 +342,33 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
             best = fit
     # 3. the neighbouring basins: the reflected outline's parallel edges (a target facet's sides, the gaps
     #    between facets, the crossbars) leave the refinement a local minimum about a grid step on either side
-    #    of the true one, and the grid's best node can be a step off; refinements started a step away along
-    #    each axis compete with the winner on the same terms, from each new winner up to ``hops`` times
-    if gates is not None and not (best[2] >= gates[0] and best[3] <= gates[1] and best[4] >= gates[2]):
-        hops = 0  # no facet measurement to improve: a neighbouring basin found from here would be a guess
-    for _ in range(hops):
+    #    of the true one, and the grid's best node can be a step off. Refinements started a step away along
+    #    each axis: the best supported of them that passes the gates replaces the winner if clearly better, and
+    #    is tried from in turn; all of them are the winner's rivals below (a basin supported alike is a reason
+    #    for doubt even where its fit fails the gates: counting only those that pass let a 0.55 mrad error
+    #    through on 20 rendered frames, 2026-11-28). Only from a winner that passes the gates: one that has not
+    #    found the target's outline has nothing to improve.
+    def passes(fit: tuple) -> bool:
+        return gates is None or gates.passed(fit[2], fit[3], fit[4])
+
+    rivals = list(fits)
+    for _ in range(basin_rounds if passes(best) else 0):
         base = best
+        tried = []
         for da, de in ((step_mrad, 0.0), (-step_mrad, 0.0), (0.0, step_mrad), (0.0, -step_mrad)):
             try:
                 fit = _refine_facet(model, mask, ob, dt, gates_px, base[0] + da, base[1] + de)
             except PihimInputError:
                 continue
-            fits.append(fit)
-            if fit[4] > best[4] + support_margin:
-                best = fit
-        if best is base:
+            tried.append(fit)
+        rivals += tried
+        top = max((f for f in tried if passes(f)), key=lambda f: f[4], default=None)
+        if top is None or not top[4] > best[4] + support_margin:
             break
+        best = top
     # two distinct fits that the image supports alike: the facet shows too little of the target to tell them
     # apart (a part of its back whose edges repeat), and either would be a made-up number
-    for fit in fits:
+    for fit in rivals:
         apart = math.hypot(fit[0] - best[0], fit[1] - best[1])
         if fit is not best and apart > step_mrad and fit[4] >= best[4] - support_margin:
             raise PihimInputError(f"two fits {apart:.1f} mrad apart explain it alike (support {best[4]:.2f} and "
@@ -492,7 +518,7 @@ def estimate_canting(
         Correct the target's logged drive angles and the HUA's turn
         together (:func:`refine_orientations`) and fit the facets again on
         the corrected outline, kept if that measures more facets (or as
-        many, with smaller residuals). Off by default: it costs about 2 s of
+        many, with smaller residuals). Off by default: it costs about 2-4 s of
         CPU per frame and helps only when the plant's logged drive angles
         are off by about 0.1 deg or more (BENCHMARKS.md).
 
@@ -546,17 +572,20 @@ def estimate_canting(
         return _FacetModel(camera, pose, field_pose.rotations[h], field_pose.facet_centres[h, f],
                            field_pose.facet_normals_local[h, f], outline["pts"], outline["seg"])
 
+    gates = _Gates(min_points, max_rms_px, min_support)
+
     def fit_facets(prefer: dict[int, tuple[float, float]] | None, collect: list | None = None,
-                   hops: int = 0) -> dict[int, object]:
-        """Every candidate facet fitted on the current outline, its grid around the design."""
+                   rounds: int = 0) -> dict[int, object]:
+        """Every candidate facet fitted on the current outline, its grid around the design; ``rounds`` of
+        refinements from the neighbouring basins (:func:`_fit_facet`)."""
         fits: dict[int, object] = {}
         for f, mask in candidates:
             model = facet_model(f).near(mask, span_mrad)
             found: list = []
             try:
                 fit = _fit_facet(model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px,
-                                 prefer_mrad=None if prefer is None else prefer.get(f), matches=found, hops=hops,
-                                 gates=(min_points, max_rms_px, min_support))
+                                 prefer_mrad=None if prefer is None else prefer.get(f), matches=found,
+                                 basin_rounds=rounds, gates=gates)
             except PihimInputError as exc:
                 fits[f + 1] = f"no usable reflection of {target}: {exc}"
                 continue
@@ -633,13 +662,14 @@ def estimate_canting(
     final_prefer = None  # the grid peaks' preference of the outline kept (the logged one's, if kept)
     if world is not None and turned_key > logged_key:
         notes.append(f"HUA {hua}'s logged drive angles corrected by the orientation search: az {turn_deg[0]:+.2f}, "
-                     f"el {turn_deg[1]:+.2f} deg ({n_used(fits)} facets measured, {n_used(logged)} at the logged "
-                     "angles)")
+                     f"el {turn_deg[1]:+.2f} deg ({n_used(fits)} facets measured in the first fits, {n_used(logged)} "
+                     "at the logged angles)")
         outline.update(pts=_apply(world, pts))
     else:
         if world is not None:
             notes.append(f"the orientation search's node (HUA az {turn_deg[0]:+.2f}, el {turn_deg[1]:+.2f} deg) "
-                         f"measured {n_used(fits)} facets, the logged angles {n_used(logged)}: kept the logged angles")
+                         f"measured {n_used(fits)} facets in the first fits, the logged angles {n_used(logged)}: "
+                         "kept the logged angles")
         fits, matches, world, turn_deg = logged, logged_matches, None, (0.0, 0.0)
         final_prefer = prefer
     # The logged orientations (paper sec. 4.4): the target's drive angles and the HUA's turn solved with every
@@ -693,11 +723,13 @@ def estimate_canting(
                          f"HUA's turn at az {last[1][0]:+.3f}, el {last[1][1]:+.3f} deg) measured no more facets; kept "
                          "the previous angles")
     # The facets' final fits, on the outline chosen above, now also from the neighbouring basins (_fit_facet's
-    # ``hops``). The choices above count the facets each outline measures; fits that may move to a neighbouring
+    # ``basin_rounds``). The choices above count the facets each outline measures; fits that may move to a neighbouring
     # basin would blur that count (an outline turned or corrected wrongly gains facets by moving some into a
     # wrong basin: on 20 rendered frames one HUA's drive-angle correction went 2.6 mrad off in elevation, and at
     # drive-angle errors of 5 mrad with the target's correction one facet 4.7 mrad off, 2026-11-28).
-    fits = fit_facets(final_prefer, None, hops=FACET_HOPS)
+    # Every candidate again, not only those measured: a facet whose first fit two grid peaks explained alike can
+    # be resolved by a clearly better neighbouring basin (one facet more of 78 on 20 rendered frames, 2026-11-28).
+    fits = fit_facets(final_prefer, None, _BASIN_ROUNDS)
     raw = [(fid, fits[fid] if r is None else r) for fid, r in raw]
     used = [r for r in raw if not isinstance(r[1], str)]
     if used:
