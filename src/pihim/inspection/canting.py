@@ -68,7 +68,7 @@ back is too noisy at 39 dB to add its edges unweighted), 0-10 facets per
 frame pass the quality gates (78 on 20 frames) and their deviations are
 recovered to 0.012 / 0.018 mrad RMS (azimuth / elevation; the largest error
 0.08 mrad; the HUA's drive-angle correction to 0.10 / 0.08 mrad) against
-0.82 / 0.48 mrad for the paper's grid search on the same facets; about 1.6 s
+0.82 / 0.48 mrad for the paper's grid search on the same facets; about 1.3 s
 of CPU per frame for this step (2026-11-28). Before the final fits tried the
 neighbouring basins: 87 facets at 0.15 / 0.16 mrad, six of them 0.6-1.15
 mrad off, mostly in a basin next to the true one, which also moved the other facets
@@ -291,6 +291,26 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     loss (scale 0.5 px) and the analytic Jacobian of the mirrored projection
     (:func:`pihim.inspection._kernels.solve`).
     """
+    start = _first_fits(model, mask, obs, dt, span_mrad, step_mrad, gates_px, grid_tol_px, centre_mrad, prefer_mrad,
+                        ambiguity, max_peaks, support_margin)
+    return _settle(model, mask, start, dt, step_mrad, gates_px, matches, support_margin, basin_rounds, gates)
+
+
+class _Start(NamedTuple):
+    """A facet's grid search and the refinements from its peaks (:func:`_first_fits`)."""
+
+    grid_az: float
+    grid_el: float
+    ob: NDArray  # the image's edge points inside the facet
+    fits: list  # the refined fits from the grid's peaks, nearest the preferred angles first
+    best: tuple  # the winner among them
+
+
+def _first_fits(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_mrad: float, step_mrad: float,
+                gates_px: tuple[float, ...], grid_tol_px: float = 5.0, centre_mrad: tuple[float, float] = (0.0, 0.0),
+                prefer_mrad: tuple[float, float] | None = None, ambiguity: float = 0.05, max_peaks: int = 3,
+                support_margin: float = 0.05) -> _Start:
+    """Steps 1 and 2 of :func:`_fit_facet`: the paper's grid search and the refinements from its peaks."""
     from pihim.inspection import _kernels
 
     # 1. the paper's grid search: every node of the grid, scored by the share of the reflected
@@ -340,6 +360,14 @@ def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_
     for fit in fits[1:]:  # a farther peak must be clearly better supported to displace a nearer one
         if fit[4] > best[4] + support_margin:
             best = fit
+    return _Start(grid_az, grid_el, ob, fits, best)
+
+
+def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mrad: float,
+            gates_px: tuple[float, ...], matches: list | None = None, support_margin: float = 0.05,
+            basin_rounds: int = 0, gates: _Gates | None = None) -> tuple:
+    """Step 3 of :func:`_fit_facet` (the neighbouring basins and the ambiguity test) from ``start``; its result."""
+    grid_az, grid_el, ob, fits, best = start
     # 3. the neighbouring basins: the reflected outline's parallel edges (a target facet's sides, the gaps
     #    between facets, the crossbars) leave the refinement a local minimum about a grid step on either side
     #    of the true one, and the grid's best node can be a step off. Refinements started a step away along
@@ -573,6 +601,9 @@ def estimate_canting(
                            field_pose.facet_normals_local[h, f], outline["pts"], outline["seg"])
 
     gates = _Gates(min_points, max_rms_px, min_support)
+    # each facet's grid search and refinements from its peaks, per outline and preferred angles: the final fits
+    # (below) start from those of the outline chosen instead of doing them again
+    starts: dict[tuple, tuple] = {}
 
     def fit_facets(prefer: dict[int, tuple[float, float]] | None, collect: list | None = None,
                    rounds: int = 0) -> dict[int, object]:
@@ -580,12 +611,22 @@ def estimate_canting(
         refinements from the neighbouring basins (:func:`_fit_facet`)."""
         fits: dict[int, object] = {}
         for f, mask in candidates:
-            model = facet_model(f).near(mask, span_mrad)
+            prefer_f = None if prefer is None else prefer.get(f)
+            key = (f, id(outline["pts"]), prefer_f)
+            if key not in starts or starts[key][0] is not outline["pts"]:
+                model = facet_model(f).near(mask, span_mrad)
+                try:
+                    start: _Start | PihimInputError = _first_fits(model, mask, edges.xy, dt, span_mrad, step_mrad,
+                                                                   gates_px, prefer_mrad=prefer_f)
+                except PihimInputError as exc:
+                    start = exc
+                starts[key] = (outline["pts"], model, start)  # the outline held, so that its id stays its own
+            _, model, start = starts[key]
             found: list = []
             try:
-                fit = _fit_facet(model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px,
-                                 prefer_mrad=None if prefer is None else prefer.get(f), matches=found,
-                                 basin_rounds=rounds, gates=gates)
+                if isinstance(start, PihimInputError):
+                    raise start
+                fit = _settle(model, mask, start, dt, step_mrad, gates_px, found, basin_rounds=rounds, gates=gates)
             except PihimInputError as exc:
                 fits[f + 1] = f"no usable reflection of {target}: {exc}"
                 continue
@@ -728,7 +769,8 @@ def estimate_canting(
     # wrong basin: on 20 rendered frames one HUA's drive-angle correction went 2.6 mrad off in elevation, and at
     # drive-angle errors of 5 mrad with the target's correction one facet 4.7 mrad off, 2026-11-28).
     # Every candidate again, not only those measured: a facet whose first fit two grid peaks explained alike can
-    # be resolved by a clearly better neighbouring basin (one facet more of 78 on 20 rendered frames, 2026-11-28).
+    # be resolved by a clearly better neighbouring basin (one facet more of 78 on 20 rendered frames, 2026-11-28);
+    # the grid searches and peak refinements are those of the first fits (``starts``).
     fits = fit_facets(final_prefer, None, _BASIN_ROUNDS)
     raw = [(fid, fits[fid] if r is None else r) for fid, r in raw]
     used = [r for r in raw if not isinstance(r[1], str)]
