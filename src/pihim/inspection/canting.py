@@ -158,7 +158,7 @@ class _Gates(NamedTuple):
         return points >= self.min_points and rms_px <= self.max_rms_px and support >= self.min_support
 
 
-#: Rounds of refinements from the neighbouring basins in the facets' final fits (:func:`_fit_facet`); two
+#: Rounds of refinements from the neighbouring basins in the facets' final fits (:func:`_settle`); two
 #: measured as good as four on 20 rendered frames (2026-11-28).
 _BASIN_ROUNDS = 2
 
@@ -250,52 +250,6 @@ class CantingResult:
         }
 
 
-def _fit_facet(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_mrad: float,
-               step_mrad: float, gates_px: tuple[float, ...], grid_tol_px: float = 5.0,
-               centre_mrad: tuple[float, float] = (0.0, 0.0), prefer_mrad: tuple[float, float] | None = None,
-               ambiguity: float = 0.05, matches: list | None = None, max_peaks: int = 3,
-               support_margin: float = 0.05, basin_rounds: int = 0, gates: _Gates | None = None) -> tuple:
-    """(grid az, grid el, az, el, model, (matches, segments), points, rms, support) for one facet (raw).
-
-    The grid spans ``+-span_mrad`` around ``centre_mrad`` (default the
-    design; :func:`estimate_canting` turns the target's outline with the
-    HUA's orientation instead of moving the grid). The grid
-    values returned are the paper's (the best node); the refinement starts
-    from each of up to ``max_peaks`` local peaks of the grid scoring within
-    ``ambiguity`` of the best, nearest ``prefer_mrad`` (default the centre)
-    first: the target's back is periodic (facet rows and columns,
-    crossbars), so a facet that sees only part of it matches almost as well
-    one period away (5-30 mrad at UFACET distances). The refined fit whose
-    reflected outline lies best on the image's edges (support, the share
-    within 1.5 px) wins; a farther peak must beat a nearer one by
-    ``support_margin``. Then the neighbouring basins: the outline's parallel
-    edges (a target facet's two sides, the gaps, the crossbars) give the
-    refinement local minima about a grid step on either side of the true
-    one, and the grid's best node may be a step off; four refinements
-    started a grid step from the winner along each axis compete with it on
-    support (the best of them wins if it beats it by ``support_margin``),
-    again from a new winner, ``basin_rounds`` rounds at most. Given
-    ``gates`` (an accepted facet's fewest matched points, largest RMS
-    residual and least support), only from a winner that passes them, and
-    only a fit that passes them can win (all count for the ambiguity test
-    below): a fit that has not found the target's outline has nothing to
-    improve, and a basin found from it is a guess (on 20 rendered frames
-    such rescues added 5 facets, one of them 0.8 mrad off; 2026-11-28).
-    Two fits more than a grid step apart whose supports
-    are within ``support_margin`` of each other leave the facet ambiguous:
-    it is skipped (raises). Given a list ``matches``, the
-    last round's matched model points (world), image points and line normals
-    are appended to it as one tuple (for :func:`refine_orientations`).
-
-    The refinement rounds solve the two angles by trust-region least squares with a soft-L1
-    loss (scale 0.5 px) and the analytic Jacobian of the mirrored projection
-    (:func:`pihim.inspection._kernels.solve`).
-    """
-    start = _first_fits(model, mask, obs, dt, span_mrad, step_mrad, gates_px, grid_tol_px, centre_mrad, prefer_mrad,
-                        ambiguity, max_peaks, support_margin)
-    return _settle(model, mask, start, dt, step_mrad, gates_px, matches, support_margin, basin_rounds, gates)
-
-
 class _Start(NamedTuple):
     """A facet's grid search and the refinements from its peaks (:func:`_first_fits`)."""
 
@@ -310,7 +264,26 @@ def _first_fits(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span
                 gates_px: tuple[float, ...], grid_tol_px: float = 5.0, centre_mrad: tuple[float, float] = (0.0, 0.0),
                 prefer_mrad: tuple[float, float] | None = None, ambiguity: float = 0.05, max_peaks: int = 3,
                 support_margin: float = 0.05) -> _Start:
-    """Steps 1 and 2 of :func:`_fit_facet`: the paper's grid search and the refinements from its peaks."""
+    """A facet's grid search and the refinements from its peaks (raw angles); :func:`_settle` finishes the fit.
+
+    The grid spans ``+-span_mrad`` around ``centre_mrad`` (default the
+    design; :func:`estimate_canting` turns the target's outline with the
+    HUA's orientation instead of moving the grid). The grid values kept are
+    the paper's (the best node); the refinement starts from each of up to
+    ``max_peaks`` local peaks of the grid scoring within ``ambiguity`` of
+    the best, nearest ``prefer_mrad`` (default the centre) first: the
+    target's back is periodic (facet rows and columns, crossbars), so a
+    facet that sees only part of it matches almost as well one period away
+    (5-30 mrad at UFACET distances). The refined fit whose reflected outline
+    lies best on the image's edges (support, the share within 1.5 px) wins;
+    a farther peak must beat a nearer one by ``support_margin``.
+
+    The refinement rounds solve the two angles by trust-region least squares
+    with a soft-L1 loss (scale 0.5 px) and the analytic Jacobian of the
+    mirrored projection (:func:`pihim.inspection._kernels.solve`). Raises
+    :class:`~pihim.errors.PihimInputError` when no outline falls inside the
+    facet, it holds too few edge points, or no refinement converges.
+    """
     from pihim.inspection import _kernels
 
     # 1. the paper's grid search: every node of the grid, scored by the share of the reflected
@@ -366,7 +339,26 @@ def _first_fits(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span
 def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mrad: float,
             gates_px: tuple[float, ...], matches: list | None = None, support_margin: float = 0.05,
             basin_rounds: int = 0, gates: _Gates | None = None) -> tuple:
-    """Step 3 of :func:`_fit_facet` (the neighbouring basins and the ambiguity test) from ``start``; its result."""
+    """(grid az, grid el, az, el, model, (matches, segments), points, rms, support) for one facet (raw), from ``start``.
+
+    The neighbouring basins: the outline's parallel edges (a target facet's
+    two sides, the gaps, the crossbars) give the refinement local minima
+    about a grid step on either side of the true one, and the grid's best
+    node may be a step off; four refinements started a grid step from the
+    winner along each axis compete with it on support (the best of them
+    wins if it beats it by ``support_margin``), again from a new winner,
+    ``basin_rounds`` rounds at most. Given ``gates`` (an accepted facet's
+    fewest matched points, largest RMS residual and least support), only
+    from a winner that passes them, and only a fit that passes them can win
+    (all count for the ambiguity test): a fit that has not found the
+    target's outline has nothing to improve, and a basin found from it is a
+    guess (on 20 rendered frames such rescues added 5 facets, one of them
+    0.8 mrad off; 2026-11-28). Two fits more than a grid step apart whose
+    supports are within ``support_margin`` of each other leave the facet
+    ambiguous: it is skipped (raises). Given a list ``matches``, the last
+    round's matched model points (world), image points and line normals are
+    appended to it as one tuple (for :func:`refine_orientations`).
+    """
     grid_az, grid_el, ob, fits, best = start
     # 3. the neighbouring basins: the reflected outline's parallel edges (a target facet's sides, the gaps
     #    between facets, the crossbars) leave the refinement a local minimum about a grid step on either side
@@ -608,7 +600,7 @@ def estimate_canting(
     def fit_facets(prefer: dict[int, tuple[float, float]] | None, collect: list | None = None,
                    rounds: int = 0) -> dict[int, object]:
         """Every candidate facet fitted on the current outline, its grid around the design; ``rounds`` of
-        refinements from the neighbouring basins (:func:`_fit_facet`)."""
+        refinements from the neighbouring basins (:func:`_settle`)."""
         fits: dict[int, object] = {}
         for f, mask in candidates:
             prefer_f = None if prefer is None else prefer.get(f)
@@ -763,7 +755,7 @@ def estimate_canting(
             notes.append(f"target {target}'s orientation fit (az {last[0][0]:+.3f}, el {last[0][1]:+.3f} deg, the "
                          f"HUA's turn at az {last[1][0]:+.3f}, el {last[1][1]:+.3f} deg) measured no more facets; kept "
                          "the previous angles")
-    # The facets' final fits, on the outline chosen above, now also from the neighbouring basins (_fit_facet's
+    # The facets' final fits, on the outline chosen above, now also from the neighbouring basins (_settle's
     # ``basin_rounds``). The choices above count the facets each outline measures; fits that may move to a neighbouring
     # basin would blur that count (an outline turned or corrected wrongly gains facets by moving some into a
     # wrong basin: on 20 rendered frames one HUA's drive-angle correction went 2.6 mrad off in elevation, and at
