@@ -71,13 +71,13 @@ recovered to 0.012 / 0.018 mrad RMS (azimuth / elevation; the largest error
 0.82 / 0.48 mrad for the paper's grid search on the same facets; about 1.3 s
 of CPU per frame for this step (2026-11-28). Before the final fits tried the
 neighbouring basins: 87 facets at 0.15 / 0.16 mrad, six of them 0.6-1.15
-mrad off, mostly in a basin next to the true one, which also moved the other facets
-of their frame (every value is relative to the mean), 1.1 s of CPU. With
-every heliostat's logged drive angles off by N(0, 5 mrad),
+mrad off, mostly in a basin next to the true one, which also moved the
+other facets of their frame (every value is relative to the mean), 1.1 s of
+CPU. With every heliostat's logged drive angles off by N(0, 5 mrad),
 ``target_orientation=True`` measures 32 facets on 10 frames to 0.14 / 0.11
 mrad (37 at 0.35 / 0.33 before) at about 3.5 s more CPU; without it, 3
-facets (5 before; BENCHMARKS.md). Not yet: polarimetric edge points. Edge points from
-a gradient of S0, DoLP and AoP each divided by its pixel's noise
+facets (5 before; BENCHMARKS.md). Not yet: polarimetric edge points. Edge
+points from a gradient of S0, DoLP and AoP each divided by its pixel's noise
 (:func:`pihim.inspection.edges.noise_sigmas`) were tried on 8 of those
 frames: 2 facets measured instead of 33, one pose failure, 10.8 s instead of
 2.2 s per frame (the target's reflection in DoLP adds points that break the

@@ -191,8 +191,9 @@ def refine_orientations(
     every facet's fit a few pixels off. Here the target's two drive angles,
     the HUA's two (``solve_hua``) and every facet's two canting angles are
     solved together by robust least squares (soft-L1, 0.5 px) on the
-    point-to-line distances of the facets' last matches (:func:`pihim.inspection.canting._settle`'s
-    ``matches``): the target's points turn about its pivot with its drive
+    point-to-line distances of the facets' last matches
+    (:func:`pihim.inspection.canting._settle`'s ``matches``): the target's
+    points turn about its pivot with its drive
     angles (mirror centre ``pivot + offset * normal``), then about the
     HUA's pivot with the HUA's turn, and each facet mirrors them in its
     plane. A common tilt of the facets and the HUA's turn differ only by
