@@ -360,14 +360,9 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     appended to it as one tuple (for :func:`refine_orientations`).
     """
     grid_az, grid_el, ob, fits, best = start
-    # 3. the neighbouring basins: the reflected outline's parallel edges (a target facet's sides, the gaps
-    #    between facets, the crossbars) leave the refinement a local minimum about a grid step on either side
-    #    of the true one, and the grid's best node can be a step off. Refinements started a step away along
-    #    each axis: the best supported of them that passes the gates replaces the winner if clearly better, and
-    #    is tried from in turn; all of them are the winner's rivals below (a basin supported alike is a reason
-    #    for doubt even where its fit fails the gates: counting only those that pass let a 0.55 mrad error
-    #    through on 20 rendered frames, 2026-11-28). Only from a winner that passes the gates: one that has not
-    #    found the target's outline has nothing to improve.
+    # 3. the neighbouring basins (see the docstring). Every fit tried is a rival in the ambiguity test, also one
+    #    that fails the gates: a basin supported alike is a reason for doubt (counting only those that pass let a
+    #    0.55 mrad error through on 20 rendered frames, 2026-11-28)
     def passes(fit: tuple) -> bool:
         return gates is None or gates.passed(fit[2], fit[3], fit[4])
 
@@ -756,9 +751,9 @@ def estimate_canting(
                          f"HUA's turn at az {last[1][0]:+.3f}, el {last[1][1]:+.3f} deg) measured no more facets; kept "
                          "the previous angles")
     # The facets' final fits, on the outline chosen above, now also from the neighbouring basins (_settle's
-    # ``basin_rounds``). The choices above count the facets each outline measures; fits that may move to a neighbouring
-    # basin would blur that count (an outline turned or corrected wrongly gains facets by moving some into a
-    # wrong basin: on 20 rendered frames one HUA's drive-angle correction went 2.6 mrad off in elevation, and at
+    # ``basin_rounds``). The choices above count the facets each outline measures; fits that may move to a
+    # neighbouring basin would blur that count (an outline turned or corrected wrongly gains facets by moving some
+    # into a wrong basin: on 20 rendered frames one HUA's drive-angle correction went 2.6 mrad off in elevation, and at
     # drive-angle errors of 5 mrad with the target's correction one facet 4.7 mrad off, 2026-11-28).
     # Every candidate again, not only those measured: a facet whose first fit two grid peaks explained alike can
     # be resolved by a clearly better neighbouring basin (one facet more of 78 on 20 rendered frames, 2026-11-28);
