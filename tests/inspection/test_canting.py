@@ -90,3 +90,47 @@ def test_each_facet_gets_its_own_fits_uncertainty_relative_to_the_mean(ufacet, m
         else:
             assert f.az_sigma_mrad == pytest.approx(sa) and f.el_sigma_mrad == pytest.approx(se)
     json.dumps(res.to_dict(), allow_nan=False)
+
+
+@pytest.mark.parametrize(("share", "want"), [(0.0, 0.0), (0.002, 0.002), (0.25, 0.25), (0.5, 0.5), (0.9, 0.1)])
+def test_direction_spread_is_the_share_of_the_weaker_direction(share, want):
+    """Normals split between two perpendicular directions (either sign, turned by any angle): the smaller share."""
+    from pihim.inspection.canting import _direction_spread
+
+    n_y = int(round(1000 * share))
+    t = 0.7  # any turn of the image
+    a = np.array([np.cos(t), np.sin(t)])
+    b = np.array([-np.sin(t), np.cos(t)])
+    normals = np.vstack([np.tile(a, (1000 - n_y, 1)), np.tile(b, (n_y, 1))])
+    normals[::2] *= -1  # a line's normal has no sign
+    assert _direction_spread(normals) == pytest.approx(want, abs=1e-12)
+    fan = np.linspace(0.0, np.pi, 360, endpoint=False)  # every direction alike
+    assert _direction_spread(np.column_stack([np.cos(fan), np.sin(fan)])) == pytest.approx(0.5)
+    assert _direction_spread(np.zeros((0, 2))) == 0.0
+
+
+def test_a_facet_whose_matched_edges_run_one_way_is_skipped(ufacet, monkeypatch):
+    """The direction spread is taken on each fit's matched unit line normals, and a facet below ``min_spread``
+    is skipped as LINE; the gate comes last, so a bound above any spread (0.5) skips exactly the facets used."""
+    from pihim.inspection import canting
+
+    field, pose, h, az, el, cam, cp, fr = ufacet
+    z = np.zeros_like(fr.s0)
+    ep = edge_points(fr.s0, z, z)
+    seen = []
+
+    def spy(normals):
+        seen.append(np.asarray(normals))
+        return spread(normals)
+
+    spread = canting._direction_spread
+    monkeypatch.setattr(canting, "_direction_spread", spy)
+    res = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, min_dolp=None)
+    used = {f.id for f in res.facets if f.used}
+    assert len(used) >= 3 and not any(f.reason and "one way" in f.reason for f in res.facets)
+    assert seen and all(len(v) >= 300 and np.allclose(np.linalg.norm(v, axis=1), 1.0) for v in seen)
+    assert all(spread(v) >= 0.05 for v in seen)  # these facets show edges of both directions
+    res = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, min_dolp=None, min_spread=0.51)
+    line = {f.id for f in res.facets if not f.used and reason_code(f.reason) == "LINE"}
+    assert line == used and not any(f.used for f in res.facets)
+    assert "one angle is not measured" in res.facets[min(line) - 1].reason

@@ -432,6 +432,20 @@ def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gat
     return az, el, n, rms, support, found, model.seg[idx]
 
 
+def _direction_spread(normals: ArrayLike) -> float:
+    """How evenly matched edges' directions spread: the smaller eigenvalue of the mean ``n n^T`` of their unit normals.
+
+    The point-to-line residuals of a fit constrain a shift of the
+    reflection along their normals only: 0 when every edge runs one way (a
+    shift along them changes no residual), 0.5 for normals spread evenly over
+    directions; 0 with no normals.
+    """
+    n = np.asarray(normals, float).reshape(-1, 2)
+    if not len(n):
+        return 0.0
+    return max(0.0, float(np.linalg.eigvalsh(n.T @ n / len(n))[0]))
+
+
 def _jackknife_variance(model: _FacetModel, found: tuple, segments: NDArray, az: float,
                         el: float, gate: float) -> NDArray[np.float64]:
     """Variances (az, el) of a facet fit, mrad^2: the delete-one-segment jackknife.
@@ -476,6 +490,7 @@ def estimate_canting(
     min_points: int = 300,
     min_support: float = 0.3,
     max_rms_px: float = 0.3,
+    min_spread: float = 0.01,
     sizes: StructureSizes = StructureSizes(),
     orientation_span_mrad: float | None = PAPER_ORIENTATION_SPAN_MRAD,
     target_orientation: bool = False,
@@ -518,6 +533,16 @@ def estimate_canting(
         must lie within 1.5 px of an image edge at the solution; facets whose
         reflection shows something else are skipped, as they would bias the
         best-fit orientation every deviation is relative to.
+    min_spread : float
+        Least spread of the matched edges' directions: the smaller eigenvalue
+        of the mean ``n n^T`` of their unit line normals (0 when they all run
+        one way, 0.5 when evenly spread). A fit along a single straight edge
+        cannot move along it, so one combination of the two angles stays
+        where the grid left it: such a facet is skipped. Rendered frames
+        20-39 of ``benchmarks/canting_quality.py`` had one, matched on one
+        outline segment, 1.3 mrad off (which moved the other facets of its
+        frame by 0.33 mrad); the least spread of a facet used on the 40
+        frames is 0.018 (2026-11-28).
     orientation_span_mrad : float or None
         Half-range of the orientation search (:func:`search_orientation`,
         step ``step_mrad``) run over the facets that pass the view, saturation
@@ -629,6 +654,11 @@ def estimate_canting(
             if fit[8] < min_support:
                 fits[f + 1] = (f"the reflection does not look like {target}'s outline (support {fit[8]:.2f} < "
                                f"{min_support:g}: hidden, or another heliostat)")
+                continue
+            spread = _direction_spread(fit[5][0][2])
+            if not spread >= min_spread:
+                fits[f + 1] = (f"the matched edges run one way (direction spread {spread:.3f} < {min_spread:g}): "
+                               "one angle is not measured")
                 continue
             fits[f + 1] = fit
         return fits

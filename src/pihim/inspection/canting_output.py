@@ -37,6 +37,7 @@ REASON_CODES: tuple[tuple[str, str, str], ...] = (
     ("too few matched", "PTS", "too few edge points"),
     ("sub-pixel", "RMS", "residual too large"),
     ("does not look like", "SUPP", "reflection not the target's outline"),
+    ("run one way", "LINE", "edges of one direction only"),
 )
 
 
