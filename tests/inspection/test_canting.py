@@ -134,3 +134,18 @@ def test_a_facet_whose_matched_edges_run_one_way_is_skipped(ufacet, monkeypatch)
     line = {f.id for f in res.facets if not f.used and reason_code(f.reason) == "LINE"}
     assert line == used and not any(f.used for f in res.facets)
     assert "one angle is not measured" in res.facets[min(line) - 1].reason
+
+
+def test_the_orientation_search_turn_must_measure_two_facets_more_than_the_log():
+    """Without the target's correction the logged drive angles are the prior: one facet more is not enough (a turn
+    of the HUA looks almost as a common tilt of its facets); with it, more facets, then more found, then the
+    smaller residual."""
+    from pihim.inspection.canting import _keeps_turn
+
+    assert not _keeps_turn((8, 9, 0.1), (7, 9, 0.2), False)
+    assert _keeps_turn((9, 9, 0.2), (7, 9, 0.1), False)
+    assert not _keeps_turn((0, 5, 0.1), (0, 2, 0.2), False)
+    assert _keeps_turn((8, 9, 0.2), (7, 9, 0.1), True)
+    assert not _keeps_turn((7, 9, 0.1), (7, 9, 0.1), True)
+    assert _keeps_turn((7, 10, 0.2), (7, 9, 0.1), True)
+    assert _keeps_turn((7, 9, 0.1), (7, 9, 0.2), True) and not _keeps_turn((7, 9, 0.2), (7, 9, 0.1), True)

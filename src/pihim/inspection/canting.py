@@ -432,6 +432,20 @@ def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gat
     return az, el, n, rms, support, found, model.seg[idx]
 
 
+def _keeps_turn(turned: tuple[int, int, float], logged: tuple[int, int, float], target_orientation: bool) -> bool:
+    """Whether the orientation search's turn of the HUA replaces its logged drive angles.
+
+    ``turned`` and ``logged`` are each outline's first fits: (facets measured, facets that found the target's
+    outline, mean RMS residual in px). With the target's correction to follow, the turn wins on more facets
+    measured, then on more facets found (what that correction starts from), then on a smaller residual. Without
+    it, the log is the prior: the turn must measure at least two facets more (``estimate_canting``'s
+    ``orientation_span_mrad``).
+    """
+    if target_orientation:
+        return (turned[0], turned[1], -turned[2]) > (logged[0], logged[1], -logged[2])
+    return turned[0] >= logged[0] + 2
+
+
 def _direction_spread(normals: ArrayLike) -> float:
     """How evenly matched edges' directions spread: the smaller eigenvalue of the mean ``n n^T`` of their unit normals.
 
@@ -549,11 +563,16 @@ def estimate_canting(
         and DoLP tests before any facet is fitted. A node more than 2.5 steps
         from the logged angles turns the target's outline as the HUA's turn
         would (:func:`hua_turn_transform`) and every facet is fitted on it and
-        on the logged outline; the turn is kept if it measures more facets.
-        On a tie, with ``target_orientation``, the outline more facets found
-        wins, then the smaller mean residual; without it, the logged angles
-        are kept (the log is the prior). Default the paper's +-5 deg; None
-        skips the search.
+        on the logged outline. With ``target_orientation``, the turn is kept
+        if it measures more facets; on a tie, the outline more facets found
+        wins, then the smaller mean residual. Without it, the turn must
+        measure at least two facets more than the logged angles (the log is
+        the prior): a turn of the HUA looks from the camera almost as a
+        common tilt of its facets, and one facet more is within chance (on
+        rendered frame 28 of ``benchmarks/canting_quality.py``, no drive-angle
+        error, a turn 5 mrad off measured 8 facets against 7 and put them
+        0.32 mrad off; 2026-11-28). Default the paper's +-5 deg; None skips
+        the search.
     target_orientation : bool
         Correct the target's logged drive angles and the HUA's turn
         together (:func:`refine_orientations`) and fit the facets again on
@@ -709,16 +728,9 @@ def estimate_canting(
         for f, m in candidates}
     logged_matches: list = []
     logged = fit_facets(prefer, logged_matches)
-    # Which outline wins (``orientation_span_mrad``'s docstring): the facets measured first; with the target's
-    # correction to follow, ties go to the outline more facets found (what that correction starts from), then to
-    # the smaller residual; without it, a turn that measures no more facets has not shown it is better than the log.
-    if target_orientation:
-        turned_key = (n_used(fits), len(matches), -mean_rms(fits))
-        logged_key = (n_used(logged), len(logged_matches), -mean_rms(logged))
-    else:
-        turned_key, logged_key = (n_used(fits),), (n_used(logged),)
     final_prefer = None  # the grid peaks' preference of the outline kept (the logged one's, if kept)
-    if world is not None and turned_key > logged_key:
+    if world is not None and _keeps_turn((n_used(fits), len(matches), mean_rms(fits)),
+                                         (n_used(logged), len(logged_matches), mean_rms(logged)), target_orientation):
         notes.append(f"HUA {hua}'s logged drive angles corrected by the orientation search: az {turn_deg[0]:+.2f}, "
                      f"el {turn_deg[1]:+.2f} deg ({n_used(fits)} facets measured in the first fits, {n_used(logged)} "
                      "at the logged angles)")
