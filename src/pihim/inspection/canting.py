@@ -40,10 +40,11 @@ Then for each facet:
    point-to-line distances between the image's sub-pixel edge points inside
    the facet and the projected reflected outlines, re-matched with a
    shrinking gate. Once the HUA's turn and the target's correction are
-   chosen, the final fits start again a grid step away along each axis from
-   every fit that passes the gates, as the outline's parallel edges leave
-   local minima about a step apart (a clearly better supported fit wins; two
-   distinct fits supported alike leave the facet skipped as ambiguous). The
+   chosen, the final fits start again half a grid step and a grid step
+   away along each axis from every fit that passes the gates, as the
+   outline's parallel edges leave local minima half a step to a few steps
+   apart (a clearly better supported fit wins; two fits more than half a
+   step apart supported alike leave the facet skipped as ambiguous). The
    uncertainty is a delete-one-segment jackknife of the
    last round over the target outline's segments the facet shows
    (:mod:`pihim.inspection.uncertainty`).
@@ -171,6 +172,15 @@ class _Gates(NamedTuple):
 #: Rounds of refinements from the neighbouring basins in the facets' final fits (:func:`_settle`); two
 #: measured as good as four on 20 rendered frames (2026-11-28).
 _BASIN_ROUNDS = 2
+#: Where the refinements of a round start, in grid steps from the winner along each axis (:func:`_settle`), and
+#: how far apart, in grid steps, two fits supported alike must be to leave a facet ambiguous. With starts a step
+#: away only and fits a step apart, frames 40-79 of ``benchmarks/canting_quality.py`` had seven facets locked
+#: 0.5-4.2 mrad off in a basin half a step to 2.5 steps from the true one, some supported within the margin of
+#: it. Chosen on frames 40-59 and then checked on 60-79, which it had not seen: there the facets' RMS error went
+#: from 0.19 / 0.03 mrad (three locked 0.5-1.6 mrad off) to 0.010 / 0.014 mrad, 63 facets instead of 67
+#: (2026-11-28).
+_BASIN_STEPS = (0.5, 1.0)
+_DISTINCT_STEPS = 0.5
 
 
 @dataclass(frozen=True)
@@ -354,8 +364,9 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     The neighbouring basins: the outline's parallel edges (a target facet's
     two sides, the gaps, the crossbars) give the refinement local minima
     about a grid step on either side of the true one, and the grid's best
-    node may be a step off; four refinements started a grid step from the
-    winner along each axis compete with it on support (the best of them
+    node may be a step off; eight refinements started half a grid step and
+    a grid step from the winner along each axis (``_BASIN_STEPS``) compete
+    with it on support (the best of them
     wins if it beats it by ``support_margin``), again from a new winner,
     ``basin_rounds`` rounds at most. Given ``gates`` (an accepted facet's
     fewest matched points, largest RMS residual and least support), only
@@ -363,7 +374,8 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     (all count for the ambiguity test): a fit that has not found the
     target's outline has nothing to improve, and a basin found from it is a
     guess (on 20 rendered frames such rescues added 5 facets, one of them
-    0.8 mrad off; 2026-11-28). Two fits more than a grid step apart whose
+    0.8 mrad off; 2026-11-28). Two fits more than half a grid step apart
+    (``_DISTINCT_STEPS``) whose
     supports are within ``support_margin`` of each other leave the facet
     ambiguous: it is skipped (raises). Given a list ``matches``, the last
     round's matched model points (world), image points and line normals are
@@ -380,7 +392,8 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     for _ in range(basin_rounds if passes(best) else 0):
         base = best
         tried = []
-        for da, de in ((step_mrad, 0.0), (-step_mrad, 0.0), (0.0, step_mrad), (0.0, -step_mrad)):
+        for da, de in [(m * step_mrad * sa, 0.0) for m in _BASIN_STEPS for sa in (1, -1)] + \
+                [(0.0, m * step_mrad * sa) for m in _BASIN_STEPS for sa in (1, -1)]:
             try:
                 fit = _refine_facet(model, mask, ob, dt, gates_px, base[0] + da, base[1] + de)
             except PihimInputError:
@@ -395,7 +408,7 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     # apart (a part of its back whose edges repeat), and either would be a made-up number
     for fit in rivals:
         apart = math.hypot(fit[0] - best[0], fit[1] - best[1])
-        if fit is not best and apart > step_mrad and fit[4] >= best[4] - support_margin:
+        if fit is not best and apart > _DISTINCT_STEPS * step_mrad and fit[4] >= best[4] - support_margin:
             raise PihimInputError(f"two fits {apart:.1f} mrad apart explain it alike (support {best[4]:.2f} and "
                                   f"{fit[4]:.2f})")
     az, el, n, rms, support, found, segments = best
