@@ -61,12 +61,12 @@ compiled projection of :mod:`pihim.inspection._kernels`, held to
 the test frames; the orientation steps are in
 :mod:`pihim.inspection.orientation` (re-exported here).
 
-Status (measured on 20 rendered NSTTF UFACET frames, ``benchmarks/canting_quality.py``)
------------------------------------------------------------------------------------
+Status (measured on rendered NSTTF UFACET frames, ``benchmarks/canting_quality.py``)
+------------------------------------------------------------------------------------
 From the issue's GPS 1.5 m / attitude 1 deg priors (pose refined to 0.27 px
 median at the HUA's corners) and S0 edge points (the DoLP of the dark target
 back is too noisy at 39 dB to add its edges unweighted), 0-10 facets per
-frame pass the quality gates (78 on 20 frames) and their deviations are
+frame pass the quality gates (77 scored on the issue's 20 frames) and their deviations are
 recovered to 0.012 / 0.018 mrad RMS (azimuth / elevation; the largest error
 0.08 mrad; the HUA's drive-angle correction to 0.10 / 0.08 mrad) against
 0.82 / 0.48 mrad for the paper's grid search on the same facets; about 1.3 s
@@ -77,17 +77,22 @@ and ``orientation_span_mrad`` parameters): a facet fitted along a single
 straight edge, and a turn of the HUA kept for measuring one facet more than
 the logged angles; over the 40 frames 117 facets at 0.010 / 0.016 mrad, the
 largest error 0.08 mrad (120 at 0.110 / 0.060, largest 1.0 mrad, without the
-two gates). Frames 40-59, unseen: 67 facets at 0.45 / 0.22 mrad, six of
-them 0.9-4.2 mrad off, locked (all segments agreeing, so the jackknife
-sigma is small) in a basin 0.5-2.5 grid steps from the true one; not yet
-mended. Before the final fits tried the
+two gates). Frames 40-59 then had six facets 0.9-4.2 mrad off, locked
+(all segments agreeing, so the jackknife sigma is small) in a basin half a
+step to 2.5 grid steps from the true one: the final fits now also start
+half a step away, and fits half a step apart supported alike make a facet
+ambiguous. Over 80 frames (``--frames 80``) 236 facets at 0.058 / 0.018
+mrad, the largest error 0.62 mrad; on frames 60-79, rendered after every
+choice here was made, 60 facets at 0.010 / 0.015 mrad, largest 0.07 (the
+code before these three changes: 63 at 0.46 / 0.04, ten 0.5-3.0 mrad off);
+about 1.5 s of CPU per frame for this step. Before the final fits tried the
 neighbouring basins: 87 facets at 0.15 / 0.16 mrad, six of them 0.6-1.15
 mrad off, mostly in a basin next to the true one, which also moved the
 other facets of their frame (every value is relative to the mean), 1.1 s of
 CPU. With every heliostat's logged drive angles off by N(0, 5 mrad),
-``target_orientation=True`` measures 32 facets on 10 frames to 0.14 / 0.11
-mrad (37 at 0.35 / 0.33 before) at about 3.5 s more CPU; without it, 3
-facets (5 before; BENCHMARKS.md). Not yet: polarimetric edge points. Edge
+``target_orientation=True`` measures 32 facets on 10 frames to 0.04 / 0.11
+mrad, the largest error 0.27 (37 at 0.35 / 0.33 before the basins) at about
+3.5 s more CPU; without it, 2 facets (BENCHMARKS.md). Not yet: polarimetric edge points. Edge
 points from a gradient of S0, DoLP and AoP each divided by its pixel's noise
 (:func:`pihim.inspection.edges.noise_sigmas`) were tried on 8 of those
 frames: 2 facets measured instead of 33, one pose failure, 10.8 s instead of
