@@ -182,8 +182,8 @@ _BASIN_ROUNDS = 2
 #: away only and fits a step apart, frames 40-79 of ``benchmarks/canting_quality.py`` had seven facets locked
 #: 0.5-4.2 mrad off in a basin half a step to 2.5 steps from the true one, some supported within the margin of
 #: it. Chosen on frames 40-59 and then checked on 60-79, which it had not seen: there the facets' RMS error went
-#: from 0.19 / 0.03 mrad (three locked 0.5-1.6 mrad off) to 0.010 / 0.014 mrad, 63 facets instead of 67
-#: (2026-11-28).
+#: from 0.19 / 0.03 mrad (three locked 0.5-1.6 mrad off) to 0.010 / 0.014 mrad, 63 facets instead of 67 (the
+#: estimator alone; the benchmark scores 60, in frames with two or more; 2026-11-28).
 _BASIN_STEPS = (0.5, 1.0)
 _DISTINCT_STEPS = 0.5
 
@@ -368,8 +368,8 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
 
     The neighbouring basins: the outline's parallel edges (a target facet's
     two sides, the gaps, the crossbars) give the refinement local minima
-    about a grid step on either side of the true one, and the grid's best
-    node may be a step off; eight refinements started half a grid step and
+    half a grid step to a few steps on either side of the true one, and the
+    grid's best node may be a step off; eight refinements started half a grid step and
     a grid step from the winner along each axis (``_BASIN_STEPS``) compete
     with it on support (the best of them
     wins if it beats it by ``support_margin``), again from a new winner,
