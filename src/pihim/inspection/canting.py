@@ -369,10 +369,10 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     The neighbouring basins: the outline's parallel edges (a target facet's
     two sides, the gaps, the crossbars) give the refinement local minima
     half a grid step to a few steps on either side of the true one, and the
-    grid's best node may be a step off; eight refinements started half a grid step and
-    a grid step from the winner along each axis (``_BASIN_STEPS``) compete
-    with it on support (the best of them
-    wins if it beats it by ``support_margin``), again from a new winner,
+    grid's best node may be a step off; eight refinements started half a
+    grid step and a grid step from the winner along each axis
+    (``_BASIN_STEPS``) compete with it on support (the best of them wins if
+    it beats it by ``support_margin``), again from a new winner,
     ``basin_rounds`` rounds at most. Given ``gates`` (an accepted facet's
     fewest matched points, largest RMS residual and least support), only
     from a winner that passes them, and only a fit that passes them can win
@@ -380,9 +380,8 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     target's outline has nothing to improve, and a basin found from it is a
     guess (on 20 rendered frames such rescues added 5 facets, one of them
     0.8 mrad off; 2026-11-28). Two fits more than half a grid step apart
-    (``_DISTINCT_STEPS``) whose
-    supports are within ``support_margin`` of each other leave the facet
-    ambiguous: it is skipped (raises). Given a list ``matches``, the last
+    (``_DISTINCT_STEPS``) whose supports are within ``support_margin`` of
+    each other leave the facet ambiguous: it is skipped (raises). Given a list ``matches``, the last
     round's matched model points (world), image points and line normals are
     appended to it as one tuple (for :func:`refine_orientations`).
     """
@@ -394,11 +393,12 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
         return gates is None or gates.passed(fit[2], fit[3], fit[4])
 
     rivals = list(fits)
+    along_az = [(sign * m * step_mrad, 0.0) for m in _BASIN_STEPS for sign in (1, -1)]
+    offsets = along_az + [(de, da) for da, de in along_az]
     for _ in range(basin_rounds if passes(best) else 0):
         base = best
         tried = []
-        for da, de in [(m * step_mrad * sa, 0.0) for m in _BASIN_STEPS for sa in (1, -1)] + \
-                [(0.0, m * step_mrad * sa) for m in _BASIN_STEPS for sa in (1, -1)]:
+        for da, de in offsets:
             try:
                 fit = _refine_facet(model, mask, ob, dt, gates_px, base[0] + da, base[1] + de)
             except PihimInputError:
