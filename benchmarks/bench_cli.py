@@ -44,7 +44,7 @@ import shutil
 import statistics
 import sys
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -57,7 +57,7 @@ RESULTS_PATH = Path(__file__).resolve().parent / "results" / "cli.json"
 SRC = Path(__file__).resolve().parents[1] / "src"
 COMMANDS = ("polar", "calibrate-polarizer", "calibrate-camera", "sky", "ground", "plan", "windows", "demo",
             "simulate", "edges", "canting", "live", "simulate-flight", "campaign")
-#: Real runs whose start-up is measured: (label, arguments after ``pihim``; OUT is replaced by a folder).
+#: Real runs whose start-up is measured: (label, arguments after ``pihim``; OUT is replaced by a new folder for every run).
 REAL_RUNS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("polar (1 frame, --json)", ("polar", "FRAME", "--out", "OUT", "--json")),
     ("sky (--resolution 5)", ("sky", "--sun-zenith", "30", "--sun-azimuth", "235", "--resolution", "5", "--out", "OUT")),
@@ -205,8 +205,9 @@ def pihim(args: Sequence[str], *, importtime: bool = False, floor: bool = False)
     return res
 
 
-def _median_run(args: Sequence[str], n: int, **kw: Any) -> dict[str, Any]:
-    runs = [pihim(args, **kw) for _ in range(n)]
+def _median_run(args: Sequence[str] | Callable[[int], Sequence[str]], n: int, **kw: Any) -> dict[str, Any]:
+    """Medians of ``n`` runs of ``pihim ARGS``; ``args`` may be a function of the run's index (a fresh output each)."""
+    runs = [pihim(args(k) if callable(args) else args, **kw) for k in range(n)]
     keys = ("wall_s", "cpu_s", "load_before", "load_after", "other_cpu") + (
         ("import_s", "import_cpu_s", "import_wall_s") if kw.get("importtime") else ()) + (
         ("floor_cpu_s", "floor_wall_s", "floor_modules", "floor_failed", "own_cpu_s") if kw.get("floor") else ())
@@ -324,10 +325,14 @@ def run_benchmark(quick: bool = False, startup_only: bool = False) -> dict[str, 
     with tempfile.TemporaryDirectory(prefix="pihim-bench-cli-") as tmp:
         frame = make_frames(Path(tmp), 1)[0]
         real = {}
-        for label, args in REAL_RUNS:
-            argv = [str(frame) if a == "FRAME" else str(Path(tmp) / f"out-{len(real)}") if a == "OUT" else a
-                    for a in args]
-            pihim(argv)  # caches (numba) as after a first run
+        for i, (label, args) in enumerate(REAL_RUNS):
+            def argv(k: int, i: int = i, args: Sequence[str] = args) -> list[str]:
+                # a fresh output folder for every run: into a used one, `pihim polar` resumes (skips the frame,
+                # loads no kernel) and the run would not be one a user makes
+                return [str(frame) if a == "FRAME" else str(Path(tmp) / f"out-{i}-{k}") if a == "OUT" else a
+                        for a in args]
+
+            pihim(argv(-1))  # caches (numba) as after a first run
             real[label] = _median_run(argv, 1 if quick else 3, importtime=True, floor=True)
         report["real_runs"] = real
     startup = [report["help_imports"]["import_cpu_s"],
