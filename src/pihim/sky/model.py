@@ -26,6 +26,7 @@ from typing import Literal, get_args
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from pihim._quadrature import gauss_legendre
 from pihim.errors import PihimInputError
 from pihim.polarimetry.stokes import aop_deg, dolp
 from pihim.sky.berry import MAX_SEPARATION_DEG, berry_components
@@ -258,7 +259,7 @@ def horizontal_irradiance(sky: object, sun_dir: ArrayLike, n_mu: int = 24, n_phi
     (S0 in radiance units gives W m^-2). Gauss-Legendre in ``cos(zenith)``
     times the midpoint rule in azimuth: exact (``pi L``) for a uniform sky.
     """
-    x, w = np.polynomial.legendre.leggauss(n_mu)
+    x, w = gauss_legendre(n_mu)
     mu, w_mu = 0.5 * (x + 1.0), 0.5 * w
     phi = (np.arange(n_phi) + 0.5) * (2.0 * np.pi / n_phi)
     mm, pp = np.meshgrid(mu, phi, indexing="ij")

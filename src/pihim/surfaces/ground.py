@@ -124,13 +124,14 @@ import math
 import types
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import lru_cache, partial
+from functools import partial
 from typing import Literal, Protocol
 
 import numpy as np
 from numba import njit, prange
 from numpy.typing import ArrayLike, NDArray
 
+from pihim._quadrature import gauss_legendre
 from pihim.errors import PihimInputError
 from pihim.sky.model import horizontal_irradiance
 from pihim.sky.table import SkyTable as _SkyTable
@@ -195,15 +196,6 @@ class SkyRadiance(Protocol):
     def stokes(
         self, view_dirs: ArrayLike, sun_dir: ArrayLike, e: ArrayLike | None = None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...  # pragma: no cover - protocol
-
-
-@lru_cache(maxsize=16)
-def _gauss_legendre(n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Gauss-Legendre nodes and weights on [-1, 1] (cached; read-only)."""
-    x, w = np.polynomial.legendre.leggauss(n)
-    x.flags.writeable = False
-    w.flags.writeable = False
-    return x, w
 
 
 # ---------------------------------------------------------------------------
@@ -632,7 +624,7 @@ class GroundModel:
         if self.density not in ("solid_angle", "zenith"):
             raise PihimInputError(f"density must be 'solid_angle' or 'zenith', got {self.density!r}")
         # K = int_0^{pi/2} exp(-a^2/2s^2) w(a) cos(a) da and Z = int exp w da, w = sin (solid angle) or 1
-        x, wq = _gauss_legendre(256)
+        x, wq = gauss_legendre(256)
         amax = self._alpha_max(sigma_factor=12.0)
         alpha = 0.5 * amax * (x + 1.0)
         wq = 0.5 * amax * wq
@@ -735,7 +727,7 @@ class GroundModel:
         """
         if n_alpha < 1 or n_phi < 1:
             raise PihimInputError(f"quadrature needs n_alpha >= 1 and n_phi >= 1, got ({n_alpha}, {n_phi})")
-        x, wq = _gauss_legendre(n_alpha)
+        x, wq = gauss_legendre(n_alpha)
         amax = self._alpha_max()
         alpha = 0.5 * amax * (x + 1.0)
         wa = 0.5 * amax * wq * np.exp(-0.5 * (alpha / self.sigma_rad) ** 2) * self._jacobian(alpha)
