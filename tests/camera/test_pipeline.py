@@ -196,6 +196,29 @@ def test_out_writes_into_preallocated_arrays(demosaic):
         polar_image(m1[:, :-2], demosaic=demosaic, out=buf)
 
 
+def test_large_outputs_are_disjoint_views_of_one_aligned_block():
+    """A frame-sized result lives in one block starting on a 2 MiB boundary (huge pages), each image apart."""
+    from pihim.camera.pipeline import PolarImage
+
+    rng = np.random.default_rng(7)
+    raw = rng.integers(0, 4000, (1024, 1024), dtype=np.uint16)
+    raw[:2, :2] = 4095  # one saturated super-pixel
+    got = polar_image(raw, bit_depth=12)
+    arrays = [got.s0, got.s1, got.s2, got.dolp, got.aop_deg, got.saturated]
+    assert got.s0.ctypes.data % (2 << 20) == 0
+    assert all(a.flags.c_contiguous and a.flags.writeable and a.shape == (512, 512) for a in arrays)
+    assert [a.dtype for a in arrays] == [np.float32] * 5 + [np.bool_]
+    for i, a in enumerate(arrays):
+        for b in arrays[i + 1:]:
+            assert not np.shares_memory(a, b)
+    separate = PolarImage(*(np.empty((512, 512), np.float32) for _ in range(5)), np.empty((512, 512), np.bool_),
+                          "superpixel", None)
+    ref = polar_image(raw, bit_depth=12, out=separate)
+    for a, b in zip(arrays, [ref.s0, ref.s1, ref.s2, ref.dolp, ref.aop_deg, ref.saturated], strict=True):
+        assert np.array_equal(a, b, equal_nan=True)
+    assert got.saturated[0, 0] and np.isnan(got.dolp[0, 0]) and got.saturated.sum() == 1
+
+
 @pytest.mark.parametrize(("kwargs", "says"), [
     ({"layout": "imx250mzr"}, "layout must be a MosaicLayout"),  # was an AttributeError
     ({"analyser": np.tile([0.5, 0.5, 0.0], (4, 1))}, "analyser must be an AnalyserMatrix"),  # "truth value ambiguous"
