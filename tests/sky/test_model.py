@@ -100,6 +100,26 @@ def test_sky_grid():
             sky_grid(bad)
 
 
+@pytest.mark.parametrize("resolution", [0.5, 3.0])
+def test_sky_map_grid_frames_match_the_generic_route(resolution):
+    """sky_map's cached directions and meridian frames (outer products) = direction_from_angles + meridian_frame."""
+    from pihim.sky.model import _grid_geometry, _grid_size
+    from pihim.sky.rayleigh import meridian_frame
+    from pihim.sky.sun import direction_from_angles
+
+    zz, aa, v, e, f = _grid_geometry(_grid_size(resolution))
+    v_ref = direction_from_angles(*sky_grid(resolution))
+    e_ref, f_ref = meridian_frame(v_ref)
+    for got, ref in ((v, v_ref), (e, e_ref), (f, f_ref)):
+        assert got.shape == ref.shape
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-15)
+        assert not got.flags.writeable
+    res = sky_map(SkyModel(), SUN, resolution)
+    s, _ = SkyModel().stokes(v_ref, SUN)
+    np.testing.assert_allclose(res.s0, s[..., 0], rtol=1e-13)
+    np.testing.assert_allclose(res.dolp, np.hypot(s[..., 1], s[..., 2]) / s[..., 0], rtol=0, atol=1e-13)
+
+
 def test_sky_map_rayleigh_pattern():
     res = sky_map(SkyModel(dmax=0.8), SUN, resolution_deg=2.0)
     assert res.dolp.shape == (45, 180)

@@ -31,12 +31,8 @@ from pihim.errors import PihimInputError
 from pihim.polarimetry.stokes import aop_deg, dolp
 from pihim.sky.berry import MAX_SEPARATION_DEG, berry_components
 from pihim.sky.radiance import CLEAR_SKY_TYPE, cie_relative_radiance
-from pihim.sky.rayleigh import (
-    meridian_frame,
-    rayleigh_components,
-    stokes_in_frame,
-)
-from pihim.sky.sun import direction_from_angles, require_daylight
+from pihim.sky.rayleigh import rayleigh_components, stokes_in_frame
+from pihim.sky.sun import require_daylight
 
 __all__ = ["RadianceKind", "SkyKind", "SkyMap", "SkyModel", "sky_grid", "sky_map"]
 
@@ -196,12 +192,23 @@ def _grid_geometry(nz: int) -> tuple[NDArray[np.float64], ...]:
     """Read-only zenith, azimuth, directions and meridian frames of the grid (cached per size).
 
     The (..., 3) vectors are stored component-major (each component one
-    contiguous block), which speeds up the per-component arithmetic.
+    contiguous block), which speeds up the per-component arithmetic. On the
+    grid every factor is a function of the zenith row or of the azimuth
+    column alone, so the trigonometry is done on the 5 n_zenith angles and
+    the vectors are outer products: with ``v = (sin Z sin A, sin Z cos A,
+    cos Z)`` (:func:`~pihim.sky.sun.direction_from_angles`), the meridian
+    frame of :func:`~pihim.sky.rayleigh.meridian_frame` is ``e = (-cos Z sin
+    A, -cos Z cos A, sin Z)`` and ``d x e = (-cos A, sin A, 0)`` (``sin Z >
+    0`` at every cell centre).
     """
     zz, aa = sky_grid(90.0 / nz)
-    v = direction_from_angles(zz, aa)
-    e, f = meridian_frame(v)
-    v, e, f = (np.moveaxis(np.ascontiguousarray(np.moveaxis(a, -1, 0)), 0, -1) for a in (v, e, f))
+    z, a = np.radians(zz[:, :1]), np.radians(aa[:1, :])
+    sz, cz, sa, ca = np.sin(z), np.cos(z), np.sin(a), np.cos(a)
+    comp = np.empty((3, 3, *zz.shape))  # (vector, component, zenith, azimuth)
+    for k, parts in enumerate(((sz * sa, sz * ca, cz), (-cz * sa, -cz * ca, sz), (-ca, sa, 0.0))):
+        for j, part in enumerate(parts):
+            comp[k, j] = part
+    v, e, f = (np.moveaxis(c, 0, -1) for c in comp)
     arrays = (zz, aa, v, e, f)
     for a in arrays:
         a.flags.writeable = False
