@@ -22,9 +22,12 @@ Start-up
     bare previews stored uncompressed). Each run starts after ``sync``. Anchor,
     in the same run: the same frames through a plain script (tifffile read,
     the numpy super-pixel route of ``bench_polar.py``, three float32 TIFFs
-    written) in one process. Also in the same run: the disk's sustained
+    written) in one process. Before each of these runs the frames are
+    dropped from the page cache (they are read from the disk, as a user's
+    are). Also in the same run: the disk's sustained
     write bandwidth, written as ``pihim polar`` writes (1 GiB with direct
-    I/O), and each setting's output bytes and disk floor per frame.
+    I/O) and its read bandwidth (the frames read off the disk), and each
+    setting's bytes per frame and disk floor (read plus written) per frame.
 
 Beside each real run's import time, its floor: every module the run loaded
 except pihim's own, imported in the same order by a bare Python process
@@ -270,6 +273,36 @@ def disk_write_mb_s(folder: Path, n_bytes: int = 1 << 30) -> float:
     return n_bytes / seconds / 1e6
 
 
+def disk_read_mb_s(paths: Sequence[str | Path]) -> float:
+    """Sequential read bandwidth of the disk holding ``paths``: the files read whole, in 16 MiB blocks, off the disk."""
+    import time
+
+    evict_from_page_cache(paths)
+    n_bytes, start = 0, time.perf_counter()
+    for path in paths:
+        with open(path, "rb", buffering=0) as f:
+            while block := f.read(1 << 24):
+                n_bytes += len(block)
+    seconds = time.perf_counter() - start
+    evict_from_page_cache(paths)
+    return n_bytes / seconds / 1e6
+
+
+def evict_from_page_cache(paths: Sequence[str | Path]) -> None:
+    """Drop the files' pages from the operating system's page cache (``posix_fadvise(DONTNEED)``), after a ``sync``.
+
+    Frames written just before a run would otherwise be read from memory;
+    a user's frames come from the disk (or the card) they were copied to.
+    """
+    os.sync()
+    for path in paths:
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+        finally:
+            os.close(fd)
+
+
 def _folder_bytes(folder: Path) -> int:
     return sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
 
@@ -286,7 +319,9 @@ def polar_runs(n_frames: int) -> dict[str, Any]:
         for key, extra in (("superpixel", ["--json"]), ("superpixel_png", ["--json", "--png"]),
                            ("full", ["--json", "--demosaic", "full"])):
             out = root / f"out-{key}"
-            os.sync()  # the previous run's outputs (up to 6 GB) reach the disk before this run, not during it
+            # the previous run's outputs (up to 6 GB) reach the disk before this run, not during it; the frames
+            # are read from the disk, not from memory
+            evict_from_page_cache(frames)
             res = pihim(["polar", *frames, "--out", str(out), *extra])
             records = res["stdout"].strip().splitlines()
             runs[key] = {k: res[k] for k in ("returncode", "wall_s", "cpu_s", "load_before", "load_after", "other_cpu")}
@@ -296,7 +331,7 @@ def polar_runs(n_frames: int) -> dict[str, Any]:
             shutil.rmtree(out, ignore_errors=True)
         out = root / "out-anchor"
         out.mkdir()
-        os.sync()
+        evict_from_page_cache(frames)
         res = harness.process_run([sys.executable, "-c", _ANCHOR_SCRIPT, str(Path(__file__).resolve().parent),
                                    str(out), *frames], env=_env())
         runs["numpy_script"] = {k: res[k] for k in ("returncode", "wall_s", "cpu_s", "load_before", "load_after",
@@ -304,8 +339,12 @@ def polar_runs(n_frames: int) -> dict[str, Any]:
         runs["numpy_script"].update(frames=n_frames, ms_per_frame=1e3 * res["wall_s"] / n_frames,
                                     cpu_ms_per_frame=1e3 * res["cpu_s"] / n_frames)
         runs["disk_write_mb_s"] = disk_write_mb_s(root)
+        runs["disk_read_mb_s"] = disk_read_mb_s(frames)
+        input_mb_per_frame = sum(os.path.getsize(f) for f in frames) / n_frames / 1e6
     for key in ("superpixel", "superpixel_png", "full"):
-        runs[key]["disk_floor_ms_per_frame"] = 1e3 * runs[key]["output_mb_per_frame"] / runs["disk_write_mb_s"]
+        runs[key]["input_mb_per_frame"] = input_mb_per_frame
+        runs[key]["disk_floor_ms_per_frame"] = 1e3 * (runs[key]["output_mb_per_frame"] / runs["disk_write_mb_s"]
+                                                      + input_mb_per_frame / runs["disk_read_mb_s"])
     sp, png = runs["superpixel"], runs["superpixel_png"]
     runs["previews"] = {"ms_per_frame": png["ms_per_frame"] - sp["ms_per_frame"],
                         "cpu_ms_per_frame": png["cpu_ms_per_frame"] - sp["cpu_ms_per_frame"]}
@@ -403,15 +442,18 @@ def markdown_report(r: dict[str, Any]) -> str:
                  f"{p['previews']['cpu_ms_per_frame']:.1f} | | |")
     disk = p.get("disk_write_mb_s")
     if disk:
-        lines += ["", f"Disk under the outputs, same run: {disk:.0f} MB/s sustained (1 GiB written as `pihim polar` "
-                  "writes, with direct I/O). Outputs per frame and the time the disk needs for them (`pihim polar` "
-                  "writes past the page cache: a run cannot go faster than its disk floor):", "",
-                  "| run | MB per frame | disk floor, ms per frame | measured, ms per frame |", "|---|--:|--:|--:|"]
+        lines += ["", f"Disk, same run: {disk:.0f} MB/s sustained writes (1 GiB written as `pihim polar` writes, "
+                  f"with direct I/O), {p['disk_read_mb_s']:.0f} MB/s reads (the frames, dropped from the page cache "
+                  "as before each run). Bytes per frame and the time the disk needs for them, read plus written "
+                  "(`pihim polar` reads the frames off the disk and writes past the page cache: a run cannot go "
+                  "faster than its disk floor):", "",
+                  "| run | MB read per frame | MB written per frame | disk floor, ms per frame "
+                  "| measured, ms per frame |", "|---|--:|--:|--:|--:|"]
         for key, label in (("superpixel", "super-pixel `--json`"), ("superpixel_png", "super-pixel `--json --png`"),
                            ("full", "full resolution `--json`")):
             x = p[key]
-            lines.append(f"| {label} | {x['output_mb_per_frame']:.1f} | {x['disk_floor_ms_per_frame']:.1f} | "
-                         f"{x['ms_per_frame']:.1f} |")
+            lines.append(f"| {label} | {x['input_mb_per_frame']:.1f} | {x['output_mb_per_frame']:.1f} "
+                         f"| {x['disk_floor_ms_per_frame']:.1f} | {x['ms_per_frame']:.1f} |")
     lines += harness.target_table(r["targets"], spec=".2f", unit_spec={"ms": ".1f"}, column="Result", align="--:")
     return "\n".join(lines)
 
