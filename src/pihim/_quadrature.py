@@ -2,13 +2,15 @@
 
 ``numpy.polynomial.legendre.leggauss`` finds the nodes as eigenvalues of the
 companion matrix (LAPACK through OpenBLAS). The ground model takes 256 nodes
-when it is built; in a fresh process that first LAPACK call started
-OpenBLAS's threads and took 0.25-0.5 s of CPU on the 2-core benchmark
-machine (6 ms with ``OPENBLAS_NUM_THREADS=1``), once per ``pihim ground``,
-``plan`` or ``windows`` run. Newton's method on ``P_n`` needs numpy
-arithmetic only: a few iterations from Tricomi's asymptotic starting
-values, about 1 ms for 256 nodes, and the same nodes and weights to a few
-units in the last place.
+when it is built; in a fresh process that first LAPACK call starts
+OpenBLAS's threads: 7 ms wall and 10 ms of CPU on the idle 2-core benchmark
+machine, but 0.5 s wall and 0.49 s of CPU while another job kept both
+cores busy (OpenBLAS's threads waiting for a CPU; 6 ms with
+``OPENBLAS_NUM_THREADS=1``), once per ``pihim ground``, ``plan`` or
+``windows`` run. Newton's method on ``P_n`` needs numpy arithmetic only: a
+few iterations from Tricomi's asymptotic starting values, about 4 ms for
+256 nodes, and the same nodes and weights to a few units in the last
+place.
 
 References
 ----------
