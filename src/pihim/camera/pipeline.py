@@ -213,8 +213,9 @@ def _new_outputs(shape: tuple[int, int]) -> tuple[NDArray, ...]:
     numpy asks Linux for transparent huge pages on allocations of 4 MB and
     more, and the block's fresh pages are then mapped and zeroed 2 MiB at a
     time -- 14 page faults for a super-pixel frame's 26 MB, against about
-    2,800 for six separate arrays, and 4.4-4.8 ms per call against 7.7-8.2
-    ms on the 2-core benchmark machine (``benchmarks/bench_polar.py``).
+    2,800 for six separate arrays: 3.0 ms per call with new pages every
+    call against 8.0 ms for the same kernel writing six separate new arrays
+    (``benchmarks/bench_polar.py`` on the idle 2-core benchmark machine).
     """
     n = shape[0] * shape[1]
     total = 5 * 4 * n + n
