@@ -15,7 +15,11 @@ Rows (each timed ``repeat`` times after ``warmup`` untimed calls, one process):
 ``NSTTF full plan``
     Both of the above plus the home point and the split into flights
     (:func:`pihim.planning.endurance.split_flights`). Target: <= 1 s (the
-    polarimetric scoring comes on top); planning alone <= 300 ms.
+    polarimetric scoring comes on top); planning alone <= 300 ms. Not
+    included: the facet captures, route and coverage that
+    :func:`pihim.planning.pipeline.build_plan` (and ``pihim plan``) add,
+    nor the command's imports, exports and figure (``bench_cli`` times
+    ``pihim plan`` as a process).
 ``radial N full plan``
     A radial-staggered field of N heliostats around a 200 m tower aiming at
     195 m (:func:`pihim.field.layout.radial_staggered_field`), same sun:
