@@ -88,34 +88,69 @@ def _targets_summary(results: Any) -> tuple[str, bool]:
     return f"targets: {counts}", "FAIL" in verdicts
 
 
+#: First argument of this file's command line in a benchmark's own process (see :func:`run`).
+_CHILD = "--run-one"
+
+
+def run_one(name: str, options: dict[str, Any]) -> dict[str, Any] | None:
+    """Import and run one benchmark module in this process; its outcome, or None if it has no ``main()``."""
+    if str(BENCH_DIR) not in sys.path:
+        sys.path.insert(0, str(BENCH_DIR))
+    try:
+        module = importlib.import_module(name)
+        entry = getattr(module, "main", None)
+        if not callable(entry):
+            print(f"(skipped: {name}.py defines no main())")
+            return None
+        return {"ok": True, "results": call_main(entry, options)}
+    except Exception:  # noqa: BLE001 - report and go on with the next benchmark
+        traceback.print_exc()
+        return {"ok": False, "error": traceback.format_exc(limit=1).strip().splitlines()[-1]}
+
+
 def run(names: Sequence[str], options: dict[str, Any]) -> dict[str, Any]:
-    """Import and run the named benchmark modules one after the other.
+    """Run the named benchmark modules one after the other, each in a new Python process of its own.
+
+    A module's figures then do not depend on the modules run before it in
+    the same process (numba's loaded registries, caches, the allocator's
+    thresholds raised by their large arrays): each starts as a user's
+    process does.
 
     Returns
     -------
     dict
         ``{name: {"ok": bool, "seconds": float, "results": ..., "error": str}}``.
     """
-    if str(BENCH_DIR) not in sys.path:
-        sys.path.insert(0, str(BENCH_DIR))
+    import json
+    import subprocess
+    import tempfile
+
     outcome: dict[str, Any] = {}
     for name in names:
         print(f"\n## {name}\n", flush=True)
         start = time.perf_counter()
-        try:
-            module = importlib.import_module(name)
-            entry = getattr(module, "main", None)
-            if not callable(entry):
-                print(f"(skipped: {name}.py defines no main())")
-                continue
-            results = call_main(entry, options)
-            outcome[name] = {"ok": True, "results": results}
-        except Exception:  # noqa: BLE001 - report and go on with the next benchmark
-            traceback.print_exc()
-            outcome[name] = {"ok": False, "error": traceback.format_exc(limit=1).strip().splitlines()[-1]}
-        outcome[name]["seconds"] = time.perf_counter() - start
+        with tempfile.TemporaryDirectory(prefix="pihim-bench-run-") as tmp:
+            report = Path(tmp) / "outcome.json"
+            proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), _CHILD, name,
+                                   json.dumps(options), str(report)], check=False)
+            if report.exists():
+                res = json.loads(report.read_text())
+            else:
+                res = {"ok": False, "error": f"its process ended with status {proc.returncode} and no outcome"}
+        if res is None:
+            continue
+        outcome[name] = {**res, "seconds": time.perf_counter() - start}
         sys.stdout.flush()
     return outcome
+
+
+def _child(name: str, options: str, report: str) -> None:
+    """A benchmark's own process: run it and write its outcome (JSON) to ``report``."""
+    import json
+
+    res = run_one(name, json.loads(options))
+    sys.stdout.flush()
+    Path(report).write_text(json.dumps(res, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -170,4 +205,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    if sys.argv[1:2] == [_CHILD]:
+        _child(*sys.argv[2:5])
+    else:
+        sys.exit(main())
