@@ -194,8 +194,8 @@ def _grid_geometry(nz: int) -> tuple[NDArray[np.float64], ...]:
     The (..., 3) vectors are stored component-major (each component one
     contiguous block), which speeds up the per-component arithmetic. On the
     grid every factor is a function of the zenith row or of the azimuth
-    column alone, so the trigonometry is done on the 5 n_zenith angles and
-    the vectors are outer products: with ``v = (sin Z sin A, sin Z cos A,
+    column alone, so the sines and cosines are taken of the n_zenith row
+    and 4 n_zenith column angles only, and the vectors are outer products: with ``v = (sin Z sin A, sin Z cos A,
     cos Z)`` (:func:`~pihim.sky.sun.direction_from_angles`), the meridian
     frame of :func:`~pihim.sky.rayleigh.meridian_frame` is ``e = (-cos Z sin
     A, -cos Z cos A, sin Z)`` and ``d x e = (-cos A, sin A, 0)`` (``sin Z >
