@@ -734,9 +734,10 @@ NOTES = (
     "vs anchor: the anchor's median divided by the row's (same output resolution): numpy super-pixel for the "
     "super-pixel rows, polanalyser bilinear float32 for the full-resolution rows (float32 channels and Mueller "
     "matrices, so the same dtype as pihim's outputs).",
-    "Fresh outputs: every call allocates its outputs (new pages the operating system zeroes on first touch); out=: "
-    "the same arrays are written every call. Each row runs in a new process of its own (the allocator as in a "
-    "user's process); page faults / call: that process's minor faults per timed call.",
+    "Fresh outputs: every call allocates its outputs (the allocator may hand back the block the call before freed, "
+    "as in a user's process; the page faults say so); new pages: every call's outputs are pages the operating "
+    "system maps and zeroes anew; out=: the same arrays are written every call. Each row runs in a new process of "
+    "its own; page faults / call: that process's minor faults per timed call.",
     "Other CPU %: share of the machine's CPUs used by other processes during the timed calls (/proc/stat); Load: "
     "one-minute load average after them.",
 )
