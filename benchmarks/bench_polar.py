@@ -350,7 +350,8 @@ class Row:
         Key of the row this one is compared with (same resolution).
     new_pages : bool
         Every call's outputs on new pages: the row's process fixes glibc's
-        mmap threshold at its default 128 KiB (``mallopt``), so that every
+        mmap and trim thresholds at their initial 128 KiB
+        (:func:`pihim._malloc.keep_freed_memory`, ``mallopt``), so that every
         large block is mapped when allocated and unmapped when freed,
         however large the blocks freed before.
     to_common : callable
@@ -512,14 +513,14 @@ def measure_rows(frames: Sequence[NDArray[np.uint16]], repeat: int, warmup: int,
 def _measure_row_child(key: str, folder: str, repeat: str, warmup: str, bandwidth_gb_s: str,
                        wait_quiet_s: str) -> None:
     """The row's own process: load the frames, time the row, print its result as one JSON line."""
-    import ctypes
     import json
 
+    from pihim._malloc import keep_freed_memory
+
     row = next(r for r in rows() if r.key == key)
-    if row.new_pages:
-        m_mmap_threshold = -3  # glibc malloc.h
-        if not ctypes.CDLL(None).mallopt(m_mmap_threshold, 128 * 1024):
-            raise RuntimeError("mallopt(M_MMAP_THRESHOLD) failed")
+    # glibc's default thresholds, fixed: no longer raised by the blocks freed
+    if row.new_pages and not keep_freed_memory(128 * 1024, 128 * 1024):
+        raise RuntimeError("could not fix glibc's mmap threshold (not glibc, or set in the environment)")
     frames = [np.load(p) for p in sorted(Path(folder).glob("frame_*.npy"))]
     print(json.dumps(measure_row(row, frames, int(repeat), int(warmup), float(bandwidth_gb_s),
                                  float(wait_quiet_s))))

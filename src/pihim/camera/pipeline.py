@@ -213,9 +213,12 @@ def _new_outputs(shape: tuple[int, int]) -> tuple[NDArray, ...]:
     numpy asks Linux for transparent huge pages on allocations of 4 MB and
     more, and the block's fresh pages are then mapped and zeroed 2 MiB at a
     time -- 14 page faults for a super-pixel frame's 26 MB, against about
-    2,800 for six separate arrays: 3.0 ms per call with new pages every
-    call against 8.0 ms for the same kernel writing six separate new arrays
-    (``benchmarks/bench_polar.py`` on the idle 2-core benchmark machine).
+    2,800 for six separate arrays. With new pages every call, medians of
+    2.6-3.0 ms per call in three runs (6.8 ms in a fourth, short one)
+    against 4.2-8.0 ms for the same kernel writing six separate new arrays
+    (``benchmarks/bench_polar.py`` on the idle 2-core benchmark machine,
+    2026-11-28: how fast the kernel hands out pages varies from run to
+    run).
     """
     n = shape[0] * shape[1]
     total = 5 * 4 * n + n
