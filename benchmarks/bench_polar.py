@@ -15,8 +15,8 @@ bilinear route in float32 (same resolution and dtype as pihim's full
 route); polanalyser's float64 default is shown too.
 
 Each row is timed in a process of its own, started for it, which loads the
-frames from ``.npy`` files (``numpy.fromfile``: no large temporary freed):
-the state a user's process is in. In one process shared by all rows, a
+frames from ``.npy`` files (``numpy.load`` reads into the new array: no
+large temporary freed): the state a user's process is in. In one process shared by all rows, a
 large block freed before a row (building the frames frees 20 MB arrays;
 polanalyser's rows free larger ones) raises glibc's mmap and trim
 thresholds, and a row's freed outputs then come back to its next call
