@@ -85,7 +85,12 @@ ambiguous. Over 80 frames (``--frames 80``) 236 facets at 0.058 / 0.018
 mrad, the largest error 0.62 mrad; on frames 60-79, rendered after every
 choice here was made, 60 facets at 0.010 / 0.015 mrad, largest 0.07 (the
 code before these three changes: 63 at 0.46 / 0.04, ten 0.5-3.0 mrad off);
-about 1.5 s of CPU per frame for this step. Before the final fits tried the
+about 1.5 s of CPU per frame for this step. On 80 more frames rendered
+after that (100-179), 273 facets: 0.30 / 0.04 mrad on 100-139, where one
+frame keeps two facets mostly outside the picture 3.2 mrad off (the image
+supports that basin better than the true one; it moved its frame's other
+three facets 1.3 mrad), and 0.029 / 0.047 mrad, largest 0.31, on 140-179
+(BENCHMARKS.md). Before the final fits tried the
 neighbouring basins: 87 facets at 0.15 / 0.16 mrad, six of them 0.6-1.15
 mrad off, mostly in a basin next to the true one, which also moved the
 other facets of their frame (every value is relative to the mean), 1.1 s of
