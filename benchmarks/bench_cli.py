@@ -124,10 +124,12 @@ sys.exit(rc)
 #: Imports, in a bare Python process, the modules named in the file ``sys.argv[1]`` in that order (every module but
 #: pihim's own that a timed run loaded, in the order it loaded them) and prints the CPU and wall time it took: the
 #: floor that pihim's dependencies and the standard library set for that run, whatever pihim does. The pihim script
-#: runs OpenBLAS single-threaded, so this process does too.
+#: runs OpenBLAS single-threaded and starts with the collector's thresholds raised (:mod:`pihim._collector`; given
+#: as ``sys.argv[2]``), so this process does too.
 _FLOOR_SCRIPT = r"""
-import importlib, os, sys, time
+import gc, importlib, os, sys, time
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+gc.set_threshold(*map(int, sys.argv[2].split(",")))
 with open(sys.argv[1]) as f:
     names = f.read().split()
 c, t, failed = time.process_time(), time.perf_counter(), 0
@@ -162,7 +164,10 @@ def dependency_floor(modules: Sequence[str]) -> dict[str, Any]:
     with tempfile.NamedTemporaryFile("w", suffix=".txt", prefix="pihim-modules-") as f:
         f.write("\n".join(modules))
         f.flush()
-        res = harness.process_run([sys.executable, "-c", _FLOOR_SCRIPT, f.name], env=_env())
+        from pihim._collector import STARTUP_THRESHOLDS
+
+        res = harness.process_run([sys.executable, "-c", _FLOOR_SCRIPT, f.name, ",".join(map(str, STARTUP_THRESHOLDS))],
+                                  env=_env())
     for line in res["stdout"].splitlines():
         if line.startswith("PIHIM_FLOOR "):
             fields = dict(x.split("=") for x in line.split()[1:])

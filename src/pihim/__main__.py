@@ -40,6 +40,9 @@ def run() -> int:
         print(f"pihim: error: the address-space limit of {limit / 1e9:.3g} GB (ulimit -v {limit // 1024}) is "
               f"below the {START_BYTES / 1e9:.3g} GB pihim needs to load its libraries", file=sys.stderr)
         return 2
+    from pihim._collector import relax_during_startup
+
+    relax_during_startup()  # the long-lived heap of the libraries is built without the collector walking it
     # numpy's and SciPy's OpenBLAS each start a pool of threads at import that spin before they sleep (0.06 s of
     # CPU each, start-up no command needs: pihim's heavy kernels are numba's and OpenCV's, its matrix products
     # small). A command-line process only; a value set by the user wins.
