@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import sys
 from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING, Any, TypeVar
-
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from pihim._atomic import check_not_an_input, check_out_dir, make_out_dir, output_dir, output_target  # noqa: F401 - the commands import them from here
 from pihim._inputs import check_regular_file
@@ -21,10 +19,22 @@ T = TypeVar("T")
 if TYPE_CHECKING:
     from pathlib import Path
 
+    from rich.console import Console
+
     from pihim.field import Field
 
-#: Console for human-oriented output; stdout is kept for JSON.
-stderr_console = Console(stderr=True)
+
+
+@functools.cache
+def stderr_console() -> Console:
+    """The console for human-oriented output, on stderr (stdout is kept for JSON); made on first use.
+
+    Importing rich takes 15-20 ms of CPU, which a command that writes JSON
+    alone (``pihim polar FRAME --json``) never needs.
+    """
+    from rich.console import Console
+
+    return Console(stderr=True)
 
 
 def parse_layout(text: str) -> MosaicLayout:
@@ -54,6 +64,8 @@ def progress(items: Sequence[T], description: str, *, min_items: int = 2) -> Ite
     if len(items) < min_items:
         yield from items
         return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
     columns = (
         TextColumn("{task.description}"),
         BarColumn(),
@@ -61,7 +73,8 @@ def progress(items: Sequence[T], description: str, *, min_items: int = 2) -> Ite
         TimeRemainingColumn(),
     )
     # only on a terminal: piped into a log, a bar is one more line that says nothing
-    with Progress(*columns, console=stderr_console, transient=False, disable=not stderr_console.is_terminal) as bar:
+    with Progress(*columns, console=stderr_console(), transient=False,
+                  disable=not stderr_console().is_terminal) as bar:
         task = bar.add_task(description, total=len(items))
         for item in items:
             yield item

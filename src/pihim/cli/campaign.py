@@ -32,7 +32,7 @@ def _bars(enabled: bool) -> Iterator[Any]:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     with Progress(TextColumn("{task.description:<8}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                  console=stderr_console, transient=False) as bar:
+                  console=stderr_console(), transient=False) as bar:
         tasks: dict[str, Any] = {}
 
         def update(stage: str, done: int, total: int) -> None:
@@ -114,7 +114,7 @@ def simulate_flight(
     if json_out:
         emit_json(summary)
     else:
-        stderr_console.print(f"[bold]pihim simulate-flight[/bold]: wrote {summary['frames']} frames "
+        stderr_console().print(f"[bold]pihim simulate-flight[/bold]: wrote {summary['frames']} frames "
                              f"({w}x{h}, {summary['reused']} reused from an earlier run) to {out}, "
                              f"poses in {summary['log']}, truth in {out / 'truth'}",
                              highlight=False, soft_wrap=True)
@@ -175,7 +175,7 @@ def run(
         emit_json(summary)
     else:
         c = summary["counts"]
-        stderr_console.print(
+        stderr_console().print(
             f"[bold]pihim campaign run[/bold]: campaign {summary['campaign']} in {store}: frames "
             f"{c['frames']['done']} done, {c['frames']['selected']} selected, {c['frames']['skipped']} skipped, "
             f"{c['frames']['pending']} pending; pairs {c['pairs']['selected']}/{c['pairs']['candidates']} selected, "
@@ -183,7 +183,7 @@ def run(
             f"{c['observations']['failed']} failed; {c['heliostats_measured']} heliostats measured "
             f"({summary['seconds']:.1f} s)", highlight=False, soft_wrap=True)
         for reason, n in c["pairs_skipped_by_reason"].items():
-            stderr_console.print(f"  pairs skipped: {n} x {reason}", highlight=False, soft_wrap=True)
+            stderr_console().print(f"  pairs skipped: {n} x {reason}", highlight=False, soft_wrap=True)
     return _unreadable_status(unreadable, sum(f["frames"] for f in summary["flights"]), store)
 
 
@@ -240,7 +240,7 @@ def report(
     if json_out:
         emit_json(summary)
     else:
-        stderr_console.print(f"[bold]pihim campaign report[/bold]: wrote {summary['files']['index']} "
+        stderr_console().print(f"[bold]pihim campaign report[/bold]: wrote {summary['files']['index']} "
                              f"({summary['heliostats_measured']} heliostats measured, "
                              f"{len(summary['files']) - 1} more files)", highlight=False, soft_wrap=True)
     return 0
@@ -274,6 +274,6 @@ def export(
         emit_json({"schema": "pihim.campaign-export/1", "store": str(store), "format": fmt,
                    "files": {k: str(v) for k, v in paths.items()}, "rows": rows_per})
     else:
-        stderr_console.print(f"[bold]pihim campaign export[/bold]: wrote {len(paths)} {fmt} files to {out}",
+        stderr_console().print(f"[bold]pihim campaign export[/bold]: wrote {len(paths)} {fmt} files to {out}",
                              highlight=False, soft_wrap=True)
     return 0

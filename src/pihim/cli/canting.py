@@ -116,7 +116,7 @@ def canting(
         emit_json(record)
     used = [f for f in record["facets"] if f["used"]]
     vals = ", ".join(f"{f['id']}: {f['az_mrad']:+.2f}/{f['el_mrad']:+.2f}" for f in used)
-    stderr_console.print(
+    stderr_console().print(
         f"[bold]pihim canting[/bold]: {record['hua']} (target {record['target']}, {len(frames)} frame(s)): "
         f"{len(used)} of {len(record['facets'])} facets used (az/el mrad relative to the best-fit orientation: "
         f"{vals or 'none'}); wrote {paths['json']} and {paths['png']} in {record['seconds']:.1f} s",

@@ -60,13 +60,13 @@ def demo(
     # and the run stops before writing anything
     with output_dir(out):
         clean_stale_temporaries_tree(out, depth=2)  # ... and in DIR/plan, DIR/pairs/NN_HUA-TARGET
-        stderr_console.print(f"[bold]pihim demo[/bold]: planning the NSTTF-like field at {DEMO_TIME} ...")
+        stderr_console().print(f"[bold]pihim demo[/bold]: planning the NSTTF-like field at {DEMO_TIME} ...")
         doc = run_demo(out, settings, steps=lambda items, desc: progress(items, desc, min_items=1),
                        compile_helper=compile_helper)
     sm, plan = doc["summary"], doc["plan"]
     from pihim.planning.scoring import images_text
 
-    stderr_console.print(f"[bold]pihim demo[/bold]: {plan['passes']} passes, {images_text(plan)}; "
+    stderr_console().print(f"[bold]pihim demo[/bold]: {plan['passes']} passes, {images_text(plan)}; "
                          f"{plan['flights']} flights -> {out / 'plan'}", highlight=False)
 
     def f(v: float | None, spec: str = ".2f") -> str:
@@ -74,16 +74,16 @@ def demo(
 
     for p in doc["pairs"]:
         if "score" not in p:
-            stderr_console.print(f"  {p['hua']}/{p['target']}: not inspected: {p.get('error')}")
+            stderr_console().print(f"  {p['hua']}/{p['target']}: not inspected: {p.get('error')}")
             continue
         s = p["score"]
         pose = s["pose"]
-        stderr_console.print(
+        stderr_console().print(
             f"  {p['hua']}/{p['target']}: pose {f(pose['prior_corner_error_px'], '.0f')} -> "
             f"{f(pose['refined_corner_error_px'])} px; {s['facets_used']} facets, canting RMS error "
             f"az {f(s['rms_az_mrad'])} / el {f(s['rms_el_mrad'])} mrad (paper grid "
             f"{f(s['grid_rms_az_mrad'])} / {f(s['grid_rms_el_mrad'])}); {p['seconds']['total']:.1f} s")
-    stderr_console.print(f"  report: {out / 'report.html'}  ({sm['seconds']:.0f} s in all)")
+    stderr_console().print(f"  report: {out / 'report.html'}  ({sm['seconds']:.0f} s in all)")
     if json_out:
         emit_json(doc)
     return 0

@@ -196,7 +196,7 @@ def edges(
         emit_json(record)
     else:
         frac = ", ".join(f"{t} {st['edge_fraction']:.1%}" for t, st in record["images"].items())
-        stderr_console.print(
+        stderr_console().print(
             f"[bold]pihim edges[/bold]: {frame.name} ({method}, {demosaic}, {maps.shape[1]}x{maps.shape[0]}): "
             f"edge pixels {frac}; wrote {len(writers)} files to {out}", highlight=False, soft_wrap=True,
         )

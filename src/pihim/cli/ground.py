@@ -170,12 +170,12 @@ def ground(
     sky = with_horizontal_irradiance(SkyModel(kind=model, dmax=dmax), sun.vector, sky_irradiance)  # type: ignore[arg-type]
     check_out_dir(out)
     normal = normalize(direction_from_angles(mirror_normal_zenith, mirror_normal_azimuth))
-    with stderr_console.status("pihim ground: computing the ground and mirror maps ..."):
+    with stderr_console().status("pihim ground: computing the ground and mirror maps ..."):
         maps = _maps(ground_model, sky, mirror_obj, sun.vector, normal, resolution)
     # everything is computed (and so validated) before the first file is written
     mc = None
     if monte_carlo:
-        with stderr_console.status(f"pihim ground: Monte Carlo over {facets:,} microfacets ..."):
+        with stderr_console().status(f"pihim ground: Monte Carlo over {facets:,} microfacets ..."):
             mc = ground_model.monte_carlo(sun.vector, sky, n_facets=facets, bin_deg=resolution, seed=seed)
     title = f"sun zen {float(sun.zenith_deg):.1f} az {float(sun.azimuth_deg):.1f}, sigma {sigma:g}"
     sun_marker = ((float(sun.azimuth_deg), float(sun.zenith_deg), "*", "sun"),)
@@ -227,7 +227,7 @@ def ground(
         best_text = "" if best is None else (f", largest AoP difference {best['value_deg']:.0f} deg (camera zenith "
                                              f"{best['camera_zenith_deg']:.0f}, azimuth "
                                              f"{best['camera_azimuth_deg']:.0f} deg)")
-        stderr_console.print(
+        stderr_console().print(
             f"pihim ground: sun zenith {float(sun.zenith_deg):.1f} deg, azimuth {float(sun.azimuth_deg):.1f} deg; "
             f"the mirror shows ground in {100 * summ['fraction_mirror_shows_ground']:.0f} % of camera directions, "
             f"ground-vs-ground usable in {100 * summ['fraction_usable']:.0f} %{best_text}\n"

@@ -123,21 +123,21 @@ def plan(
                    "aim_point": list(the_plan.aim_point), **summary,
                    "files": {k: str(v) for k, v in files.items()}})
     else:
-        stderr_console.print(_human_summary(summary, files, out), highlight=False, soft_wrap=True)
+        stderr_console().print(_human_summary(summary, files, out), highlight=False, soft_wrap=True)
     return 0
 
 
 @contextlib.contextmanager
 def _stage_status(n_heliostats: int) -> Iterator[Callable[[str], None]]:
     """A one-line status on stderr naming the stage ``build_plan`` is in (only on a terminal)."""
-    if not stderr_console.is_terminal:
+    if not stderr_console().is_terminal:
         yield lambda _name: None
         return
     from rich.live import Live
     from rich.text import Text
 
     # redrawn at each stage only: no refresh thread and no stdout / stderr proxies while the planner forks workers
-    with Live(Text(f"pihim plan: {n_heliostats:,} heliostats ..."), console=stderr_console, auto_refresh=False,
+    with Live(Text(f"pihim plan: {n_heliostats:,} heliostats ..."), console=stderr_console(), auto_refresh=False,
               transient=True, redirect_stdout=False, redirect_stderr=False) as live:
         t0 = _time.perf_counter()
 

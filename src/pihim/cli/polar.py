@@ -595,7 +595,7 @@ def polar(
             print(f"pihim: {run.resumed} of {len(batch)} frames were already done in {out_dir} and were skipped "
                   "(--overwrite redoes them)", file=sys.stderr)
     elif run.processed or run.resumed:
-        stderr_console.print(_summary(run.processed, run.resumed, len(batch), out_dir, png=png),
+        stderr_console().print(_summary(run.processed, run.resumed, len(batch), out_dir, png=png),
                              highlight=False, soft_wrap=True)
     return run.status
 

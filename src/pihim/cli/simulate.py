@@ -110,7 +110,7 @@ def _render_progress(enabled: bool) -> Iterator[Callable[[int, int], Any] | None
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
-                  TimeRemainingColumn(), console=stderr_console, transient=True) as bar:
+                  TimeRemainingColumn(), console=stderr_console(), transient=True) as bar:
         task = bar.add_task("rendering", total=None)
 
         def update(done: int, total: int) -> None:
@@ -237,11 +237,11 @@ def simulate(
     else:
         pair = f"HUA {sim.log['hua']}, target {sim.log['target']}; " if sim.log["hua"] else ""
         clipped = sim.log["sensor"]["exposure"].get("clipped_fraction") or 0.0
-        stderr_console.print(
+        stderr_console().print(
             f"[bold]pihim simulate[/bold]: wrote {out} ({width}x{height} raw) with {paths['json'].name} "
             f"and S0/DoLP/AoP/labels TIFFs", highlight=False, soft_wrap=True,
         )
-        stderr_console.print(
+        stderr_console().print(
             f"  {pair}{len(in_view)} heliostat{'' if len(in_view) == 1 else 's'} in view; {int(stats.get('rays', 0)):,} rays, "
             f"{clipped:.2%} clipped, {seconds:.1f} s", highlight=False, soft_wrap=True,
         )

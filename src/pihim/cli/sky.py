@@ -212,7 +212,7 @@ def sky(
     else:
         summ = _summary(result, resolution)
         peak = summ["dolp_max"]
-        stderr_console.print(
+        stderr_console().print(
             f"pihim sky: sun zenith {float(sun.zenith_deg):.1f} deg, azimuth {float(sun.azimuth_deg):.1f} deg, "
             f"{model}; DoLP max {peak['value']:.2f} at zenith {peak['zenith_deg']:.1f} deg, azimuth "
             f"{peak['azimuth_deg']:.1f} deg ({peak['scattering_angle_deg']:.0f} deg from the sun)\n"

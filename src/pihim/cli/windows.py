@@ -111,7 +111,7 @@ def windows(
             "files": {"csv": str(csv_path), "png": str(png_path)},
         })
     else:
-        stderr_console.print(_human_summary(sweep.summary(threshold, "either", relative=relative), out),
+        stderr_console().print(_human_summary(sweep.summary(threshold, "either", relative=relative), out),
                              highlight=False, soft_wrap=True)
     return 0
 
@@ -123,7 +123,7 @@ def _progress_bar(description: str) -> Iterator[Callable[[int, int], None]]:
 
     # no refresh thread and no stdout / stderr proxies: the sweep forks its workers while the bar is up
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                  console=stderr_console, transient=True, disable=not stderr_console.is_terminal,
+                  console=stderr_console(), transient=True, disable=not stderr_console().is_terminal,
                   auto_refresh=False, redirect_stdout=False, redirect_stderr=False) as bar:
         task = bar.add_task(description, total=None)
 
