@@ -32,8 +32,9 @@ Start-up
 
 Beside each real run's import time, its floor: every module the run loaded
 except pihim's own, imported in the same order by a bare Python process
-right after it -- what the dependencies (numpy, typer, matplotlib, numba's
-registries, ...) cost whatever pihim does; the difference is pihim's share.
+right after it, under the collector thresholds the ``pihim`` script starts
+with -- what the dependencies (numpy, typer, matplotlib, numba's registries,
+...) cost whatever pihim does; the difference is pihim's share.
 
 Run ``python benchmarks/run.py --only bench_cli`` or this file directly
 (``--quick``: 20 frames, fewer start-up repetitions; ``--startup-only``: the
