@@ -693,16 +693,50 @@ def test_plan_figure_pass_labels_never_overlap_when_drawn(monkeypatch):
     fig.canvas.draw()
     ax = fig.axes[0]
     np.testing.assert_allclose(seen[0], metres_per_pixel(ax), rtol=1e-9)
-    labels = [t for t in ax.texts if t.get_text().isdigit()]
-    assert sorted(int(t.get_text()) for t in labels) == list(range(12))
+    labels = {int(t.get_text()): t for t in ax.texts if (t.get_gid() or "").startswith("pass-label-")}
+    assert sorted(labels) == list(range(12))
     renderer = fig.canvas.get_renderer()
-    boxes = [t.get_bbox_patch().get_window_extent(renderer) for t in labels]
-    for i, a in enumerate(boxes):
-        for b in boxes[i + 1:]:
-            assert not a.overlaps(b), (a, b)
-    for t in labels:
-        start, spot = np.asarray(t.xy), np.asarray(t.xyann)
-        assert np.hypot(*(spot - start)) < 25.0
+    boxes = {k: t.get_bbox_patch().get_window_extent(renderer) for k, t in labels.items()}
+    for i, a in boxes.items():
+        for j, b in boxes.items():
+            assert i == j or not a.overlaps(b), (a, b)
+    starts = {p.index: np.array([p.waypoints[0].x_m, p.waypoints[0].y_m]) for p in plan.passes}
+    for k, t in labels.items():
+        assert np.hypot(*(np.asarray(t.get_position()) - starts[k])) < 25.0
+    # each leader runs from a pass start to the edge of that pass's label box (drawn, within 2 pixels)
+    (leaders,) = [c for c in ax.collections if c.get_gid() == "pass-leaders"]
+    assert len(leaders.get_segments()) >= 6  # most of the twelve labels had to move
+    for start, end in leaders.get_segments():
+        (k,) = [k for k, s in starts.items() if np.allclose(s, start)]
+        box, (x, y) = boxes[k], ax.transData.transform(end)
+        outside = max(box.x0 - x, x - box.x1, box.y0 - y, y - box.y1)  # > 0 outside, < 0 inside the box
+        assert abs(outside) <= 2.0, (k, outside)
+
+
+def test_plan_figure_arrowheads_point_the_way_each_pass_is_flown(plan, field):
+    """One filled triangle per pass, its tip 2 points short of the pass's last waypoint and its base behind, along
+    the last leg as flown (a pass flown the other way would point the other way)."""
+    import dataclasses
+
+    from pihim.planning.export.figure import ARROW_LENGTH_PT, ARROW_SHRINK_PT, plan_figure
+
+    flipped = dataclasses.replace(plan, passes=tuple(
+        dataclasses.replace(p, waypoints=tuple(reversed(p.waypoints))) for p in plan.passes))
+    for each in (plan, flipped):
+        fig = plan_figure(each, field=field)
+        fig.canvas.draw()
+        ax = fig.axes[0]
+        (heads,) = [c for c in ax.collections if c.get_gid() == "pass-arrowheads"]
+        triangles = [ax.transData.transform(path.vertices[:3]) for path in heads.get_paths()]
+        assert len(triangles) == len(each.passes)
+        pt = fig.dpi / 72.0
+        for p, tri in zip(each.passes, triangles, strict=True):
+            before, end = (ax.transData.transform((w.x_m, w.y_m)) for w in p.waypoints[-2:])
+            d = (end - before) / np.linalg.norm(end - before)
+            ahead = (tri - end) @ d  # along the last leg, pixels, from its end
+            np.testing.assert_allclose(ahead.max(), -ARROW_SHRINK_PT * pt, atol=0.5)
+            np.testing.assert_allclose(ahead.min(), -(ARROW_SHRINK_PT + ARROW_LENGTH_PT) * pt, atol=0.5)
+            assert np.argmax(ahead) == 0  # the tip first
 
 
 def test_plan_figure_of_a_large_plan_leaves_out_numbers_and_lists_flights_in_one_entry(monkeypatch):
@@ -719,7 +753,7 @@ def test_plan_figure_of_a_large_plan_leaves_out_numbers_and_lists_flights_in_one
     def drawn(plan):
         ax = plan_figure(plan, field=make_field()).axes[0]
         numbers = sorted(int(t.get_text()) for t in ax.texts if t.get_text().isdigit())
-        arrows = [t for t in ax.texts if t.get_text() == ""]
+        arrows = [path for c in ax.collections if c.get_gid() == "pass-arrowheads" for path in c.get_paths()]
         marks = sum(len(c.get_offsets()) for c in ax.collections if c.get_label() != "heliostats"
                     and hasattr(c, "get_sizes") and len(c.get_sizes()) and c.get_sizes()[0] == 14)
         legend = [t.get_text() for t in ax.get_legend().get_texts()]

@@ -130,7 +130,7 @@ def plan_figure(
             zorder=2.5, label=f"{len(plan.flights)} flights: {minutes:.0f} min, {km:.1f} km in all"), autolim=True)
 
     labelled = len(plan.passes) <= MAX_LABELLED_PASSES
-    starts = []
+    starts, ends = [], []
     segments, colours, styles, cap_xy, cap_colour = [], [], [], [], []
     # the colour map called once for every pass (34,000 scalar calls took 1.5-2.5 s at 100,000 heliostats)
     pass_colours = cmap(norm(np.array([p.usable_fraction for p in plan.passes], dtype=float)))
@@ -140,9 +140,9 @@ def plan_figure(
         segments.append(xy)
         colours.append(colour)
         styles.append("-" if p.feasible else "--")
-        if labelled and len(xy) >= 2 and np.hypot(*(xy[-1] - xy[0])) > 0:
-            ax.annotate("", xy=xy[-1], xytext=xy[-2], zorder=4,
-                        arrowprops={"arrowstyle": "-|>", "color": colour, "lw": 1.5, "mutation_scale": 14})
+        moved = np.flatnonzero(np.hypot(*(xy - xy[-1]).T) > 0)  # the last waypoint apart from the end
+        if labelled and len(moved):
+            ends.append((xy[moved[-1]], xy[-1], colour))
         cap = [(w.x_m, w.y_m) for w in p.waypoints if w.capture]
         cap_xy.extend(cap)
         cap_colour.extend([colour] * len(cap))
@@ -170,8 +170,52 @@ def plan_figure(
     sm.set_array([])
     fig.colorbar(sm, ax=ax, label="share of the pass's images predicted with a usable contrast edge", shrink=0.8)
     if labelled:
+        _draw_arrowheads(fig, ax, ends)
         _place_pass_labels(fig, ax, starts)
     return fig
+
+
+def _data_per_pixel(ax: Any) -> NDArray[np.float64]:
+    """Fix the axes' limits and aspect without drawing; the data units per display pixel along x and y."""
+    ax.autoscale_view()
+    ax.apply_aspect()
+    inv = ax.transData.inverted()
+    return np.abs(inv.transform((1.0, 1.0)) - inv.transform((0.0, 0.0)))
+
+
+#: Arrowhead at each pass end, points (matplotlib's ``-|>`` arrow at ``mutation_scale=14``: head length 0.4 and
+#: half-width 0.2 of the scale, its tip 2 points short of the end).
+ARROW_LENGTH_PT, ARROW_HALF_WIDTH_PT, ARROW_SHRINK_PT = 5.6, 2.8, 2.0
+
+
+def _draw_arrowheads(fig: Any, ax: Any, ends: list[tuple[NDArray[np.float64], NDArray[np.float64], Any]]) -> None:
+    """A filled triangle at each pass end pointing the way it is flown, all in one collection.
+
+    ``ends`` holds, per pass, a waypoint before the end, the end and the colour. The triangles are laid out in
+    display pixels (so they keep their size whatever the field's extent) and placed in data coordinates once the
+    limits are fixed. One :class:`~matplotlib.collections.PolyCollection` instead of an arrow annotation per pass
+    (each shortened by Bezier splits at every draw): with the labels' leaders in one collection too, the NSTTF
+    plan's map renders in 0.20 s instead of 0.28 s.
+    """
+    if not ends:
+        return
+    from matplotlib.collections import PolyCollection
+
+    per_px = _data_per_pixel(ax)
+    pt = fig.dpi / 72.0
+    triangles = []
+    for before, end, _ in ends:
+        d = (end - before) / per_px  # pixels
+        d /= np.linalg.norm(d)
+        n = np.array([-d[1], d[0]])
+        tip = -ARROW_SHRINK_PT * pt * d
+        base = tip - ARROW_LENGTH_PT * pt * d
+        corners = np.array([tip, base + ARROW_HALF_WIDTH_PT * pt * n, base - ARROW_HALF_WIDTH_PT * pt * n])
+        triangles.append(end + corners * per_px)
+    colours = [c for _, _, c in ends]
+    heads = PolyCollection(triangles, facecolors=colours, edgecolors=colours, linewidths=1.5, zorder=4)
+    heads.set_gid("pass-arrowheads")
+    ax.add_collection(heads, autolim=False)
 
 
 def _coverage_text(plan: Plan) -> str:
@@ -195,17 +239,14 @@ def _place_pass_labels(fig: Any, ax: Any, starts: list[tuple[int, NDArray[np.flo
     font size and the axes scale) overlaps no placed label wins; a leader line
     joins a label moved away from its pass.
     """
-    ax.autoscale_view()  # fixes the limits and the aspect, hence the metres per pixel, without drawing
-    ax.apply_aspect()
-    inv = ax.transData.inverted()
-    origin = inv.transform((0.0, 0.0))
-    per_px = np.abs(inv.transform((1.0, 1.0)) - origin)
+    per_px = _data_per_pixel(ax)  # the limits and the aspect fixed, hence the metres per pixel, without drawing
     px = fontsize * fig.dpi / 72.0
     # placed boxes in a grid of cells at least as large as any label: a box that overlaps another shares a cell
     # with it, so each spot is checked against a few boxes, not all (a 100,000-heliostat plan has 34,000 labels)
     widest = max((len(str(index)) for index, _ in starts), default=1)
     cell = max((0.62 * px * widest + 4) * per_px[0], (px + 4) * per_px[1])
     grid: dict[tuple[int, int], list[tuple[float, float, float, float]]] = {}
+    leaders: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
 
     def cells(box: tuple[float, float, float, float]) -> list[tuple[int, int]]:
         i0, i1 = math.floor(box[0] / cell), math.floor(box[2] / cell)
@@ -235,9 +276,19 @@ def _place_pass_labels(fig: Any, ax: Any, starts: list[tuple[int, NDArray[np.flo
         box = (spot[0] - w / 2, spot[1] - h / 2, spot[0] + w / 2, spot[1] + h / 2)
         for key in cells(box):
             grid.setdefault(key, []).append(box)
-        ax.annotate(text, xy=start, xytext=spot, fontsize=fontsize, ha="center", va="center", zorder=7,
-                    bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "0.5", "lw": 0.5, "alpha": 0.85},
-                    arrowprops={"arrowstyle": "-", "color": "0.4", "lw": 0.5, "shrinkA": 0, "shrinkB": 0})
+        label = ax.text(spot[0], spot[1], text, fontsize=fontsize, ha="center", va="center", zorder=7,
+                        bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "0.5", "lw": 0.5, "alpha": 0.85})
+        label.set_gid(f"pass-label-{index}")
+        # the leader runs from the pass start to the edge of the label's box (estimated as above)
+        v = start - spot
+        reach = min((0.5 * size / abs(c) for size, c in zip((w, h), v, strict=True) if c != 0), default=math.inf)
+        if reach < 1.0:
+            leaders.append((start, spot + reach * v))
+    if leaders:
+        from matplotlib.collections import LineCollection
+
+        ax.add_collection(LineCollection(leaders, colors="0.4", linewidths=0.5, zorder=6.5, gid="pass-leaders"),
+                          autolim=False)
 
 
 def plan_png_bytes(plan: Plan, *, field: Any = None, figsize: tuple[float, float] = (10.0, 8.0),
