@@ -10,39 +10,62 @@ import pytest
 
 from pihim._collector import STARTUP_THRESHOLDS, relax_during_startup
 
+FOUND = (1234, 5, 6)  # thresholds a test sets first: any process state, CPython's defaults included, is left alone
+
 
 @pytest.fixture
 def collector_restored():
-    """Whatever a test does to the collector's thresholds and callbacks is undone afterwards."""
+    """The test starts with the thresholds FOUND; whatever it does to them and to the hooks is undone after."""
     thresholds, callbacks = gc.get_threshold(), list(gc.callbacks)
-    yield thresholds
+    gc.set_threshold(*FOUND)
+    yield
     gc.set_threshold(*thresholds)
     gc.callbacks[:] = callbacks
 
 
 def test_the_thresholds_are_raised_within_the_window(collector_restored):
     relax_during_startup(window_s=3600.0)
-    assert gc.get_threshold() == STARTUP_THRESHOLDS != collector_restored
+    assert gc.get_threshold() == STARTUP_THRESHOLDS
     gc.collect()  # a collection inside the window changes nothing
     assert gc.get_threshold() == STARTUP_THRESHOLDS
 
 
 def test_the_first_collection_after_the_window_restores_the_thresholds(collector_restored):
-    gc.set_threshold(1234, 5, 6)
     callbacks = len(gc.callbacks)
     relax_during_startup(window_s=0.0)
-    assert gc.get_threshold() == STARTUP_THRESHOLDS
+    assert gc.get_threshold() == STARTUP_THRESHOLDS and len(gc.callbacks) == callbacks + 1
     gc.collect(0)
-    assert gc.get_threshold() == (1234, 5, 6)  # those it found, not CPython's defaults
+    assert gc.get_threshold() == FOUND  # those it found, not CPython's defaults
     assert len(gc.callbacks) == callbacks  # and its hook is gone
 
 
-def test_the_command_line_starts_with_the_raised_thresholds_and_a_library_user_keeps_his():
-    code = ("import atexit, gc, sys; import pihim, pihim.camera; before = gc.get_threshold(); "
-            "atexit.register(lambda: print(before, gc.get_threshold())); "
-            "from pihim.__main__ import run; sys.argv = ['pihim', '--help']; sys.exit(run())")
+def test_restore_puts_the_thresholds_back_at_once_and_only_once(collector_restored):
+    callbacks = len(gc.callbacks)
+    restore = relax_during_startup(window_s=3600.0)
+    restore()
+    assert gc.get_threshold() == FOUND and len(gc.callbacks) == callbacks
+    gc.set_threshold(700, 10, 10)  # changed after: a second restore leaves it
+    restore()
+    assert gc.get_threshold() == (700, 10, 10)
+
+
+def test_a_command_runs_with_the_raised_thresholds_and_its_caller_gets_its_own_back():
+    code = ("import gc, sys\n"
+            "found = gc.get_threshold()\n"
+            "import pihim, pihim.camera, pihim.cli\n"
+            "imported = gc.get_threshold()\n"
+            "@pihim.cli.app.command('thresholds')\n"
+            "def thresholds():\n"
+            "    print('command', gc.get_threshold())\n"
+            "from pihim.__main__ import run\n"
+            "sys.argv = ['pihim', 'thresholds']\n"
+            "rc = run()\n"
+            "print('found', found, 'imported', imported, 'after', gc.get_threshold(), 'rc', rc)\n")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr[-300:]
-    library, command_line = done.stdout.strip().splitlines()[-1].split(") (")
-    assert library + ")" == str(gc.get_threshold())  # importing pihim changes nothing
-    assert "(" + command_line == str(STARTUP_THRESHOLDS)  # `pihim --help` ends well inside the window
+    lines = done.stdout.strip().splitlines()
+    assert lines[-2] == f"command {STARTUP_THRESHOLDS}"
+    found = lines[-1][len("found "):lines[-1].index(" imported")]
+    assert found != str(STARTUP_THRESHOLDS)
+    # importing pihim changes nothing, and run() hands the caller its thresholds back
+    assert lines[-1] == f"found {found} imported {found} after {found} rc 0"

@@ -42,7 +42,15 @@ def run() -> int:
         return 2
     from pihim._collector import relax_during_startup
 
-    relax_during_startup()  # the long-lived heap of the libraries is built without the collector walking it
+    restore = relax_during_startup()  # the libraries' long-lived heap is built without the collector walking it
+    try:
+        return _load_and_run(limit)
+    finally:
+        restore()  # for a caller in a process that goes on; the script's process ends here
+
+
+def _load_and_run(limit: int | None) -> int:
+    """:func:`run` once the address-space limit is checked: load the command line, run the command."""
     # numpy's and SciPy's OpenBLAS each start a pool of threads at import that spin before they sleep (0.06 s of
     # CPU each, start-up no command needs: pihim's heavy kernels are numba's and OpenCV's, its matrix products
     # small). A command-line process only; a value set by the user wins.

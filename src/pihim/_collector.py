@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import gc
 import time
+from collections.abc import Callable
 from typing import Any
 
 #: The collector's thresholds during the start-up window (generation 0, 1, 2).
@@ -40,7 +41,7 @@ STARTUP_WINDOW_S = 2.0
 
 
 def relax_during_startup(window_s: float = STARTUP_WINDOW_S,
-                         thresholds: tuple[int, int, int] = STARTUP_THRESHOLDS) -> None:
+                         thresholds: tuple[int, int, int] = STARTUP_THRESHOLDS) -> Callable[[], None]:
     """Raise the collector's thresholds until the process has used ``window_s`` seconds of CPU.
 
     Parameters
@@ -50,14 +51,25 @@ def relax_during_startup(window_s: float = STARTUP_WINDOW_S,
         before the call are restored, at the end of the next collection.
     thresholds : tuple of int
         The thresholds of generations 0, 1 and 2 meanwhile (:func:`gc.set_threshold`).
+
+    Returns
+    -------
+    callable
+        Restores the thresholds found at once (if not restored yet) and removes the hook; for a caller that
+        returns to a program that goes on (``pihim.__main__.run`` called in a process that is not the script's).
     """
     before = gc.get_threshold()
     deadline = time.process_time() + window_s
 
+    def restore() -> None:
+        if restore_when_due in gc.callbacks:
+            gc.callbacks.remove(restore_when_due)
+            gc.set_threshold(*before)
+
     def restore_when_due(phase: str, info: dict[str, Any]) -> None:
         if phase == "stop" and time.process_time() >= deadline:
-            gc.set_threshold(*before)
-            gc.callbacks.remove(restore_when_due)
+            restore()
 
     gc.set_threshold(*thresholds)
     gc.callbacks.append(restore_when_due)
+    return restore
