@@ -7,11 +7,13 @@ matplotlib and typer, numba's typing and lowering registries (loaded with
 the first compiled kernel), the command's own tables. None of it is garbage,
 but with CPython's default thresholds (700, 10, 10) the collector walks the
 growing heap in full three times and its young generations some 400 times:
-0.17 s of CPU in a ``pihim ground --resolution 5`` run (``gc.callbacks``
-timing, 2026-11-28). With the thresholds below, that run's imports took
-0.68-0.72 s of CPU against 0.91-0.93 s, ``pihim polar`` on one frame
-0.48-0.50 s against 0.57-0.61 s (``benchmarks/bench_cli.py --startup-only``,
-twice each, alternating, same hour).
+0.17 s of CPU in collections in one ``pihim ground --resolution 5`` run
+(``gc.callbacks`` timing, 2026-11-28). With the thresholds below, that
+command's imports took 0.68-0.72 s of CPU against 0.91-0.93 s, those of
+``pihim polar`` on one frame 0.48-0.50 s against 0.57-0.61 s
+(``benchmarks/bench_cli.py --startup-only``, twice each, alternating, same
+hour; more than the collections' own time in the one run timed, which
+differs by 10-20 % from run to run with the host's speed).
 
 :func:`relax_during_startup` raises the thresholds to (200,000, 30, 30) for a
 window of CPU time at the start of the process, then puts back those it
@@ -22,13 +24,16 @@ the same thresholds for its whole run ("otherwise we can spend a large
 fraction of cpu in gc", ``mypy/build.py``).
 
 The window is checked when a collection ends (a ``gc.callbacks`` hook), so
-the thresholds come back at the first collection after it. Only the command
+the thresholds come back at the first collection after it; a worker forked
+by the command gets them back at its own first collection. Only the command
 line calls this; a program importing pihim keeps its own collector settings.
 """
 
 from __future__ import annotations
 
 import gc
+import os
+import platform
 import time
 from collections.abc import Callable
 from typing import Any
@@ -48,27 +53,45 @@ def relax_during_startup(window_s: float = STARTUP_WINDOW_S,
     ----------
     window_s : float
         CPU time of the process (``time.process_time``, all threads), s, from which on the thresholds in force
-        before the call are restored, at the end of the next collection.
+        before the call are restored, at the end of the next collection. A process forked meanwhile (a pool's
+        worker) gets them back at the end of its first collection: its CPU clock starts again at zero.
     thresholds : tuple of int
         The thresholds of generations 0, 1 and 2 meanwhile (:func:`gc.set_threshold`).
 
     Returns
     -------
     callable
-        Restores the thresholds found at once (if not restored yet) and removes the hook; for a caller that
-        returns to a program that goes on (``pihim.__main__.run`` called in a process that is not the script's).
+        Restores the thresholds found at once, if the hook has not yet, and takes the hook out of
+        :data:`gc.callbacks`; for a caller that returns to a program that goes on (``pihim.__main__.run``). Call
+        it outside a collection.
+
+    Notes
+    -----
+    Nothing is changed on an interpreter other than CPython (whose collector these thresholds describe). The hook
+    never removes itself: CPython calls the hooks by their index in :data:`gc.callbacks`, so a hook that removed
+    itself during a collection would hide the next hook from that collection's end (a timing hook would see its
+    start alone); once due it only restores the thresholds, once, and stays in the list, doing nothing.
     """
+    if platform.python_implementation() != "CPython":
+        return lambda: None
     before = gc.get_threshold()
     deadline = time.process_time() + window_s
-
-    def restore() -> None:
-        if restore_when_due in gc.callbacks:
-            gc.callbacks.remove(restore_when_due)
-            gc.set_threshold(*before)
+    pid = os.getpid()
+    done = False
 
     def restore_when_due(phase: str, info: dict[str, Any]) -> None:
-        if phase == "stop" and time.process_time() >= deadline:
-            restore()
+        nonlocal done
+        if not done and phase == "stop" and (time.process_time() >= deadline or os.getpid() != pid):
+            done = True
+            gc.set_threshold(*before)
+
+    def restore() -> None:
+        nonlocal done
+        if not done:
+            done = True
+            gc.set_threshold(*before)
+        if restore_when_due in gc.callbacks:
+            gc.callbacks.remove(restore_when_due)
 
     gc.set_threshold(*thresholds)
     gc.callbacks.append(restore_when_due)
