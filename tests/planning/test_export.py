@@ -714,29 +714,36 @@ def test_plan_figure_pass_labels_never_overlap_when_drawn(monkeypatch):
 
 
 def test_plan_figure_arrowheads_point_the_way_each_pass_is_flown(plan, field):
-    """One filled triangle per pass, its tip 2 points short of the pass's last waypoint and its base behind, along
-    the last leg as flown (a pass flown the other way would point the other way)."""
+    """One filled triangle per pass, in points at the pass's last waypoint: its tip on the last leg, held back as
+    matplotlib holds back a ``-|>`` arrow's, its base behind and symmetric about the leg (a pass flown the other way
+    points the other way); the same size in points when the figure is drawn at another size."""
     import dataclasses
+    import math
 
-    from pihim.planning.export.figure import ARROW_LENGTH_PT, ARROW_SHRINK_PT, plan_figure
+    from pihim.planning.export import figure as figure_module
 
     flipped = dataclasses.replace(plan, passes=tuple(
         dataclasses.replace(p, waypoints=tuple(reversed(p.waypoints))) for p in plan.passes))
-    for each in (plan, flipped):
-        fig = plan_figure(each, field=field)
+    shrink = 2.0 + 0.75 / math.sin(math.atan(0.5))  # shrinkB plus the mitre of a 1.5-point stroke
+    for each, size in ((plan, None), (flipped, None), (plan, (5.0, 4.0))):
+        fig = figure_module.plan_figure(each, field=field)
+        if size is not None:
+            fig.set_size_inches(*size)
         fig.canvas.draw()
         ax = fig.axes[0]
         (heads,) = [c for c in ax.collections if c.get_gid() == "pass-arrowheads"]
-        triangles = [ax.transData.transform(path.vertices[:3]) for path in heads.get_paths()]
+        offsets = heads.get_offset_transform().transform(heads.get_offsets())
+        triangles = [heads.get_transform().transform(path.vertices[:3]) + offset
+                     for path, offset in zip(heads.get_paths(), offsets, strict=True)]
         assert len(triangles) == len(each.passes)
         pt = fig.dpi / 72.0
         for p, tri in zip(each.passes, triangles, strict=True):
             before, end = (ax.transData.transform((w.x_m, w.y_m)) for w in p.waypoints[-2:])
             d = (end - before) / np.linalg.norm(end - before)
-            ahead = (tri - end) @ d  # along the last leg, pixels, from its end
-            np.testing.assert_allclose(ahead.max(), -ARROW_SHRINK_PT * pt, atol=0.5)
-            np.testing.assert_allclose(ahead.min(), -(ARROW_SHRINK_PT + ARROW_LENGTH_PT) * pt, atol=0.5)
-            assert np.argmax(ahead) == 0  # the tip first
+            ahead, across = (tri - end) @ d / pt, (tri - end) @ np.array([-d[1], d[0]]) / pt  # points
+            np.testing.assert_allclose(ahead, [-shrink, -shrink - 5.6, -shrink - 5.6], atol=0.05)
+            np.testing.assert_allclose(np.sort(across), [-2.8, 0.0, 2.8], atol=0.05)
+            assert abs(across[0]) < 0.05  # the tip on the leg
 
 
 def test_plan_figure_of_a_large_plan_leaves_out_numbers_and_lists_flights_in_one_entry(monkeypatch):
