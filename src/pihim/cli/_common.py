@@ -24,7 +24,6 @@ if TYPE_CHECKING:
     from pihim.field import Field
 
 
-
 @functools.cache
 def stderr_console() -> Console:
     """The console for human-oriented output, on stderr (stdout is kept for JSON); made on first use.

@@ -115,9 +115,9 @@ def simulate_flight(
         emit_json(summary)
     else:
         stderr_console().print(f"[bold]pihim simulate-flight[/bold]: wrote {summary['frames']} frames "
-                             f"({w}x{h}, {summary['reused']} reused from an earlier run) to {out}, "
-                             f"poses in {summary['log']}, truth in {out / 'truth'}",
-                             highlight=False, soft_wrap=True)
+                               f"({w}x{h}, {summary['reused']} reused from an earlier run) to {out}, "
+                               f"poses in {summary['log']}, truth in {out / 'truth'}",
+                               highlight=False, soft_wrap=True)
     return 0
 
 
@@ -241,8 +241,8 @@ def report(
         emit_json(summary)
     else:
         stderr_console().print(f"[bold]pihim campaign report[/bold]: wrote {summary['files']['index']} "
-                             f"({summary['heliostats_measured']} heliostats measured, "
-                             f"{len(summary['files']) - 1} more files)", highlight=False, soft_wrap=True)
+                               f"({summary['heliostats_measured']} heliostats measured, "
+                               f"{len(summary['files']) - 1} more files)", highlight=False, soft_wrap=True)
     return 0
 
 
@@ -275,5 +275,5 @@ def export(
                    "files": {k: str(v) for k, v in paths.items()}, "rows": rows_per})
     else:
         stderr_console().print(f"[bold]pihim campaign export[/bold]: wrote {len(paths)} {fmt} files to {out}",
-                             highlight=False, soft_wrap=True)
+                               highlight=False, soft_wrap=True)
     return 0

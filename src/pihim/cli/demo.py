@@ -67,7 +67,7 @@ def demo(
     from pihim.planning.scoring import images_text
 
     stderr_console().print(f"[bold]pihim demo[/bold]: {plan['passes']} passes, {images_text(plan)}; "
-                         f"{plan['flights']} flights -> {out / 'plan'}", highlight=False)
+                           f"{plan['flights']} flights -> {out / 'plan'}", highlight=False)
 
     def f(v: float | None, spec: str = ".2f") -> str:
         return "-" if v is None else format(v, spec)

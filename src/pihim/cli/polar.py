@@ -596,7 +596,7 @@ def polar(
                   "(--overwrite redoes them)", file=sys.stderr)
     elif run.processed or run.resumed:
         stderr_console().print(_summary(run.processed, run.resumed, len(batch), out_dir, png=png),
-                             highlight=False, soft_wrap=True)
+                               highlight=False, soft_wrap=True)
     return run.status
 
 

@@ -112,7 +112,7 @@ def windows(
         })
     else:
         stderr_console().print(_human_summary(sweep.summary(threshold, "either", relative=relative), out),
-                             highlight=False, soft_wrap=True)
+                               highlight=False, soft_wrap=True)
     return 0
 
 
