@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import gc
 import os
-import platform
+import sys
 import time
 from collections.abc import Callable
 from typing import Any
@@ -72,7 +72,7 @@ def relax_during_startup(window_s: float = STARTUP_WINDOW_S,
     itself during a collection would hide the next hook from that collection's end (a timing hook would see its
     start alone); once due it only restores the thresholds, once, and stays in the list, doing nothing.
     """
-    if platform.python_implementation() != "CPython":
+    if sys.implementation.name != "cpython":
         return lambda: None
     before = gc.get_threshold()
     deadline = time.process_time() + window_s
