@@ -163,6 +163,23 @@ def test_combine_results_weights_and_rereferences():
         combine_results([a, CantingResult("9E3", "7E3", a.facets, 0.0, 0.0)])
 
 
+def test_combined_in_view_is_the_mean_over_the_frames_that_measured_the_facet():
+    """Facet 1 measured in both frames (in view 1.0 and 0.5), facet 2 in the first only (its 0.2 in the second,
+    where it was skipped, left out), facet 3 in neither (the mean over all frames, to show why)."""
+    import dataclasses
+
+    a = _result([(1.0, 0.0), (0.0, 1.0), None], 0.1)
+    b = _result([(1.0, 0.0), None, None], 0.1)
+    def seen(res, shares):
+        return dataclasses.replace(res, facets=tuple(dataclasses.replace(f, in_view=v)
+                                                     for f, v in zip(res.facets, shares, strict=True)))
+
+    a, b = seen(a, (1.0, 0.9, 0.0)), seen(b, (0.5, 0.2, 0.1))
+    c = combine_results([a, b])
+    assert [f.in_view for f in c.facets] == pytest.approx([0.75, 0.9, 0.05])
+    assert [f.used for f in c.facets] == [True, True, False]
+
+
 def test_combined_sigma_from_the_frames_sigmas_and_their_scatter():
     rng = np.random.default_rng(3)
     true = rng.normal(0.0, 3.0, (10, 2))

@@ -47,6 +47,11 @@ def test_canting_recovered_to_a_fraction_of_the_paper_grid_step(ufacet):
     assert reason_code(res.facets[12].reason) == "AMBIG"  # not NOREF, whose text it starts with
     assert reason_code("no usable reflection of 7E3: too few edge points inside this facet") == "NOREF"
     assert res.to_dict()["facets"][0]["id"] == 1
+    # each facet's share of its outline in the frame, from the pose the fit used, in facet order
+    from pihim.inspection.reflection import facet_in_view
+
+    np.testing.assert_array_equal([f.in_view for f in res.facets], facet_in_view(cam, cp, pose.facet_corners()[h]))
+    assert all(f.in_view > 0 for f in used)
 
 
 def test_facets_polarized_at_most_02_are_skipped_by_default(ufacet):

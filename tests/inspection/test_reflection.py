@@ -32,3 +32,31 @@ def test_hua_turn_transform_maps_the_turned_heliostat_onto_the_logged_one(ufacet
                                atol=1e-9)
     np.testing.assert_allclose(m @ m.T, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(hua_turn_transform(pose, h, 0.0, 0.0)[1], np.eye(3), atol=1e-12)
+
+
+def test_facet_in_view_is_the_share_of_the_outline_on_the_sensor():
+    """A camera looking straight down at the ground: a facet under the image centre is wholly in view, the same
+    facet centred on the image's right border half in view (its inner side, half of each side across the border),
+    and one above the camera (behind it) not at all."""
+    from pihim.camera import CameraModel, CameraPose
+    from pihim.inspection.pipeline import project_points
+    from pihim.inspection.reflection import facet_in_view
+
+    cam = CameraModel()
+    pose = CameraPose.look_at([0.0, 0.0, 20.0], [0.0, 0.0, 0.0])
+    # on the ground plane, parallel to the sensor, pixels are an affine map of (x, y): find it and its inverse
+    xy = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    uv = project_points(cam, pose, np.column_stack([xy, np.zeros(3)]))
+    jac = np.column_stack([uv[1] - uv[0], uv[2] - uv[0]])  # d(u, v) / d(x, y)
+
+    def ground(u, v):
+        return np.append(np.linalg.solve(jac, np.array([u, v]) - uv[0]), 0.0)
+
+    def square(u, v, half_px=100.0):  # a facet whose corners are half_px from (u, v) along the image axes
+        return np.array([ground(u + du * half_px, v + dv * half_px) for du, dv in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+
+    centre, border = square(cam.width_px / 2, cam.height_px / 2), square(cam.width_px - 0.5, cam.height_px / 2)
+    behind = centre + np.array([0.0, 0.0, 40.0])
+    share = facet_in_view(cam, pose, np.stack([centre, border, behind]))
+    assert share[0] == 1.0 and share[2] == 0.0
+    assert abs(share[1] - 0.5) <= 1.5 / 96  # 24 points a side: the side across the border splits 12 / 11-12

@@ -411,18 +411,22 @@ def combine_results(results: Iterable[InspectionResult | CantingResult]) -> Cant
         use = [f for f in per if f.used]
         if not use:
             reasons = [f.reason for f in per if f.reason]
-            out.append(FacetCanting(fid, False, reasons[0] if reasons else "not measured in any frame"))
+            seen = [f.in_view for f in per if f.in_view is not None]
+            out.append(FacetCanting(fid, False, reasons[0] if reasons else "not measured in any frame",
+                                    in_view=float(np.mean(seen)) if seen else None))
             continue
         n_used += 1
         pts = sum(int(f.points) for f in use)
         rms = [(f.rms_px, f.points) for f in use if f.rms_px is not None]
         rms_px = float(np.sqrt(sum(r * r * p for r, p in rms) / max(sum(p for _, p in rms), 1))) if rms else None
         sup_v = [f.support for f in use if f.support is not None]
+        seen = [f.in_view for f in use if f.in_view is not None]
         out.append(FacetCanting(
             fid, True, None,
             float(comps["az"][0][i]), float(comps["el"][0][i]),
             *(float(comps[key][1][i]) if np.isfinite(comps[key][1][i]) else None for key in ("az", "el")),
             float(grid["az"][i]), float(grid["el"][i]), pts, rms_px, float(np.mean(sup_v)) if sup_v else None,
+            float(np.mean(seen)) if seen else None,
         ))
     targets = sorted({r.target for r in res})
     notes = [f"combined from {n_k} frames ({n_used} facets measured in at least one)"]

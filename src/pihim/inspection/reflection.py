@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from pihim.camera.model import CameraModel
 from pihim.camera.pose import CameraPose
@@ -25,7 +25,7 @@ from pihim.field.kinematics import FieldPose, apply_canting_deviation
 from pihim.inspection.pose import facet_outline_segments, line_normals
 from pihim.render.scene import StructureSizes
 
-__all__ = ["hua_turn_transform", "target_outline_segments"]
+__all__ = ["facet_in_view", "hua_turn_transform", "target_outline_segments"]
 
 
 def target_outline_segments(field_pose: FieldPose, index: int, sizes: StructureSizes = StructureSizes()) -> NDArray:
@@ -105,6 +105,41 @@ class _Mask:
         return out
 
 
+def _outline_rings(corners: NDArray, per_side: int = 24) -> NDArray[np.float64]:
+    """Points along each facet's outline, ``per_side`` a side from each corner on: shape (F, 4 * per_side, 3)."""
+    c = np.asarray(corners, dtype=float)
+    t = np.linspace(0.0, 1.0, per_side, endpoint=False)[None, None, :, None]
+    start, end = c[:, :, None, :], np.roll(c, -1, axis=1)[:, :, None, :]
+    return (start + t * (end - start)).reshape(c.shape[0], 4 * per_side, 3)
+
+
+def facet_in_view(camera: CameraModel, pose: CameraPose, corners: ArrayLike) -> NDArray[np.float64]:
+    """Share of each facet's outline that the camera sees inside its frame.
+
+    Parameters
+    ----------
+    camera : CameraModel
+    pose : CameraPose
+    corners : array_like, shape (F, 4, 3)
+        Each facet's corners, field ENU metres, in order round the facet.
+
+    Returns
+    -------
+    ndarray, shape (F,)
+        The share, in [0, 1], of 96 points spread evenly along the outline whose projection falls on the
+        sensor (pixel centres 0 .. width - 1 and 0 .. height - 1, half a pixel of border included); a point
+        behind the camera counts as out of view. Occlusion is not considered.
+    """
+    from pihim.inspection import _kernels
+
+    rings = _outline_rings(np.asarray(corners, dtype=float))
+    uv = _kernels.project_pose(camera, pose, rings.reshape(-1, 3)).reshape(rings.shape[0], rings.shape[1], 2)
+    with np.errstate(invalid="ignore"):
+        inside = (uv[..., 0] >= -0.5) & (uv[..., 0] < camera.width_px - 0.5) \
+            & (uv[..., 1] >= -0.5) & (uv[..., 1] < camera.height_px - 0.5)
+    return inside.mean(axis=1)
+
+
 def _facet_masks(camera: CameraModel, pose: CameraPose, corners: NDArray, margin_px: float) -> list[_Mask]:
     """Masks of each facet's projected outline, eroded by ``margin_px`` (filled and eroded
     on the outline's bounding box grown by the kernel: the same pixels as on the whole image)."""
@@ -116,9 +151,7 @@ def _facet_masks(camera: CameraModel, pose: CameraPose, corners: NDArray, margin
     masks = []
     k = max(1, int(round(2 * margin_px + 1)))
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-    t = np.linspace(0.0, 1.0, 24, endpoint=False)[:, None]
-    for f in range(corners.shape[0]):
-        ring = np.concatenate([corners[f, j] + t * (corners[f, (j + 1) % 4] - corners[f, j]) for j in range(4)])
+    for ring in _outline_rings(corners):
         uv = _kernels.project_pose(camera, pose, ring)
         if not np.all(np.isfinite(uv)):
             masks.append(_Mask(shape))
