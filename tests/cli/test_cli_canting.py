@@ -265,3 +265,22 @@ def test_empty_heliostats_list_means_every_heliostat_tracks(frame, tmp_path):
                        log["time"]).vector
     want = track_field(field, sun, np.asarray(log["aim_point_m"], float))
     np.testing.assert_allclose(got.normals, want.normals, atol=1e-12)
+
+
+def test_the_figure_marks_measured_facets_less_than_half_in_view():
+    """canting.png writes "N % in view" under a measured facet with less than half its outline in the frame (both
+    panels), and nothing under one at least half in view or a skipped one."""
+    from pihim.inspection.canting_output import canting_figure
+
+    facets = [{"id": i + 1, "used": i < 3, "reason": None if i < 3 else "facet not in view",
+               "az_mrad": 0.1 * i if i < 3 else None, "el_mrad": -0.1 * i if i < 3 else None,
+               "az_sigma_mrad": 0.05 if i < 3 else None, "el_sigma_mrad": 0.05 if i < 3 else None,
+               "in_view": (0.3, 0.5, 1.0, 0.1)[min(i, 3)]} for i in range(25)]
+    record = {"facet_grid": {"rows": 5, "cols": 5}, "facets": facets, "orientation_mrad": None, "hua": "8E3",
+              "target": "7E3", "frames": 1, "facets_used": 3}
+    fig = canting_figure(record)
+    marks = [t.get_text() for ax in fig.axes for t in ax.texts if t.get_text().endswith("in view")]
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    assert marks == ["30 % in view", "30 % in view"]
