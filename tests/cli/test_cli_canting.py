@@ -280,7 +280,13 @@ def test_the_figure_marks_measured_facets_less_than_half_in_view():
               "target": "7E3", "frames": 1, "facets_used": 3}
     fig = canting_figure(record)
     marks = [t.get_text() for ax in fig.axes for t in ax.texts if t.get_text().endswith("in view")]
+    legend = " ".join(t.get_text() for t in fig.texts)  # the suptitle and the legend below the panels
+    facets[0]["in_view"] = 0.6  # none under one half: no mark, and the legend leaves its line out
+    plain = canting_figure(record)
     import matplotlib.pyplot as plt
 
+    assert not [t for ax in plain.axes for t in ax.texts if t.get_text().endswith("in view")]
+    assert "% in view" in legend and "% in view" not in " ".join(t.get_text() for t in plain.texts)
     plt.close(fig)
+    plt.close(plain)
     assert marks == ["30 % in view", "30 % in view"]

@@ -181,7 +181,8 @@ def canting_figure(record: dict[str, Any]) -> Any:
                  fontsize=11)
     items = [f"{code}: {text}" for _, code, text in REASON_CODES]
     half = (len(items) + 1) // 2
+    partly = any(f["used"] and f.get("in_view") is not None and f["in_view"] < HALF_IN_VIEW for f in facets.values())
     fig.supxlabel("grey hatched = skipped:  " + ";  ".join(items[:half]) + "\n" + ";  ".join(items[half:])
-                  + "\n'N % in view': a measured facet less than half inside the frame (such facets were more "
-                  "often wrong on rendered frames)", fontsize=8.5)
+                  + ("\n'N % in view': a measured facet less than half inside the frame (such facets were more "
+                     "often wrong on rendered frames)" if partly else ""), fontsize=8.5)
     return fig
