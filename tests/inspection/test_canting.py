@@ -154,3 +154,33 @@ def test_the_orientation_search_turn_must_measure_two_facets_more_than_the_log()
     assert not _keeps_turn((7, 9, 0.1), (7, 9, 0.1), True)
     assert _keeps_turn((7, 10, 0.2), (7, 9, 0.1), True)
     assert _keeps_turn((7, 9, 0.1), (7, 9, 0.2), True) and not _keeps_turn((7, 9, 0.2), (7, 9, 0.1), True)
+
+
+@pytest.mark.parametrize(("far_rms", "ambiguous"), [(0.10, True), (0.20, True), (0.25, False)])
+def test_a_far_rival_as_well_supported_and_as_tight_leaves_the_facet_ambiguous(monkeypatch, far_rms, ambiguous):
+    """The final fit's far rivals (two grid steps from the winner): one supported alike that fits the edges at least
+    as tightly as the winner (RMS 0.20 px here) makes the facet ambiguous; a looser one does not count. The
+    refinement is stubbed: two basins, the winner's at (0, 0) and one 3.5 mrad away in azimuth."""
+    from pihim.inspection import canting
+
+    step = PAPER_GRID_STEP_MRAD
+    basins = {(0.0, 0.0): (600, 0.20, 0.50), (-2 * step, 0.0): (590, far_rms, 0.49)}
+
+    def refine(model, mask, ob, dt, gates_px, az, el):
+        (a, e), (n, rms, support) = min(basins.items(), key=lambda b: np.hypot(b[0][0] - az, b[0][1] - el))
+        return a, e, n, rms, support, "found", "segments"
+
+    monkeypatch.setattr(canting, "_refine_facet", refine)
+    first = refine(*[None] * 5, 0.0, 0.0)
+    start = canting._Start(0.0, 0.0, None, [first], first)
+    gates = canting._Gates(300, 0.3, 0.3)
+
+    def settle(rounds):
+        return canting._settle(None, None, start, None, step, (3.0,), [], basin_rounds=rounds, gates=gates)
+
+    assert settle(0)[2:4] == (0.0, 0.0)  # the first fits (no basin rounds) have no far rivals
+    if ambiguous:
+        with pytest.raises(canting.PihimInputError, match=r"two fits 3\.5 mrad apart explain it alike"):
+            settle(2)
+    else:
+        assert settle(2)[2:4] == (0.0, 0.0)
