@@ -14,7 +14,8 @@ Frame ``k`` is :func:`pihim.render.simulate.simulate_frame` of that pair
 (:class:`PairPose`: the planner's waypoint of the pair), the default
 :class:`CameraModel` (Triton 2448 x 2048, 35 mm), facet canting
 ``N(0, 3 mrad)`` on both axes, no tracking error, the default sensor (39 dB,
-12 bit, shot and read noise), seed ``k``. A pair the single-HUA plan of
+12 bit, shot and read noise), seed ``k`` (``--seed-offset N``: seed ``N + k``,
+the same pairs with new canting, noise and priors). A pair the single-HUA plan of
 ``simulate_frame`` refuses is replaced by the next candidate of the same time.
 
 Estimation (per frame, per prior setting), from ``raw`` and ``log`` only:
@@ -377,7 +378,8 @@ def summarise(frames: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def run_benchmark(n_frames: int, priors: str = "both", tracking_sigma_mrad: float = 0.0,
-                  orientation_search: bool = True, target_orientation: bool = False) -> dict[str, Any]:
+                  orientation_search: bool = True, target_orientation: bool = False,
+                  seed_offset: int = 0) -> dict[str, Any]:
     from pihim.camera import CameraModel
     from pihim.errors import PihimInputError
     from pihim.field import nsttf_like_field
@@ -410,18 +412,18 @@ def run_benchmark(n_frames: int, priors: str = "both", tracking_sigma_mrad: floa
                 t1 = time.perf_counter()
                 sim = simulate_frame(field, t, camera=camera, pose_request=PairPose(hua, tgt),
                                      canting_sigma_mrad=CANTING_SIGMA_MRAD, gps_sigma_m=gps,
-                                     attitude_sigma_deg=att, tracking_sigma_mrad=tracking_sigma_mrad, seed=k)
+                                     attitude_sigma_deg=att, tracking_sigma_mrad=tracking_sigma_mrad, seed=seed_offset + k)
                 sims.append((sim, time.perf_counter() - t1))
         except PihimInputError as exc:
             refused.append(f"{t} {hua}/{tgt}: {exc}")
             slot -= 1  # the next candidate of the same time
             continue
         used_huas.add(hua)
-        frames_info.append({"seed": k, "time": t, "hua": hua, "target": tgt,
+        frames_info.append({"seed": seed_offset + k, "time": t, "hua": hua, "target": tgt,
                             "render_s": [s for _, s in sims]})
         for (key, _label, _gps, _att, kw), (sim, render_s) in zip(settings, sims, strict=True):
             r = estimate_frame(field, sim, kw, orientation_search, target_orientation)
-            r["seed"] = k
+            r["seed"] = seed_offset + k
             r["render_s"] = render_s
             results[key].append(r)
             print(f"[frame {k}] {key} {hua}/{tgt} {t[11:16]}: pose ok={r['pose_ok']} "
@@ -445,7 +447,7 @@ def run_benchmark(n_frames: int, priors: str = "both", tracking_sigma_mrad: floa
         "benchmark": "canting",
         "settings": {"frames": n_frames, "times": list(TIMES), "canting_sigma_mrad": CANTING_SIGMA_MRAD,
                      "tracking_sigma_mrad": tracking_sigma_mrad, "orientation_search": orientation_search,
-                     "target_orientation": target_orientation,
+                     "target_orientation": target_orientation, "seed_offset": seed_offset,
                      "pose_fail_px": POSE_FAIL_PX,
                      "priors": [{"key": k_, "label": lb, "gps_sigma_m": g, "attitude_sigma_deg": a, **kw}
                                 for k_, lb, g, a, kw in settings]},
@@ -557,6 +559,9 @@ def _configure(parser: Any) -> None:
                         help="every heliostat's drive-angle error (true minus logged), standard deviation, mrad")
     parser.add_argument("--correct-target", action="store_true",
                         help="also correct the target's logged drive angles (estimate_canting(target_orientation=True))")
+    parser.add_argument("--seed-offset", type=int, default=0, metavar="N",
+                        help="render frame k with seed N + k: the same pairs with new canting, noise and pose priors "
+                             "(frames none of the estimator's choices were made on; 0: the issue's frames)")
     parser.add_argument("--no-orientation-search", action="store_true",
                         help="skip the +-5 deg orientation search (facet grids centred on the design)")
 
@@ -595,7 +600,8 @@ def main(
     report = run_benchmark(n, a.priors if a is not None else "both",
                            a.tracking_sigma_mrad if a is not None else 0.0,
                            not a.no_orientation_search if a is not None else True,
-                           a.correct_target if a is not None else False)
+                           a.correct_target if a is not None else False,
+                           a.seed_offset if a is not None else 0)
     return harness.publish(report, markdown_report, o.json_path, echo=echo)
 
 
