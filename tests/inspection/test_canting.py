@@ -156,15 +156,18 @@ def test_the_orientation_search_turn_must_measure_two_facets_more_than_the_log()
     assert _keeps_turn((7, 9, 0.1), (7, 9, 0.2), True) and not _keeps_turn((7, 9, 0.2), (7, 9, 0.1), True)
 
 
-@pytest.mark.parametrize(("far_rms", "ambiguous"), [(0.10, True), (0.20, True), (0.25, False)])
-def test_a_far_rival_as_well_supported_and_as_tight_leaves_the_facet_ambiguous(monkeypatch, far_rms, ambiguous):
-    """The final fit's far rivals (two grid steps from the winner): one supported alike that fits the edges at least
-    as tightly as the winner (RMS 0.20 px here) makes the facet ambiguous; a looser one does not count. The
-    refinement is stubbed: two basins, the winner's at (0, 0) and one 3.5 mrad away in azimuth."""
+@pytest.mark.parametrize(("far_rms", "far_support", "ambiguous"),
+                         [(0.10, 0.49, True), (0.20, 0.49, True), (0.25, 0.49, False), (0.25, 0.56, True)])
+def test_a_far_rival_that_explains_the_image_as_well_leaves_the_facet_ambiguous(monkeypatch, far_rms, far_support,
+                                                                                ambiguous):
+    """The final fit's far rivals (1.5 and 2.5 grid steps from the winner): one supported alike that fits the edges
+    at least as tightly as the winner (RMS 0.20 px here), or one better supported by the margin, makes the facet
+    ambiguous; one supported alike but looser does not count. The refinement is stubbed: two basins, the winner's
+    at (0, 0) and one two grid steps (3.5 mrad) away in azimuth, which the far starts reach."""
     from pihim.inspection import canting
 
     step = PAPER_GRID_STEP_MRAD
-    basins = {(0.0, 0.0): (600, 0.20, 0.50), (-2 * step, 0.0): (590, far_rms, 0.49)}
+    basins = {(0.0, 0.0): (600, 0.20, 0.50), (-2 * step, 0.0): (590, far_rms, far_support)}
 
     def refine(model, mask, ob, dt, gates_px, az, el):
         (a, e), (n, rms, support) = min(basins.items(), key=lambda b: np.hypot(b[0][0] - az, b[0][1] - el))

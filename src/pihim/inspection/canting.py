@@ -44,10 +44,11 @@ Then for each facet:
    away along each axis from every fit that passes the gates, as the
    outline's parallel edges leave local minima half a step to a few steps
    apart (a clearly better supported fit wins; two fits more than half a
-   step apart supported alike leave the facet skipped as ambiguous). Four
-   more start two grid steps away, where the target's repeating back gives
-   a lattice basin: one supported alike that fits the edges at least as
-   tightly (RMS residual) also leaves the facet ambiguous. The
+   step apart supported alike leave the facet skipped as ambiguous). Eight
+   more start one and a half and two and a half grid steps away, where the
+   target's repeating back gives lattice basins: one supported alike that
+   fits the edges at least as tightly (RMS residual), or one clearly better
+   supported, also leaves the facet ambiguous. The
    uncertainty is a delete-one-segment jackknife of the
    last round over the target outline's segments the facet shows
    (:mod:`pihim.inspection.uncertainty`).
@@ -208,13 +209,15 @@ _DISTINCT_STEPS = 0.5
 #: shows only part of it also fits a lattice step away, 3-5 mrad at UFACET distances, out of reach of the
 #: neighbouring basins: in frame 117 of ``benchmarks/canting_quality.py`` two facets 19 and 30 % in view were
 #: measured 3.2 mrad off, their true fits supported alike (0.55 and 0.50 against 0.59 and 0.49) and tighter (RMS
-#: residual 0.08 and 0.12 px against 0.10 and 0.21). A far rival counts in the ambiguity test only when it fits
-#: the image's edges at least as tightly as the winner: on frames 0-179, of the 45 facets measured whose far
-#: rivals included one supported alike, 42 winners were right and each fitted tighter than such a rival (the
-#: rivals' residuals 1.06-2.95 times the winner's); frame 117's two were wrong and their rivals fitted tighter
-#: (0.78 and 0.57 times). Chosen on those frames; it skips frame 117's two facets and no other (570 facets
-#: instead of 572), and on 60 frames of new seeds it changed nothing (2026-11-28).
-_FAR_STEPS = (2.0,)
+#: residual 0.08 and 0.12 px against 0.10 and 0.21). A far rival counts in the ambiguity test only when it
+#: explains the image as well: supported alike and fitting the edges at least as tightly as the winner, or
+#: clearly better supported (by ``support_margin``). Counting every far fit supported alike skipped 46 facets of
+#: frames 0-179, 44 of them measured right. Chosen on frames 0-179 and on the pairs of frames 0-59 rendered with
+#: seeds 1000-1059 (there two facets were 2.7 and 4.5 mrad off, the second's true basin better supported), then
+#: checked on the pairs of frames 60-119 with seeds 2060-2119, which it had not seen: four facets 2.9-4.2 mrad
+#: off skipped and no other (211 facets -> 207; the others of their frames had moved up to 0.7 mrad with
+#: them), about 0.25 s more CPU per frame (2026-11-28, BENCHMARKS.md).
+_FAR_STEPS = (1.5, 2.5)
 
 
 @dataclass(frozen=True)
@@ -418,9 +421,10 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     (``_DISTINCT_STEPS``) whose supports are within ``support_margin`` of
     each other leave the facet ambiguous: it is skipped (raises). With
     ``basin_rounds``, so does a far rival (``_FAR_STEPS``: refinements
-    started two grid steps from the final winner along each axis) supported
-    alike that fits the image's edges at least as tightly as the winner (RMS
-    residual no larger); a looser one does not count. Given a list
+    started 1.5 and 2.5 grid steps from the final winner along each axis)
+    supported alike that fits the image's edges at least as tightly as the
+    winner (RMS residual no larger) or is better supported by
+    ``support_margin``; a looser one supported alike does not count. Given a list
     ``matches``, the last round's matched model points (world), image points
     and line normals are appended to it as one tuple (for
     :func:`refine_orientations`).
@@ -449,7 +453,7 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
         if top is None or not top[4] > best[4] + support_margin:
             break
         best = top
-    # the far rivals (``_FAR_STEPS``): a lattice step away, alike in support but looser, they do not count
+    # the far rivals (``_FAR_STEPS``): a lattice step away; alike in support but looser, they do not count
     if basin_rounds and passes(best):
         steps = [sign * m * step_mrad for m in _FAR_STEPS for sign in (1, -1)]
         for da, de in [(d, 0.0) for d in steps] + [(0.0, d) for d in steps]:
@@ -457,7 +461,7 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
                 fit = _refine_facet(model, mask, ob, dt, gates_px, best[0] + da, best[1] + de)
             except PihimInputError:
                 continue
-            if fit[3] <= best[3]:
+            if fit[3] <= best[3] or fit[4] > best[4] + support_margin:
                 rivals.append(fit)
     # two distinct fits that the image supports alike: the facet shows too little of the target to tell them
     # apart (a part of its back whose edges repeat), and either would be a made-up number
