@@ -96,12 +96,15 @@ basins, a lattice step away, supported alike and fitted tighter; it moved
 its frame's other three facets 1.3 mrad), and 0.029 / 0.047 mrad, largest
 0.31, on 140-179. The far rivals (``_FAR_STEPS``) now skip those two as
 ambiguous and no other facet of the 180 frames: 570 facets at 0.051 / 0.029
-mrad, largest 0.67, about 0.1 s more CPU per frame. On 60 frames of new
-seeds (the pairs of frames 0-59, rendered after that change) 199 facets at
-0.15 / 0.27 mrad: two facets 2.7 and 4.5 mrad off, each in a basin 1.5 and
-2.6 grid steps from a true one that is supported alike or better and fits
-tighter but that no start reaches (the paper's grid has no peak there),
-moving their frames' other facets up to 1.5 mrad; not mended (BENCHMARKS.md).
+mrad, largest 0.67. **On 120 frames rendered with new seeds** (2000-2119,
+``--seed-offset 2000``), unseen by every choice here: 406 facets at **0.75 /
+0.23 mrad, over the 0.5 mrad target in azimuth** (on their second half 0.72
+/ 0.30 with the far rivals, 0.80 / 0.40 without: they skipped four wrong
+locks there and nothing else). Four facets are locked on a wrong feature
+2.8-12.9 mrad off; where probed (two, fully in view), the true fit has more matched
+points and a tighter residual but less support (the share of the outline on
+an edge favours a fit that leaves little of it inside the facet), and is no
+peak of the paper's grid; not mended (BENCHMARKS.md).
 Before the final fits tried the
 neighbouring basins: 87 facets at 0.15 / 0.16 mrad, six of them 0.6-1.15
 mrad off, mostly in a basin next to the true one, which also moved the
