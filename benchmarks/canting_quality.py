@@ -412,7 +412,8 @@ def run_benchmark(n_frames: int, priors: str = "both", tracking_sigma_mrad: floa
                 t1 = time.perf_counter()
                 sim = simulate_frame(field, t, camera=camera, pose_request=PairPose(hua, tgt),
                                      canting_sigma_mrad=CANTING_SIGMA_MRAD, gps_sigma_m=gps,
-                                     attitude_sigma_deg=att, tracking_sigma_mrad=tracking_sigma_mrad, seed=seed_offset + k)
+                                     attitude_sigma_deg=att, tracking_sigma_mrad=tracking_sigma_mrad,
+                                     seed=seed_offset + k)
                 sims.append((sim, time.perf_counter() - t1))
         except PihimInputError as exc:
             refused.append(f"{t} {hua}/{tgt}: {exc}")

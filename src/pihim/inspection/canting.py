@@ -45,7 +45,8 @@ Then for each facet:
    outline's parallel edges leave local minima half a step to a few steps
    apart (a clearly better supported fit wins; two fits more than half a
    step apart supported alike leave the facet skipped as ambiguous). Eight
-   more start one and a half and two and a half grid steps away, where the
+   more start one and a half and two and a half grid steps from the final
+   winner, where the
    target's repeating back gives lattice basins: one supported alike that
    fits the edges at least as tightly (RMS residual), or one clearly better
    supported, also leaves the facet ambiguous. The
@@ -101,10 +102,12 @@ mrad, largest 0.67. **On 120 frames rendered with new seeds** (2000-2119,
 0.23 mrad, over the 0.5 mrad target in azimuth** (on their second half 0.72
 / 0.30 with the far rivals, 0.80 / 0.40 without: they skipped four wrong
 locks there and nothing else). Four facets are locked on a wrong feature
-2.8-12.9 mrad off; where probed (two, fully in view), the true fit has more matched
-points and a tighter residual but less support (the share of the outline on
-an edge favours a fit that leaves little of it inside the facet), and is no
-peak of the paper's grid; not mended (BENCHMARKS.md).
+2.8-12.9 mrad off (absolute; 2.8-8.5 relative to their frame's mean); where
+probed (two, fully in view), the true fit has more matched points and a
+tighter residual but less support (the share of the outline on an edge
+favours a fit that leaves little of it inside the facet), and is no peak of
+the paper's grid; not mended (BENCHMARKS.md).
+
 Before the final fits tried the
 neighbouring basins: 87 facets at 0.15 / 0.16 mrad, six of them 0.6-1.15
 mrad off, mostly in a basin next to the true one, which also moved the
@@ -209,7 +212,7 @@ _BASIN_STEPS = (0.5, 1.0)
 _DISTINCT_STEPS = 0.5
 #: Where the far rivals of a facet's final fit start, in grid steps from the settled winner along each axis
 #: (:func:`_settle`). The target's back repeats (its facets' sides, the gaps, the crossbars), so a facet that
-#: shows only part of it also fits a lattice step away, 3-5 mrad at UFACET distances, out of reach of the
+#: shows only part of it also fits a lattice step away, about 2.5-4.5 mrad at UFACET distances, out of reach of the
 #: neighbouring basins: in frame 117 of ``benchmarks/canting_quality.py`` two facets 19 and 30 % in view were
 #: measured 3.2 mrad off, their true fits supported alike (0.55 and 0.50 against 0.59 and 0.49) and tighter (RMS
 #: residual 0.08 and 0.12 px against 0.10 and 0.21). A far rival counts in the ambiguity test only when it
@@ -423,8 +426,9 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     0.8 mrad off; 2026-11-28). Two fits more than half a grid step apart
     (``_DISTINCT_STEPS``) whose supports are within ``support_margin`` of
     each other leave the facet ambiguous: it is skipped (raises). With
-    ``basin_rounds``, so does a far rival (``_FAR_STEPS``: refinements
-    started 1.5 and 2.5 grid steps from the final winner along each axis)
+    ``basin_rounds`` and a winner that passes the gates, so does a far rival
+    (``_FAR_STEPS``: refinements started 1.5 and 2.5 grid steps from the final
+    winner along each axis)
     supported alike that fits the image's edges at least as tightly as the
     winner (RMS residual no larger) or is better supported by
     ``support_margin``; a looser one supported alike does not count. Given a list
