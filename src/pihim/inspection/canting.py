@@ -46,12 +46,11 @@ Then for each facet:
    apart (a clearly better supported fit wins; two fits more than half a
    step apart supported alike leave the facet skipped as ambiguous). Eight
    more start one and a half and two and a half grid steps from the final
-   winner, where the
-   target's repeating back gives lattice basins: one supported alike that
-   fits the edges at least as tightly (RMS residual), or one clearly better
-   supported, also leaves the facet ambiguous. The
-   uncertainty is a delete-one-segment jackknife of the
-   last round over the target outline's segments the facet shows
+   winner, where the target's repeating back gives lattice basins: one
+   supported alike that fits the edges at least as tightly (RMS residual),
+   or one clearly better supported, also leaves the facet ambiguous. The
+   uncertainty is a delete-one-segment jackknife of the last round over the
+   target outline's segments the facet shows
    (:mod:`pihim.inspection.uncertainty`).
 
 A rotation common to every facet cannot be told from a heliostat pointing
@@ -427,14 +426,13 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     (``_DISTINCT_STEPS``) whose supports are within ``support_margin`` of
     each other leave the facet ambiguous: it is skipped (raises). With
     ``basin_rounds`` and a winner that passes the gates, so does a far rival
-    (``_FAR_STEPS``: refinements started 1.5 and 2.5 grid steps from the final
-    winner along each axis)
-    supported alike that fits the image's edges at least as tightly as the
-    winner (RMS residual no larger) or is better supported by
-    ``support_margin``; a looser one supported alike does not count. Given a list
-    ``matches``, the last round's matched model points (world), image points
-    and line normals are appended to it as one tuple (for
-    :func:`refine_orientations`).
+    (``_FAR_STEPS``: refinements started 1.5 and 2.5 grid steps from the
+    final winner along each axis) supported alike that fits the image's edges
+    at least as tightly as the winner (RMS residual no larger) or is better
+    supported by ``support_margin``; a looser one supported alike does not
+    count. Given a list ``matches``, the last round's matched model points
+    (world), image points and line normals are appended to it as one tuple
+    (for :func:`refine_orientations`).
     """
     grid_az, grid_el, ob, fits, best = start
     # 3. the neighbouring basins (see the docstring). Every fit tried is a rival in the ambiguity test, also one
