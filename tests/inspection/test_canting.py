@@ -30,21 +30,25 @@ def test_canting_recovered_to_a_fraction_of_the_paper_grid_step(ufacet):
     # relative to the best-fit orientation (the mean over the facets used), as reported
     err_az = est_az - (true_az - true_az.mean())
     err_el = est_el - (true_el - true_el.mean())
-    # measured 0.001 / 0.007 mrad RMS here over facets 7, 8, 12, 17 and 18 (facet 13 sees only the target's
-    # crossbars and is skipped as ambiguous: two fits 5 mrad apart explain it alike); the issue's benchmark
-    # bound is 0.5 mrad, this fast test a looser 0.6
+    # measured 0.002 / 0.008 mrad RMS here over facets 7, 12, 13, 17 and 18 (facet 8 is skipped as ambiguous:
+    # two fits 5 mrad apart explain it alike); the issue's benchmark bound is 0.5 mrad, this fast test a looser 0.6
     assert np.sqrt(np.mean(err_az**2)) < 0.6
     assert np.sqrt(np.mean(err_el**2)) < 0.6
     # the raw best-fit orientation is the mean true canting (exact camera pose, no tracking error)
     assert res.orientation_az_mrad == pytest.approx(true_az.mean(), abs=0.6)
     assert res.orientation_el_mrad == pytest.approx(true_el.mean(), abs=0.6)
-    # the paper's grid search is limited by its 1.75 mrad step
+    # the paper's grid search is limited by its 1.75 mrad step, where its best node is in the true basin; on facet
+    # 13 (the target's crossbars) it is not, 3.5 mrad off (the refinement started from the fine grid)
+    ids = [f.id for f in used]
     grid_az = np.array([f.grid_az_mrad for f in used])
-    assert np.max(np.abs(grid_az - (true_az - true_az.mean()))) < PAPER_GRID_STEP_MRAD
-    # every skipped facet says why; facet 13's reflection fits two ways 5 mrad apart: skipped, not guessed
+    others = np.array(ids) != 13
+    grid_err = (grid_az - grid_az[others].mean()) - (true_az - true_az[others].mean())  # the others' mean as reference
+    assert np.max(np.abs(grid_err[others])) < PAPER_GRID_STEP_MRAD
+    assert abs(grid_err[ids.index(13)]) > PAPER_GRID_STEP_MRAD
+    # every skipped facet says why; facet 8's reflection fits two ways 5 mrad apart: skipped, not guessed
     assert all(f.reason for f in res.facets if not f.used)
-    assert not res.facets[12].used and "alike" in res.facets[12].reason
-    assert reason_code(res.facets[12].reason) == "AMBIG"  # not NOREF, whose text it starts with
+    assert not res.facets[7].used and "alike" in res.facets[7].reason
+    assert reason_code(res.facets[7].reason) == "AMBIG"  # not NOREF, whose text it starts with
     assert reason_code("no usable reflection of 7E3: too few edge points inside this facet") == "NOREF"
     assert res.to_dict()["facets"][0]["id"] == 1
     # each facet's share of its outline in the frame, from the pose the fit used, in facet order
@@ -77,7 +81,7 @@ def test_each_facet_gets_its_own_fits_uncertainty_relative_to_the_mean(ufacet, m
     z = np.zeros_like(fr.s0)
     ep = edge_points(fr.s0, z, z)
     centres = pose.facet_centres[h]
-    unknown = 8
+    unknown = 12
 
     def stub(model, found, segments, a, e, gate):
         fid = int(np.argmin(np.linalg.norm(centres - model.centre, axis=1))) + 1
@@ -188,3 +192,54 @@ def test_a_far_rival_that_explains_the_image_as_well_leaves_the_facet_ambiguous(
             settle(2)
     else:
         assert settle(2)[2:4] == (0.0, 0.0)
+
+
+def test_the_fine_grid_starts_reach_a_basin_the_paper_grid_misses(ufacet, monkeypatch):
+    """Facet 13 sees only the target's crossbars: from the paper grid's peaks alone two fits 5 mrad apart explain it
+    alike (skipped); the fine grid's best peak starts a fit in its true basin, which is better supported, and the
+    facet is measured to a few hundredths of a mrad."""
+    from pihim.inspection import canting
+
+    field, pose, h, az, el, cam, cp, fr = ufacet
+    z = np.zeros_like(fr.s0)
+    ep = edge_points(fr.s0, z, z)
+
+    def facets():
+        res = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, min_dolp=None)
+        return {f.id: f for f in res.facets}
+
+    with monkeypatch.context() as m:
+        m.setattr(canting, "_FINE_PEAKS", 0)
+        assert "alike" in facets()[13].reason
+    got = facets()
+    used = [f for f in got.values() if f.used]
+    assert got[13].used
+    true_az, true_el = np.array([az[f.id - 1] for f in used]), np.array([el[f.id - 1] for f in used])
+    k = [f.id for f in used].index(13)
+    assert got[13].az_mrad == pytest.approx(true_az[k] - true_az.mean(), abs=0.05)
+    assert got[13].el_mrad == pytest.approx(true_el[k] - true_el.mean(), abs=0.05)
+
+
+@pytest.mark.parametrize(("rival", "ambiguous"), [((470, 0.28, 0.63), False),   # fewer points, looser: no rival
+                                                  ((1000, 0.28, 0.63), True),   # as many points
+                                                  ((470, 0.15, 0.63), True)])   # tighter
+def test_a_rival_with_far_fewer_matched_points_fitted_more_loosely_does_not_count(monkeypatch, rival, ambiguous):
+    """The support (a share) favours a fit whose outline mostly leaves the facet: on the frame that
+    ``benchmarks/canting_quality.py --seed-offset 2000`` renders with seed 2014, facet 17's fit 12 mrad off
+    matched 473 edge points at 0.28 px with support 0.63, the true one 1139 points at 0.18 px with support 0.43.
+    A rival dominated so (under 1/1.2 of the points and looser) leaves the winner measured; one that is not makes
+    the facet ambiguous."""
+    from pihim.inspection import canting
+
+    step = PAPER_GRID_STEP_MRAD
+    win = (0.0, 0.0, 1100, 0.18, 0.43, "found", "segments")
+    far = (-7.0 * step, 0.0, *rival, "found", "segments")
+    start = canting._Start(0.0, 0.0, None, [win, far], win)
+    if ambiguous:
+        with pytest.raises(canting.PihimInputError, match="explain it alike"):
+            canting._settle(None, None, start, None, step, (3.0,), [])
+    else:
+        assert canting._settle(None, None, start, None, step, (3.0,), [])[2:4] == (0.0, 0.0)
+    monkeypatch.setattr(canting, "_DOMINANCE", None)  # without the rule, every rival supported alike counts
+    with pytest.raises(canting.PihimInputError, match="explain it alike"):
+        canting._settle(None, None, start, None, step, (3.0,), [])

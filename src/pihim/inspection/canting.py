@@ -36,21 +36,24 @@ Then for each facet:
    elevation deviations with the paper's step, 0.1 deg = 1.745 mrad, scored by
    the share of the projected model points that lie within 5 px of an image
    edge (a truncated chamfer score).
-2. **Refinement**: from the best grid node, Levenberg-Marquardt on the
-   point-to-line distances between the image's sub-pixel edge points inside
-   the facet and the projected reflected outlines, re-matched with a
-   shrinking gate. Once the HUA's turn and the target's correction are
-   chosen, the final fits start again half a grid step and a grid step
-   away along each axis from every fit that passes the gates, as the
-   outline's parallel edges leave local minima half a step to a few steps
-   apart (a clearly better supported fit wins; two fits more than half a
-   step apart supported alike leave the facet skipped as ambiguous). Eight
-   more start one and a half and two and a half grid steps from the final
-   winner, where the target's repeating back gives lattice basins: one
-   supported alike that fits the edges at least as tightly (RMS residual),
-   or one clearly better supported, also leaves the facet ambiguous. The
-   uncertainty is a delete-one-segment jackknife of the last round over the
-   target outline's segments the facet shows
+2. **Refinement**: from the grid's best nodes and the best peaks of a grid
+   four times finer and tighter (2 px; the paper's step is coarse beside a
+   fit's basin), Levenberg-Marquardt on the point-to-line distances between
+   the image's sub-pixel edge points inside the facet and the projected
+   reflected outlines, re-matched with a shrinking gate. A fit matching far
+   fewer edge points, more loosely, is no rival of one that matches many (its
+   outline mostly leaves the facet, which the support, a share, does not see).
+   Once the HUA's turn and the target's correction are chosen, the final fits
+   start again half a grid step and a grid step away along each axis from
+   every fit that passes the gates, as the outline's parallel edges leave
+   local minima half a step to a few steps apart (a clearly better supported
+   fit wins; two fits more than half a step apart supported alike leave the
+   facet skipped as ambiguous). Eight more start one and a half and two and a
+   half grid steps from the final winner, where the target's repeating back
+   gives lattice basins: one supported alike that fits the edges at least as
+   tightly (RMS residual), or one clearly better supported, also leaves the
+   facet ambiguous. The uncertainty is a delete-one-segment jackknife of the
+   last round over the target outline's segments the facet shows
    (:mod:`pihim.inspection.uncertainty`).
 
 A rotation common to every facet cannot be told from a heliostat pointing
@@ -97,15 +100,36 @@ its frame's other three facets 1.3 mrad), and 0.029 / 0.047 mrad, largest
 0.31, on 140-179. The far rivals (``_FAR_STEPS``) now skip those two as
 ambiguous and no other facet of the 180 frames: 570 facets at 0.051 / 0.029
 mrad, largest 0.67. **On 120 frames rendered with new seeds** (2000-2119,
-``--seed-offset 2000``), unseen by every choice here: 406 facets at **0.75 /
-0.23 mrad, over the 0.5 mrad target in azimuth** (on their second half 0.72
+``--seed-offset 2000``), unseen by every choice above: 406 facets at 0.75 /
+0.23 mrad, over the 0.5 mrad target in azimuth (on their second half 0.72
 / 0.30 with the far rivals, 0.80 / 0.40 without: they skipped four wrong
-locks there and nothing else). Four facets are locked on a wrong feature
+locks there and nothing else). Four facets were locked on a wrong feature
 2.8-12.9 mrad off (absolute; 2.8-8.5 relative to their frame's mean); where
-probed (two, fully in view), the true fit has more matched points and a
-tighter residual but less support (the share of the outline on an edge
-favours a fit that leaves little of it inside the facet), and is no peak of
-the paper's grid; not mended (BENCHMARKS.md).
+probed, the true fit has more matched points and a tighter residual but
+less support (the share of the outline on an edge favours a fit that leaves
+little of it inside the facet), and is no peak of the paper's grid.
+
+**Fine-grid starts and dominated rivals** (``_FINE_PEAKS``, ``_DOMINANCE``;
+chosen on frames 2000-2043 of those, 2026-11-28): fitted from its true
+angles, a facet passed the gates 329 times there, and the estimator had
+found that basin only 152 times; a grid four times finer and tighter than
+the paper's has it as its best peak 296 times. With both: the issue's 20
+frames 110 facets at 0.024 / 0.037 mrad (77 at 0.012 / 0.018 before), the
+largest error 0.15; seeds 2000-2119 665 facets at **0.21 / 0.087 mrad**
+(406 at 0.75 / 0.23), the largest 2.95 (three facets 2.7-2.95 mrad off
+relative to their frame's mean; not probed); on 60 frames rendered after
+the choice (seeds 3000-3059) 321 facets at **0.32 / 0.12 mrad** (185 at
+0.041 / 0.014 before), the largest 4.65: frame 3040's facet 17, whose
+target reflection lies outside the facet, locked on other edges 6.6 mrad
+off its true canting, as before the change, when it was its frame's only facet
+(so unscored, but it set the HUA's drive-angle correction); now two more
+facets there make it count. The HUA's drive-angle correction got worse on
+the issue's frames (0.18 / 1.17 mrad RMS against 0.10 / 0.08): on two of
+them the orientation search's turn (5 and 9 mrad in elevation, none in
+truth) now measures two facets more than the logged angles and is kept;
+their facets' deviations stay within 0.15 mrad. About 0.9 s more per frame
+(1.0 s of CPU; 5.8 s against 4.9 s median on this day's machine, over the
+3 s target either way; BENCHMARKS.md).
 
 Before the final fits tried the
 neighbouring basins: 87 facets at 0.15 / 0.16 mrad, six of them 0.6-1.15
@@ -223,6 +247,27 @@ _DISTINCT_STEPS = 0.5
 #: off skipped and no other (211 facets -> 207; the others of their frames had moved up to 0.7 mrad with
 #: them), about 0.25 s more CPU per frame (2026-11-28, BENCHMARKS.md).
 _FAR_STEPS = (1.5, 2.5)
+#: The fine grid's starts (:func:`_fine_peaks`): how many of its best peaks (away from the paper grid's) each
+#: facet's first fits also start from, its nodes per paper grid step, its half-range in paper grid steps, its
+#: tolerance, px, and which of the paper grid's outline samples it scores (every second: every 12 cm). The
+#: paper's grid (1.75 mrad, 5 px) is coarse beside a facet fit's basin (a few px per mrad): on 44 rendered frames
+#: (``benchmarks/canting_quality.py --seed-offset 2000``, seeds 2000-2043) 329 facets fitted from their true
+#: angles pass the gates, but the estimator found that basin for 152 of them (125 ended in another basin, mostly
+#: then failing the gates; 52 ambiguous). A grid of quarter steps, 2 px, over +-5 steps had its best peak within
+#: 0.75 steps of the true angles for 296 of the 329, its second for 23 more (2026-11-28). Over +-4 steps with
+#: every second sample it costs 0.2 s of CPU per frame instead of 0.7, and measured 110 / 321 facets on the
+#: issue's frames / seeds 3000-3059 against 112 / 316 (BENCHMARKS.md).
+_FINE_PEAKS = 2
+_FINE_SUB = 4
+_FINE_SPAN = 4.0
+_FINE_TOL_PX = 2.0
+_FINE_STRIDE = 2
+#: A fit that matches fewer than 1/``_DOMINANCE`` of another's image edge points and fits them more loosely
+#: (larger RMS residual) neither displaces it nor makes the facet ambiguous (:func:`_dominated`). The share of
+#: the outline on an edge (support) favours a fit that leaves most of the outline outside the facet: of 584
+#: wrong fits beside a true one on those 44 frames, 48 were better supported by the margin, 19 matched 1.2 times
+#: as many points and 11 fitted 0.8 times as tightly.
+_DOMINANCE = 1.2
 
 
 @dataclass(frozen=True)
@@ -339,12 +384,16 @@ def _first_fits(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span
     HUA's orientation instead of moving the grid). The grid values kept are
     the paper's (the best node); the refinement starts from each of up to
     ``max_peaks`` local peaks of the grid scoring within ``ambiguity`` of
-    the best, nearest ``prefer_mrad`` (default the centre) first: the
+    the best, and from the ``_FINE_PEAKS`` best peaks of a grid four times
+    finer and tighter (2 px) over +-4 paper steps (:func:`_fine_peaks`),
+    nearest ``prefer_mrad`` (default the centre) first: the
     target's back is periodic (facet rows and columns, crossbars), so a
     facet that sees only part of it matches almost as well one period away
     (5-30 mrad at UFACET distances). The refined fit whose reflected outline
     lies best on the image's edges (support, the share within 1.5 px) wins;
-    a farther peak must beat a nearer one by ``support_margin``.
+    a farther peak must beat a nearer one by ``support_margin``, and not be
+    dominated by it (:func:`_dominated`: far fewer matched edge points,
+    fitted more loosely).
 
     The refinement rounds solve the two angles by trust-region least squares
     with a soft-L1 loss (scale 0.5 px) and the analytic Jacobian of the
@@ -386,12 +435,16 @@ def _first_fits(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span
     ob = obs[mask.inside(obs)]
     if len(ob) < 20:
         raise PihimInputError("too few edge points inside this facet")
+    starts = [(float(gaz[k0]) + centre_mrad[0], float(gel[k0]) + centre_mrad[1])
+              for k0 in peaks[:max_peaks]]
+    if _FINE_PEAKS:
+        starts += _fine_peaks(coef, mask, dt_crop, step_mrad, centre_mrad, starts)
+        starts.sort(key=lambda s: (s[0] - pa) ** 2 + (s[1] - pe) ** 2)
     fits = []
     error: PihimInputError | None = None
-    for k0 in peaks[:max_peaks]:
+    for a0, e0 in starts:
         try:
-            fits.append(_refine_facet(model, mask, ob, dt, gates_px, float(gaz[k0]) + centre_mrad[0],
-                                      float(gel[k0]) + centre_mrad[1]))
+            fits.append(_refine_facet(model, mask, ob, dt, gates_px, a0, e0))
         except PihimInputError as exc:
             error = exc
     if not fits:
@@ -399,9 +452,49 @@ def _first_fits(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span
         raise error
     best = fits[0]
     for fit in fits[1:]:  # a farther peak must be clearly better supported to displace a nearer one
-        if fit[4] > best[4] + support_margin:
+        if fit[4] > best[4] + support_margin and not _dominated(fit, best):
             best = fit
     return _Start(grid_az, grid_el, ob, fits, best)
+
+
+def _dominated(fit: tuple, by: tuple) -> bool:
+    """Whether ``fit`` is no rival of ``by``: it matches fewer than 1/``_DOMINANCE`` of ``by``'s image edge
+    points (inliers) and fits them more loosely (larger RMS residual). A fit whose reflected outline mostly leaves
+    the facet keeps a high support (a share) on the few points left inside."""
+    return _DOMINANCE is not None and fit[2] * _DOMINANCE < by[2] and fit[3] > by[3]
+
+
+def _fine_peaks(coef: NDArray, mask: _Mask, dt_crop: NDArray, step_mrad: float, centre_mrad: tuple[float, float],
+                taken: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Starting angles (raw, mrad) from a grid finer and tighter than the paper's: its best peaks away from ``taken``.
+
+    The same chamfer share as the paper's grid search (:func:`pihim.inspection._kernels.grid_counts`, on every
+    ``_FINE_STRIDE``-th point of the paper grid's quadratic model ``coef``), on nodes ``step_mrad / _FINE_SUB``
+    apart over ``+-_FINE_SPAN`` paper steps around ``centre_mrad``, a point scoring within ``_FINE_TOL_PX`` of an
+    edge; local maxima over +-half a paper step, best first; at most ``_FINE_PEAKS`` of them, each more than
+    ``_DISTINCT_STEPS`` paper steps from every start in ``taken`` and from each other.
+    """
+    from scipy import ndimage
+
+    from pihim.inspection import _kernels
+
+    sub = _FINE_SUB
+    n = int(round(_FINE_SPAN * sub))
+    grid = step_mrad / sub * np.arange(-n, n + 1)
+    coef = np.ascontiguousarray(coef[:, ::_FINE_STRIDE])
+    n_in, n_near = _kernels.grid_counts(coef, grid, grid, mask.sub, mask.r0, mask.c0, dt_crop, _FINE_TOL_PX)
+    share = np.where(n_in >= 10, n_near / np.maximum(n_in, 1), -1.0).reshape(len(grid), len(grid))
+    pk = np.flatnonzero(((share == ndimage.maximum_filter(share, size=sub + 1, mode="nearest")) & (share > 0)).ravel())
+    pk = pk[np.argsort(-share.ravel()[pk], kind="stable")]
+    out: list[tuple[float, float]] = []
+    for k in pk:
+        i, j = divmod(int(k), len(grid))
+        a, e = float(grid[i]) + centre_mrad[0], float(grid[j]) + centre_mrad[1]
+        if all(math.hypot(a - a0, e - e0) > _DISTINCT_STEPS * step_mrad for a0, e0 in taken + out):
+            out.append((a, e))
+        if len(out) >= _FINE_PEAKS:
+            break
+    return out
 
 
 def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mrad: float,
@@ -424,7 +517,8 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     guess (on 20 rendered frames such rescues added 5 facets, one of them
     0.8 mrad off; 2026-11-28). Two fits more than half a grid step apart
     (``_DISTINCT_STEPS``) whose supports are within ``support_margin`` of
-    each other leave the facet ambiguous: it is skipped (raises). With
+    each other leave the facet ambiguous: it is skipped (raises), unless
+    one is dominated by the winner (:func:`_dominated`). With
     ``basin_rounds`` and a winner that passes the gates, so does a far rival
     (``_FAR_STEPS``: refinements started 1.5 and 2.5 grid steps from the
     final winner along each axis) supported alike that fits the image's edges
@@ -472,7 +566,8 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     # apart (a part of its back whose edges repeat), and either would be a made-up number
     for fit in rivals:
         apart = math.hypot(fit[0] - best[0], fit[1] - best[1])
-        if fit is not best and apart > _DISTINCT_STEPS * step_mrad and fit[4] >= best[4] - support_margin:
+        if (fit is not best and apart > _DISTINCT_STEPS * step_mrad and fit[4] >= best[4] - support_margin
+                and not _dominated(fit, best)):
             raise PihimInputError(f"two fits {apart:.1f} mrad apart explain it alike (support {best[4]:.2f} and "
                                   f"{fit[4]:.2f})")
     az, el, n, rms, support, found, segments = best
