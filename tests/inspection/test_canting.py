@@ -176,7 +176,7 @@ def test_a_far_rival_that_explains_the_image_as_well_leaves_the_facet_ambiguous(
 
     def refine(model, mask, ob, dt, gates_px, az, el):
         (a, e), (n, rms, support) = min(basins.items(), key=lambda b: np.hypot(b[0][0] - az, b[0][1] - el))
-        return a, e, n, rms, support, "found", "segments"
+        return a, e, n, rms, support, "found", "segments", 1000
 
     monkeypatch.setattr(canting, "_refine_facet", refine)
     first = refine(*[None] * 5, 0.0, 0.0)
@@ -220,20 +220,21 @@ def test_the_fine_grid_starts_reach_a_basin_the_paper_grid_misses(ufacet, monkey
     assert got[13].el_mrad == pytest.approx(true_el[k] - true_el.mean(), abs=0.05)
 
 
-@pytest.mark.parametrize(("rival", "ambiguous"), [((470, 0.28, 0.63), False),   # fewer points, looser: no rival
-                                                  ((1000, 0.28, 0.63), True),   # as many points
-                                                  ((470, 0.15, 0.63), True)])   # tighter
+@pytest.mark.parametrize(("rival", "ambiguous"), [((470, 0.28, 0.63, 410), False),   # fewer points, looser: no rival
+                                                  ((1000, 0.28, 0.63, 410), True),   # as many points
+                                                  ((470, 0.15, 0.63, 410), True),    # tighter
+                                                  ((470, 0.28, 0.63, 1400), True)])  # its outline as much inside
 def test_a_rival_with_far_fewer_matched_points_fitted_more_loosely_does_not_count(monkeypatch, rival, ambiguous):
     """The support (a share) favours a fit whose outline mostly leaves the facet: on the frame that
     ``benchmarks/canting_quality.py --seed-offset 2000`` renders with seed 2014, facet 17's fit 12 mrad off
-    matched 473 edge points at 0.28 px with support 0.63, the true one 1139 points at 0.18 px with support 0.43.
-    A rival dominated so (under 1/1.2 of the points and looser) leaves the winner measured; one that is not makes
-    the facet ambiguous."""
+    matched 473 edge points at 0.28 px with support 0.63 on 408 outline samples inside the facet, the true one
+    1139 points at 0.18 px with support 0.43 on 1539 samples. A rival dominated so (under 1/1.2 of the samples
+    inside and of the points, and looser) leaves the winner measured; one that is not makes the facet ambiguous."""
     from pihim.inspection import canting
 
     step = PAPER_GRID_STEP_MRAD
-    win = (0.0, 0.0, 1100, 0.18, 0.43, "found", "segments")
-    far = (-7.0 * step, 0.0, *rival, "found", "segments")
+    win = (0.0, 0.0, 1100, 0.18, 0.43, "found", "segments", 1540)
+    far = (-7.0 * step, 0.0, *rival[:3], "found", "segments", rival[3])
     start = canting._Start(0.0, 0.0, None, [win, far], win)
     if ambiguous:
         with pytest.raises(canting.PihimInputError, match="explain it alike"):

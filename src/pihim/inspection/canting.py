@@ -40,9 +40,9 @@ Then for each facet:
    four times finer and tighter (2 px; the paper's step is coarse beside a
    fit's basin), Levenberg-Marquardt on the point-to-line distances between
    the image's sub-pixel edge points inside the facet and the projected
-   reflected outlines, re-matched with a shrinking gate. A fit matching far
-   fewer edge points, more loosely, is no rival of one that matches many (its
-   outline mostly leaves the facet, which the support, a share, does not see).
+   reflected outlines, re-matched with a shrinking gate. A fit whose outline
+   mostly leaves the facet, matching far fewer edge points more loosely, is
+   no rival of one that matches many (the support, a share, does not see it).
    Once the HUA's turn and the target's correction are chosen, the final fits
    start again half a grid step and a grid step away along each axis from
    every fit that passes the gates, as the outline's parallel edges leave
@@ -114,22 +114,23 @@ chosen on frames 2000-2043 of those, 2026-11-28): fitted from its true
 angles, a facet passed the gates 329 times there, and the estimator had
 found that basin only 152 times; a grid four times finer and tighter than
 the paper's has it as its best peak 296 times. With both: the issue's 20
-frames 110 facets at 0.024 / 0.037 mrad (77 at 0.012 / 0.018 before), the
-largest error 0.15; seeds 2000-2119 665 facets at **0.21 / 0.087 mrad**
-(406 at 0.75 / 0.23), the largest 2.95 (three facets 2.7-2.95 mrad off
-relative to their frame's mean; not probed); on 60 frames rendered after
-the choice (seeds 3000-3059) 321 facets at **0.32 / 0.12 mrad** (185 at
-0.041 / 0.014 before), the largest 4.65: frame 3040's facet 17, whose
-target reflection lies outside the facet, locked on other edges 6.6 mrad
-off its true canting, as before the change, when it was its frame's only facet
-(so unscored, but it set the HUA's drive-angle correction); now two more
-facets there make it count. The HUA's drive-angle correction got worse on
-the issue's frames (0.18 / 1.17 mrad RMS against 0.10 / 0.08): on two of
-them the orientation search's turn (5 and 9 mrad in elevation, none in
-truth) now measures two facets more than the logged angles and is kept;
-their facets' deviations stay within 0.15 mrad. About 0.9 s more per frame
-(1.0 s of CPU; 5.8 s against 4.9 s median on this day's machine, over the
-3 s target either way; BENCHMARKS.md).
+frames 101 facets at 0.024 / 0.028 mrad (77 at 0.012 / 0.018 before), the
+largest error 0.13; seeds 2000-2119 594 facets at **0.22 / 0.089 mrad**
+(406 at 0.75 / 0.23), the largest 2.87 (facets of seeds 2088, 2100 and
+2112 2.5-2.9 mrad off relative to their frame's mean; not probed); on 60
+frames rendered after the choice (seeds 3000-3059) 281 facets at **0.34 /
+0.13 mrad** (185 at 0.041 / 0.014 before), the largest 4.65: frame 3040's
+facet 17, whose target reflection lies outside the facet, locked on other
+edges 6.6 mrad off its true canting, as before the change, when it was its
+frame's only facet (so unscored, but it set the HUA's drive-angle
+correction); now two more facets there make it count. The HUA's drive-angle
+correction got worse on the issue's frames (0.12 / 0.62 mrad RMS against
+0.10 / 0.08): on seed 5 the orientation search's turn (5 mrad in
+elevation, none in truth) now measures two facets more than the logged
+angles and is kept (2.6 mrad off in elevation); its facets' deviations stay
+within 0.15 mrad. About
+0.9 s more per frame (1.0 s of CPU; 5.8 s against 4.9 s median on this
+day's machine, over the 3 s target either way; BENCHMARKS.md).
 
 Before the final fits tried the
 neighbouring basins: 87 facets at 0.15 / 0.16 mrad, six of them 0.6-1.15
@@ -262,11 +263,13 @@ _FINE_SUB = 4
 _FINE_SPAN = 4.0
 _FINE_TOL_PX = 2.0
 _FINE_STRIDE = 2
-#: A fit that matches fewer than 1/``_DOMINANCE`` of another's image edge points and fits them more loosely
-#: (larger RMS residual) neither displaces it nor makes the facet ambiguous (:func:`_dominated`). The share of
-#: the outline on an edge (support) favours a fit that leaves most of the outline outside the facet: of 584
-#: wrong fits beside a true one on those 44 frames, 48 were better supported by the margin, 19 matched 1.2 times
-#: as many points and 11 fitted 0.8 times as tightly.
+#: A fit with fewer than 1/``_DOMINANCE`` of another's outline samples inside the facet, matching fewer than
+#: 1/``_DOMINANCE`` of its image edge points and more loosely (larger RMS residual), neither displaces it nor
+#: makes the facet ambiguous (:func:`_dominated`). The share of the outline on an edge (support) favours a fit
+#: that leaves most of the outline outside the facet: of 584 wrong fits beside a true one on those 44 frames, 48
+#: were better supported by the margin, 19 matched 1.2 times as many points and 11 fitted 0.8 times as tightly.
+#: Without the condition on the samples inside, the rule let a fit 0.76 mrad off win over its rival 2.5 mrad away
+#: (``tests/cli/test_cli_canting.py``'s frame, facet 8).
 _DOMINANCE = 1.2
 
 
@@ -392,8 +395,8 @@ def _first_fits(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span
     (5-30 mrad at UFACET distances). The refined fit whose reflected outline
     lies best on the image's edges (support, the share within 1.5 px) wins;
     a farther peak must beat a nearer one by ``support_margin``, and not be
-    dominated by it (:func:`_dominated`: far fewer matched edge points,
-    fitted more loosely).
+    dominated by it (:func:`_dominated`: its outline mostly outside the
+    facet, far fewer matched edge points, fitted more loosely).
 
     The refinement rounds solve the two angles by trust-region least squares
     with a soft-L1 loss (scale 0.5 px) and the analytic Jacobian of the
@@ -458,10 +461,12 @@ def _first_fits(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span
 
 
 def _dominated(fit: tuple, by: tuple) -> bool:
-    """Whether ``fit`` is no rival of ``by``: it matches fewer than 1/``_DOMINANCE`` of ``by``'s image edge
-    points (inliers) and fits them more loosely (larger RMS residual). A fit whose reflected outline mostly leaves
-    the facet keeps a high support (a share) on the few points left inside."""
-    return _DOMINANCE is not None and fit[2] * _DOMINANCE < by[2] and fit[3] > by[3]
+    """Whether ``fit`` is no rival of ``by``: its reflected outline mostly leaves the facet (fewer than
+    1/``_DOMINANCE`` of ``by``'s outline samples inside it), where it matches fewer than 1/``_DOMINANCE`` of
+    ``by``'s image edge points (inliers), and more loosely (larger RMS residual). Such a fit keeps a high support
+    (a share) on the few samples left inside."""
+    d = _DOMINANCE
+    return d is not None and fit[7] * d < by[7] and fit[2] * d < by[2] and fit[3] > by[3]
 
 
 def _fine_peaks(coef: NDArray, mask: _Mask, dt_crop: NDArray, step_mrad: float, centre_mrad: tuple[float, float],
@@ -570,7 +575,7 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
                 and not _dominated(fit, best)):
             raise PihimInputError(f"two fits {apart:.1f} mrad apart explain it alike (support {best[4]:.2f} and "
                                   f"{fit[4]:.2f})")
-    az, el, n, rms, support, found, segments = best
+    az, el, n, rms, support, found, segments, _ = best
     if matches is not None:
         matches.append(found)
     # the model and the last round's matches, for the uncertainty of the facets finally used
@@ -579,10 +584,10 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
 
 def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gates_px: tuple[float, ...],
                   az: float, el: float) -> tuple:
-    """Point-to-line ICP with LM from ``(az, el)``: (az, el, points, rms, support, matches, segments).
+    """Point-to-line ICP with LM from ``(az, el)``: (az, el, points, rms, support, matches, segments, inside).
 
     ``matches`` are the last round's matched model points (world), image points and line normals;
-    ``segments`` the target outline segment of each.
+    ``segments`` the target outline segment of each; ``inside`` how many outline samples fall in the facet.
     """
     from pihim.inspection import _kernels
 
@@ -611,7 +616,7 @@ def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gat
     ins = mask.inside(uv)
     qq = np.rint(uv[ins]).astype(int)
     support = float(np.mean(dt[qq[:, 1], qq[:, 0]] <= 1.5)) if ins.any() else 0.0
-    return az, el, n, rms, support, found, model.seg[idx]
+    return az, el, n, rms, support, found, model.seg[idx], int(ins.sum())
 
 
 def _keeps_turn(turned: tuple[int, int, float], logged: tuple[int, int, float], target_orientation: bool) -> bool:
