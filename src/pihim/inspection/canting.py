@@ -257,7 +257,7 @@ _FAR_STEPS = (1.5, 2.5)
 #: then failing the gates; 52 ambiguous). A grid of quarter steps, 2 px, over +-5 steps had its best peak within
 #: 0.75 steps of the true angles for 296 of the 329, its second for 23 more (2026-11-28). Over +-4 steps with
 #: every second sample it costs 0.2 s of CPU per frame instead of 0.7, and measured 110 / 321 facets on the
-#: issue's frames / seeds 3000-3059 against 112 / 316 (BENCHMARKS.md).
+#: issue's frames / seeds 3000-3059 against 112 / 316 (with the first version of ``_DOMINANCE``; BENCHMARKS.md).
 _FINE_PEAKS = 2
 _FINE_SUB = 4
 _FINE_SPAN = 4.0
