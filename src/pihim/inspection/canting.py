@@ -113,7 +113,8 @@ little of it inside the facet), and is no peak of the paper's grid.
 chosen on frames 2000-2043 of those, 2026-11-28): fitted from its true
 angles, a facet passed the gates 329 times there, and the estimator had
 found that basin only 152 times; a grid four times finer and tighter than
-the paper's has it as its best peak 296 times. With both: the issue's 20
+the paper's (over +-5 steps) has it as its best peak 296 times. With both:
+the issue's 20
 frames 101 facets at 0.024 / 0.028 mrad (77 at 0.012 / 0.018 before), the
 largest error 0.13; seeds 2000-2119 594 facets at **0.22 / 0.089 mrad**
 (406 at 0.75 / 0.23), the largest 2.87 (facets of seeds 2088, 2100 and
