@@ -435,7 +435,7 @@ def test_line_normals_match_the_numpy_statement():
     np.testing.assert_array_equal(got, np.column_stack([-t[:, 1], t[:, 0]]))
 
 
-def test_edge_point_matching_is_the_kdtree_s_including_coincident_points():
+def test_edge_point_matching_is_the_kdtree_s_and_at_a_corner_the_side_whose_line_passes_nearest():
     from scipy.spatial import cKDTree
 
     from pihim.inspection.pose import match_edge_points
@@ -443,18 +443,86 @@ def test_edge_point_matching_is_the_kdtree_s_including_coincident_points():
     rng = np.random.default_rng(13)
     pts, seg = _outline(25)  # every corner twice: the end of one side and the start of the next
     uv = project_points(WIDE, POSE, pts)
+    nrm = line_normals(uv, seg)
     usable = rng.random(len(uv)) < 0.95
     obs = uv[usable][rng.integers(0, usable.sum(), 3000)] + rng.normal(0.0, 2.0, (3000, 2))
     obs = np.concatenate([obs, uv[:100] + 1e-3, rng.uniform(-50, 700, (500, 2))])
     d, j = cKDTree(uv[usable]).query(obs, distance_upper_bound=3.0)
     hit = np.isfinite(d)
-    idx, q = match_edge_points(uv, usable, obs, 3.0, 10, "test")
-    assert 1000 < len(idx) < len(obs)
-    np.testing.assert_array_equal(idx, np.flatnonzero(usable)[j[hit]])
-    np.testing.assert_array_equal(q, obs[hit])
-    k, tie = K.nearest_within(uv[usable], obs, 3.0)
-    assert tie.sum() > 10  # the coincident corners were met
-    np.testing.assert_array_equal(k[~tie], np.where(hit, j, -1)[~tie])
+    # the oracle: every usable sample as near as the nearest, by brute force
+    d2 = ((obs[:, None, :] - uv[usable][None, :, :]) ** 2).sum(axis=2)
+    alike = d2 == d2.min(axis=1, keepdims=True)
+    tied = hit & (alike.sum(axis=1) > 1)
+    assert tied.sum() > 10  # the coincident corners were met
+    line = np.abs(((uv[usable][None, :, :] - obs[:, None, :]) * nrm[usable][None, :, :]).sum(axis=2))
+    by_line = np.where(alike, line, np.inf).argmin(axis=1)  # the first of the nearest lines
+    first = alike.argmax(axis=1)
+    assert np.any(by_line[tied] != first[tied])  # the rule decides somewhere
+    for normals, pick in ((nrm, by_line), (None, first)):
+        idx, q = match_edge_points(uv, usable, obs, 3.0, 10, "test", normals)
+        assert 1000 < len(idx) < len(obs)
+        expect = np.where(tied, pick, j)[hit]
+        np.testing.assert_array_equal(idx, np.flatnonzero(usable)[expect])
+        np.testing.assert_array_equal(q, obs[hit])
+    k, tie = K.nearest_within(uv[usable], obs, 3.0, np.zeros((0, 2)))
+    np.testing.assert_array_equal(tie, tied)
+    np.testing.assert_array_equal(k, np.where(hit, np.where(tied, first, j), -1))
     with pytest.raises(Exception, match="test matches only"):
         match_edge_points(uv, usable, obs + 1e4, 3.0, 10, "test")
 
+
+def test_a_canting_round_s_pass_equals_the_numpy_statement():
+    from pihim.field.kinematics import apply_canting_deviation
+
+    rng = np.random.default_rng(21)
+    pts, seg = _outline(40)
+    pts = pts + [0.0, 8.0, 0.0]  # the target, 8 m behind the facet's plane
+    centre = np.array([0.0, 0.5, 2.0])
+    rot = np.eye(3)
+    normal = rot @ apply_canting_deviation(np.array([0.0, -1.0, 0.0]), 3.0, -2.0)
+    virt = pts - 2.0 * ((pts - centre) @ normal)[:, None] * normal
+    uv = project_points(WIDE, POSE, virt)
+    assert np.isfinite(uv).all()
+    box = np.floor(np.nanpercentile(uv, [20, 80], axis=0)).astype(int)  # a mask over part of the reflection
+    (c0, r0), (c1, r1) = box
+    sub = rng.random((r1 - r0, c1 - c0)) < 0.9
+    mask = _Mask((int(r1) + 50, int(c1) + 50), r0, c0, sub)
+    rot, cpos = np.asarray(POSE.rotation, float), np.asarray(POSE.position_m, float)
+    got_uv, got_nrm, ins, usable = K.reflect_in_mask(pts, seg.astype(np.int64), centre, normal, rot, cpos,
+                                                     K.camera_vector(WIDE), sub, r0, c0)
+    np.testing.assert_allclose(got_uv, uv, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(got_nrm, line_normals(got_uv, seg))
+    np.testing.assert_array_equal(ins, mask.inside(got_uv))
+    np.testing.assert_array_equal(usable, ins & np.isfinite(got_nrm).all(axis=1))
+    assert 100 < ins.sum() < len(pts)
+
+
+
+def test_mirrored_projections_of_many_angle_pairs_equal_the_numpy_statement():
+    from pihim.field.kinematics import apply_canting_deviation
+
+    rng = np.random.default_rng(22)
+    pts = _outline(20)[0] + [0.0, 8.0, 0.0]
+    centre = np.array([0.0, 0.5, 2.0])
+    normals = apply_canting_deviation(np.array([0.0, -1.0, 0.0]), rng.uniform(-15, 15, 5), rng.uniform(-15, 15, 5))
+    pivot = np.array([0.3, 7.0, 1.5])
+    turns = Rotation.from_rotvec(rng.normal(0.0, 0.01, (5, 3))).as_matrix()
+    rot, cpos, cam = np.asarray(POSE.rotation, float), np.asarray(POSE.position_m, float), K.camera_vector(WIDE)
+    for m in (None, turns):
+        world = np.broadcast_to(pts, (5, *pts.shape)) if m is None else pivot + (pts - pivot) @ np.swapaxes(m, 1, 2)
+        d = np.einsum("gnk,gk->gn", world - centre, normals)
+        ref = np.stack([project_points(WIDE, POSE, w - 2.0 * d[g][:, None] * normals[g])
+                        for g, w in enumerate(world)])
+        got = K.mirror_project(pts, normals, centre, np.zeros((0, 3, 3)) if m is None else m, pivot, rot, cpos, cam)
+        assert np.isfinite(ref).all() and np.ptp(ref[:, 0, 0]) > 2.0  # the angle pairs move the reflection
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-8)
+
+
+def test_unique_inverse_equals_numpy_s():
+    rng = np.random.default_rng(23)
+    for n, m in ((1, 5), (50, 0), (1000, 300), (1000, 5000)):
+        idx = rng.integers(0, n, m)
+        used, inv = K.unique_inverse(idx, n)
+        ref_used, ref_inv = np.unique(idx, return_inverse=True)
+        np.testing.assert_array_equal(used, ref_used)
+        np.testing.assert_array_equal(inv, ref_inv)

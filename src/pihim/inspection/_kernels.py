@@ -35,8 +35,11 @@ held to an independent statement by ``tests/inspection/test_kernels.py``.
 * :func:`grid_counts`, :func:`grid_scores`: the canting grid searches' chamfer counts and score of every node;
 * :func:`line_normals`, :func:`nearest_within`: the unit normals of projected
   polylines, and the nearest model point of each edge point within a gate
-  (a bucket grid; exact ties are left to the k-d tree the estimators used
-  before, so that the same one of two coincident points is picked).
+  (a bucket grid; of two coincident points, a corner that ends one side and
+  starts the next, the first);
+* :func:`reflect_in_mask`: a canting fit's round -- the target's outline
+  mirrored in a facet's plane, projected, its polyline normals and whether
+  each point falls in the facet's mask -- in one pass.
 
 References
 ----------
@@ -59,9 +62,10 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
 
-__all__ = ["CHAMFER", "POINT_TO_LINE", "REFLECTION", "bilinear", "camera_vector", "edge_nms", "grid_counts", "grid_scores",
-           "jacobian", "left_jacobian", "line_normals", "nearest_within", "problem", "project_pose", "project_rc",
-           "project_rc_jacobian", "residuals", "rotation_from_vector", "sobel_bilinear", "solve"]
+__all__ = ["CHAMFER", "POINT_TO_LINE", "REFLECTION", "bilinear", "camera_vector", "edge_nms", "grid_counts",
+           "grid_scores", "jacobian", "left_jacobian", "line_normals", "mirror_project", "nearest_within", "problem",
+           "project_pose", "project_rc", "project_rc_jacobian", "reflect_in_mask", "residuals",
+           "rotation_from_vector", "sobel_bilinear", "solve", "unique_inverse"]
 
 
 def camera_vector(camera) -> NDArray[np.float64]:
@@ -993,20 +997,113 @@ def line_normals(uv: NDArray, seg: NDArray) -> NDArray:  # pragma: no cover - co
 
 
 @njit(cache=True, error_model="numpy")
-def nearest_within(model: NDArray, obs: NDArray, gate: float) -> tuple[NDArray, NDArray]:  # pragma: no cover
+def unique_inverse(idx: NDArray, n: int) -> tuple[NDArray, NDArray]:  # pragma: no cover - compiled
+    """``np.unique(idx, return_inverse=True)`` for indices in ``[0, n)``, in O(n + len(idx)) without a sort."""
+    seen = np.zeros(n, np.bool_)
+    for i in idx:
+        seen[i] = True
+    pos = np.empty(n, np.int64)
+    used = np.empty(n, np.int64)
+    c = 0
+    for k in range(n):
+        if seen[k]:
+            pos[k] = c
+            used[c] = k
+            c += 1
+    inv = np.empty(len(idx), np.int64)
+    for i in range(len(idx)):
+        inv[i] = pos[idx[i]]
+    return used[:c].copy(), inv
+
+
+@njit(cache=True, error_model="numpy")
+def mirror_project(pts: NDArray, normals: NDArray, centre: NDArray, turns: NDArray, pivot: NDArray, rot: NDArray,
+                   cpos: NDArray, cam: NDArray) -> NDArray:  # pragma: no cover - compiled
+    """Pixels (G, N, 2) of world points (N, 3) mirrored in the plane through ``centre`` with unit normal
+    ``normals[g]`` (G, 3), projected (:func:`project_rc`): a facet's reflection of the target for G canting
+    angle pairs. With ``turns`` (G, 3, 3) the points are first turned about ``pivot`` by ``turns[g]`` (G
+    turns of the heliostat, a normal each); with ``turns`` of no rows, not at all."""
+    g_n, n = normals.shape[0], pts.shape[0]
+    turned = turns.shape[0] > 0
+    out = np.empty((g_n, n, 2))
+    virt = np.empty((n, 3))
+    w = np.empty(3)
+    for g in range(g_n):
+        nv = normals[g]
+        for i in range(n):
+            if turned:
+                m = turns[g]
+                for k in range(3):
+                    w[k] = pivot[k] + (m[k, 0] * (pts[i, 0] - pivot[0]) + m[k, 1] * (pts[i, 1] - pivot[1])
+                                       + m[k, 2] * (pts[i, 2] - pivot[2]))
+            else:
+                for k in range(3):
+                    w[k] = pts[i, k]
+            t = 2.0 * ((w[0] - centre[0]) * nv[0] + (w[1] - centre[1]) * nv[1] + (w[2] - centre[2]) * nv[2])
+            for k in range(3):
+                virt[i, k] = w[k] - t * nv[k]
+        out[g] = project_rc(rot, cpos, virt, cam)
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def reflect_in_mask(pts: NDArray, seg: NDArray, centre: NDArray, normal: NDArray, rot: NDArray, cpos: NDArray,
+                    cam: NDArray, sub: NDArray, r0: int,
+                    c0: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:  # pragma: no cover - compiled
+    """World points (N, 3) mirrored in the plane through ``centre`` with unit ``normal``, projected
+    (:func:`project_rc`), with their polyline normals (:func:`line_normals`), whether each falls in a mask and
+    whether it is also usable (in the mask with a finite normal): one pass for a canting fit's round.
+
+    The mask is ``sub`` at rows ``r0..``, columns ``c0..`` of the image, a point in it when the pixel its
+    ``(u, v)`` rounds to (half to even) is True (``pihim.inspection.reflection._Mask.inside``).
+    """
+    n = pts.shape[0]
+    virt = np.empty((n, 3))
+    for i in range(n):
+        d = (pts[i, 0] - centre[0]) * normal[0] + (pts[i, 1] - centre[1]) * normal[1] \
+            + (pts[i, 2] - centre[2]) * normal[2]
+        t = 2.0 * d
+        for k in range(3):
+            virt[i, k] = pts[i, k] - t * normal[k]
+    uv = project_rc(rot, cpos, virt, cam)
+    nrm = line_normals(uv, seg)
+    hh, ww = sub.shape
+    ins = np.zeros(n, np.bool_)
+    usable = np.zeros(n, np.bool_)
+    for i in range(n):
+        u, v = uv[i, 0], uv[i, 1]
+        if not (u > c0 - 1.5 and u < c0 + ww + 0.5 and v > r0 - 1.5 and v < r0 + hh + 0.5):
+            continue
+        r = int(np.rint(v)) - r0
+        c = int(np.rint(u)) - c0
+        if 0 <= r < hh and 0 <= c < ww and sub[r, c]:
+            ins[i] = True
+            usable[i] = np.isfinite(nrm[i, 0]) and np.isfinite(nrm[i, 1])
+    return uv, nrm, ins, usable
+
+
+@njit(cache=True, error_model="numpy")
+def nearest_within(model: NDArray, obs: NDArray, gate: float,
+                   normals: NDArray) -> tuple[NDArray, NDArray]:  # pragma: no cover - compiled
     """For each point of ``obs`` (M, 2), the index of the nearest point of ``model`` (N, 2, finite)
     closer than ``gate`` (-1 if none), and whether another model point is exactly as near.
 
-    A bucket grid of cells at least ``gate`` wide (at most 512 x 512 cells).
+    Of equally near points (a polyline's corner, which ends one side and starts the next) the one whose line
+    -- through it with its unit normal of ``normals`` (N, 2) -- passes nearest the edge point is taken, the
+    first of those alike; with ``normals`` of no rows, the first. A bucket grid of cells at least ``gate``
+    wide, about one model point each (at most 512 x 512 cells).
     """
     n = model.shape[0]
+    lines = normals.shape[0] == n
     out = np.full(obs.shape[0], -1, np.int64)
     tie = np.zeros(obs.shape[0], np.bool_)
     if n == 0 or not gate > 0:
         return out, tie
     x0, y0 = model[:, 0].min(), model[:, 1].min()
     x1, y1 = model[:, 0].max(), model[:, 1].max()
-    cell = max(gate, (x1 - x0) / 512.0, (y1 - y0) / 512.0)
+    # cells of about the area per model point, at least the gate: a gate of a pixel or two over a large model
+    # would make far more cells to build than points to sort into them
+    cell = max(gate, (x1 - x0) / 512.0, (y1 - y0) / 512.0, math.sqrt((x1 - x0) * (y1 - y0) / n))
     nx = int((x1 - x0) / cell) + 1
     ny = int((y1 - y0) / cell) + 1
     start = np.zeros(nx * ny + 1, np.int64)
@@ -1027,13 +1124,16 @@ def nearest_within(model: NDArray, obs: NDArray, gate: float) -> tuple[NDArray, 
         oy = obs[m, 1]
         if not (ox > x0 - gate and ox < x1 + gate and oy > y0 - gate and oy < y1 + gate):
             continue
-        cx = int(math.floor((ox - x0) / cell))
-        cy = int(math.floor((oy - y0) / cell))
+        # the cells the gate's disc reaches
+        cxa = max(int(math.floor((ox - gate - x0) / cell)), 0)
+        cxb = min(int(math.floor((ox + gate - x0) / cell)), nx - 1)
+        cya = max(int(math.floor((oy - gate - y0) / cell)), 0)
+        cyb = min(int(math.floor((oy + gate - y0) / cell)), ny - 1)
         best = g2
         bi = -1
         same = False
-        for yy in range(max(cy - 1, 0), min(cy + 2, ny)):
-            for xx in range(max(cx - 1, 0), min(cx + 2, nx)):
+        for yy in range(cya, cyb + 1):
+            for xx in range(cxa, cxb + 1):
                 c = yy * nx + xx
                 for t in range(start[c], start[c + 1]):
                     k = order[t]
@@ -1046,6 +1146,13 @@ def nearest_within(model: NDArray, obs: NDArray, gate: float) -> tuple[NDArray, 
                         same = False
                     elif d2 == best and bi >= 0:
                         same = True
+                        if lines:
+                            dk = abs(normals[k, 0] * dx + normals[k, 1] * dy)
+                            db = abs(normals[bi, 0] * (model[bi, 0] - ox) + normals[bi, 1] * (model[bi, 1] - oy))
+                            if dk < db or (dk == db and k < bi):
+                                bi = k
+                        elif k < bi:
+                            bi = k
         out[m] = bi
         tie[m] = same
     return out, tie

@@ -594,14 +594,13 @@ def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gat
 
     r = np.zeros(0)
     for gate in gates_px:
-        uv, nrm = model.project(az, el)
-        ins = mask.inside(uv) & np.all(np.isfinite(nrm), axis=1)
-        if ins.sum() < 20:
+        uv, nrm, _, usable = model.project_in(mask, az, el)
+        if usable.sum() < 20:
             raise PihimInputError("the reflected target leaves the facet")
-        idx, q = match_edge_points(uv, ins, ob, gate, 15, "the reflected target")
+        idx, q = match_edge_points(uv, usable, ob, gate, 15, "the reflected target", nrm)
         # only the matched model points move; their line normals are held for the round (the
         # outline barely turns over a round's few mrad) and re-taken at the next re-match
-        used_pts, inv = np.unique(idx, return_inverse=True)
+        used_pts, inv = _kernels.unique_inverse(idx, len(uv))
         sub, nq = model.pts[used_pts], nrm[idx]
 
         prob = _kernels.problem(_kernels.REFLECTION, model._r, model._c, sub, model._cam,
@@ -613,8 +612,7 @@ def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gat
     n = int(inl.sum())
     rms = float(np.sqrt(np.mean(r[inl] ** 2))) if n else float("nan")
     # support: the share of the reflected outline (inside the facet) that lies on an image edge
-    uv, _ = model.project(az, el)
-    ins = mask.inside(uv)
+    uv, _, ins, _ = model.project_in(mask, az, el)
     qq = np.rint(uv[ins]).astype(int)
     support = float(np.mean(dt[qq[:, 1], qq[:, 0]] <= 1.5)) if ins.any() else 0.0
     return az, el, n, rms, support, found, model.seg[idx], int(ins.sum())

@@ -154,30 +154,27 @@ def line_normals(uv: NDArray, seg: NDArray) -> NDArray:
 
 
 def match_edge_points(uv: NDArray, usable: NDArray[np.bool_], obs: NDArray, gate: float, min_hits: int,
-                      what: str) -> tuple[NDArray[np.int64], NDArray]:
+                      what: str, normals: NDArray | None = None) -> tuple[NDArray[np.int64], NDArray]:
     """Pair image edge points with their nearest usable model sample within ``gate`` pixels.
 
     Returns the model sample index of each matched edge point and the matched
     points; raises :class:`PihimInputError` (naming ``what``) when fewer than
-    ``min_hits`` match.
+    ``min_hits`` match. Of equally near samples (a corner, which ends one
+    side and starts the next) the one whose line -- through it with its unit
+    normal of ``normals`` (N, 2), as :func:`line_normals` gives them -- passes
+    nearest the edge point is taken (the point-to-line residual the fits
+    minimise), without ``normals`` the first.
     """
-    from scipy.spatial import cKDTree
-
     from pihim.inspection import _kernels
 
-    model = uv[usable]
-    # only edge points in the model's bounding box grown by the gate can match
-    lo = model.min(axis=0) - gate if len(model) else np.zeros(2)
-    hi = model.max(axis=0) + gate if len(model) else -np.ones(2)
-    cand = np.flatnonzero((obs[:, 0] >= lo[0]) & (obs[:, 0] <= hi[0]) & (obs[:, 1] >= lo[1]) & (obs[:, 1] <= hi[1]))
-    j, tie = _kernels.nearest_within(np.ascontiguousarray(model, dtype=float),
-                                     np.ascontiguousarray(obs[cand], dtype=float), float(gate))
-    if tie.any():  # coincident model points (a corner ends one side and starts the next): the tree's pick
-        j[tie] = cKDTree(model).query(obs[cand[tie]], distance_upper_bound=gate)[1]
-    ok = j >= 0
-    hit, j = cand[ok], j[ok]
+    nrm = np.zeros((0, 2)) if normals is None else np.ascontiguousarray(normals[usable], dtype=float)
+    # the kernel passes over the edge points outside the model's bounding box grown by the gate
+    j, _ = _kernels.nearest_within(np.ascontiguousarray(uv[usable], dtype=float),
+                                   np.ascontiguousarray(obs, dtype=float), float(gate), nrm)
+    hit = np.flatnonzero(j >= 0)
     if len(hit) < min_hits:
         raise PihimInputError(f"{what} matches only {len(hit)} edge points")
+    j = j[hit]
     return np.flatnonzero(usable)[j], obs[hit]
 
 
@@ -532,7 +529,7 @@ def _icp(camera: CameraModel, start: CameraPose, pts: NDArray, seg: NDArray, obs
             & (uv[:, 1] > -gate) & (uv[:, 1] < camera.height_px + gate)
         if inside.sum() < 30:
             raise PihimInputError("the heliostat is not in view")
-        idx, q = match_edge_points(uv, inside, obs, gate, 30, "the heliostat's outline")
+        idx, q = match_edge_points(uv, inside, obs, gate, 30, "the heliostat's outline", nrm)
         m = len(idx)
         sub = np.concatenate([pts[idx], pts[prv[idx]], pts[nxt[idx]]])
         prob = _kernels.problem(_kernels.POINT_TO_LINE, rot, centre, sub, cam, q=q, gate=gate)

@@ -252,15 +252,33 @@ class _FacetModel:
         """Projected points (G, N, 2) for G candidate angle pairs at once (no normals)."""
         pts = self.pts if pts is None else pts
         n = apply_canting_deviation(self.normal_local, az_mrad, el_mrad) @ self.rot.T  # (G, 3)
-        d = (pts - self.centre) @ n.T  # (N, G)
-        virt = pts[None, :, :] - 2.0 * d.T[:, :, None] * n[:, None, :]
-        return self._project(virt.reshape(-1, 3)).reshape(len(n), -1, 2)
+        return self._mirror(pts, n, np.zeros((0, 3, 3)), np.zeros(3))
+
+    def _mirror(self, pts: NDArray, normals: NDArray, turns: NDArray, pivot: NDArray) -> NDArray:
+        """:func:`pihim.inspection._kernels.mirror_project` on this model's facet and camera."""
+        from pihim.inspection import _kernels
+
+        return _kernels.mirror_project(np.ascontiguousarray(pts, dtype=float),
+                                       np.ascontiguousarray(np.reshape(normals, (-1, 3)), dtype=float),
+                                       np.asarray(self.centre, float), np.ascontiguousarray(turns, dtype=float),
+                                       np.asarray(pivot, float), self._r, self._c, self._cam)
 
     def project(self, az_mrad: float, el_mrad: float) -> tuple[NDArray, NDArray]:
         n = self.rot @ apply_canting_deviation(self.normal_local, az_mrad, el_mrad)
         virt = self.pts - 2.0 * ((self.pts - self.centre) @ n)[:, None] * n
         uv = self._project(virt)
         return uv, line_normals(uv, self.seg)
+
+    def project_in(self, mask: _Mask, az_mrad: float, el_mrad: float) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """:meth:`project` and, for each point, whether it falls in ``mask`` (:meth:`_Mask.inside`) and whether it
+        is also usable for matching (a finite line normal): one compiled pass
+        (:func:`pihim.inspection._kernels.reflect_in_mask`)."""
+        from pihim.inspection import _kernels
+
+        n = self.rot @ apply_canting_deviation(self.normal_local, az_mrad, el_mrad)
+        return _kernels.reflect_in_mask(self.pts, np.ascontiguousarray(self.seg, dtype=np.int64),
+                                        np.asarray(self.centre, float), n, self._r, self._c, self._cam, mask.sub,
+                                        mask.r0, mask.c0)
 
 
 class _TurnModel(_FacetModel):
@@ -288,10 +306,8 @@ class _TurnModel(_FacetModel):
         az = self.drive_deg[0] + np.asarray(az_mrad, float) * to_deg
         el = self.drive_deg[1] + np.asarray(el_mrad, float) * to_deg
         m = self.rot @ np.swapaxes(rotation_from_drive(az, el), -1, -2)  # (G, 3, 3): logged from true
-        world = self.pivot + np.einsum("gij,nj->gni", m, pts - self.pivot)  # (G, N, 3)
         n = self.rot @ self.normal_local
-        virt = world - 2.0 * ((world - self.centre) @ n)[:, :, None] * n
-        return self._project(virt.reshape(-1, 3)).reshape(len(m), -1, 2)
+        return self._mirror(pts, np.broadcast_to(n, (len(m), 3)), m, self.pivot)
 
 
 def _equivalent_tilt(model: _FacetModel, turned: _TurnModel, turn_mrad: tuple[float, float],
