@@ -244,3 +244,68 @@ def test_a_rival_with_far_fewer_matched_points_fitted_more_loosely_does_not_coun
     monkeypatch.setattr(canting, "_DOMINANCE", None)  # without the rule, every rival supported alike counts
     with pytest.raises(canting.PihimInputError, match="explain it alike"):
         canting._settle(None, None, start, None, step, (3.0,), [])
+
+
+def test_the_window_of_projected_outline_points_changes_no_fit(ufacet, monkeypatch):
+    """A fit's rounds project only the outline points near the facet while no other can reach it
+    (``canting._Window``): the same facets, angles and residuals as projecting them all, with the window used."""
+    from pihim.inspection import canting
+
+    field, pose, h, az, el, cam, cp, fr = ufacet
+    z = np.zeros_like(fr.s0)
+    ep = edge_points(fr.s0, z, z)
+    project = canting._Window.project
+    parts = []
+
+    def counted(self, a, e):
+        out = project(self, a, e)
+        parts.append(out[4] is not None and len(out[4]) < len(self.model.pts))
+        return out
+
+    monkeypatch.setattr(canting._Window, "project", counted)
+    def result() -> dict:
+        out = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, min_dolp=None).to_dict()
+        del out["orientation_search"]["seconds"]
+        return out
+
+    windowed = result()
+    assert sum(parts) > 0.5 * len(parts)  # most projections were of a part of the outline
+    monkeypatch.setattr(canting, "_WINDOW_PX", 0.0)  # every projection of all points
+    parts.clear()
+    assert windowed == result()
+    assert parts and not any(parts)
+
+
+def test_a_window_holds_every_outline_point_that_can_reach_the_facet(ufacet, monkeypatch):
+    """Within the angles a window allows, the points in the facet's mask, their pixels and line normals are those
+    of all points, even for a window a few pixels wide (points just outside it come in if the bound is wrong)."""
+    from pihim.inspection import canting
+    from pihim.inspection.pose import sample_segments
+    from pihim.inspection.reflection import _facet_masks, _FacetModel, target_outline_segments
+
+    field, pose, h, az, el, cam, cp, fr = ufacet
+    pts, seg = sample_segments(target_outline_segments(pose, field.index("7E3")), 0.01)
+    masks = _facet_masks(cam, cp, pose.facet_corners()[h], 6.0)
+    monkeypatch.setattr(canting, "_WINDOW_PX", 4.0)
+    rng = np.random.default_rng(3)
+    checked = 0
+    for f, mask in enumerate(masks):
+        if mask.area() < 200:
+            continue
+        model = _FacetModel(cam, cp, pose.rotations[h], pose.facet_centres[h, f], pose.facet_normals_local[h, f],
+                            pts, seg).near(mask, 17.5)
+        window = canting._Window(model, mask)
+        centre = rng.normal(0.0, 3.0, 2)
+        assert window.project(*centre)[4] is None  # all points: the window's reference
+        for _ in range(10):
+            d = rng.normal(size=2)
+            a, e = centre + d / np.hypot(*d) * rng.uniform(0.5, 0.999) * 4.0 / window.rate  # within the bound
+            uv, nrm, ins, usable, where = window.project(a, e)
+            assert where is not None and len(where) < len(model.pts)
+            full = model.project_in(mask, a, e)
+            np.testing.assert_array_equal(where[ins], np.flatnonzero(full[2]))
+            np.testing.assert_array_equal(where[usable], np.flatnonzero(full[3]))
+            np.testing.assert_array_equal(uv[ins], full[0][full[2]])
+            np.testing.assert_array_equal(nrm[usable], full[1][full[3]])
+            checked += int(full[2].sum() > 0)
+    assert checked >= 30

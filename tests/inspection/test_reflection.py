@@ -60,3 +60,15 @@ def test_facet_in_view_is_the_share_of_the_outline_on_the_sensor():
     share = facet_in_view(cam, pose, np.stack([centre, border, behind]))
     assert share[0] == 1.0 and share[2] == 0.0
     assert abs(share[1] - 0.5) <= 1.5 / 96  # 24 points a side: the side across the border splits 12 / 11-12
+
+
+def test_one_facet_normal_tilted_as_apply_canting_deviation_does_to_the_bit():
+    from pihim.field.kinematics import apply_canting_deviation
+    from pihim.inspection.reflection import _tilted
+
+    rng = np.random.default_rng(5)
+    for _ in range(500):
+        n = rng.normal(size=3)
+        a, e = rng.uniform(-20.0, 20.0, 2)
+        np.testing.assert_array_equal(_tilted(n / np.linalg.norm(n), a, e),
+                                      apply_canting_deviation(n / np.linalg.norm(n), a, e))

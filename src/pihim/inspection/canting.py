@@ -272,6 +272,9 @@ _FINE_STRIDE = 2
 #: Without the condition on the samples inside, the rule let a fit 0.76 mrad off win over its rival 2.5 mrad away
 #: (``tests/cli/test_cli_canting.py``'s frame, facet 8).
 _DOMINANCE = 1.2
+#: How far, px, from a facet's mask (its bounding box) the outline points a fit's rounds project reach
+#: (:class:`_Window`).
+_WINDOW_PX = 40.0
 
 
 @dataclass(frozen=True)
@@ -583,6 +586,39 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     return grid_az, grid_el, az, el, model, (found, segments), n, rms, support
 
 
+class _Window:
+    """The outline points a facet fit's rounds project: those within ``_WINDOW_PX`` of the facet's mask (its
+    bounding box) at the angles of the last projection of them all, and their neighbours, while the fit stays
+    so near those angles that no other point can reach the mask (:meth:`_FacetModel.motion_px_per_mrad`);
+    beyond, all again. The points in the mask, their order and line normals are those of all points: the fits
+    are the same, at a fraction of the projections (most of a model's points stay outside the facet)."""
+
+    def __init__(self, model: _FacetModel, mask: _Mask):
+        self.model, self.mask = model, mask
+        self.rate = model.motion_px_per_mrad()
+        self.box = mask.extent()
+        self.ref: tuple[float, float] | None = None
+        self.part: _FacetModel = model
+        self.where: NDArray = np.zeros(0, np.int64)
+
+    def project(self, az: float, el: float) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray | None]:
+        """:meth:`_FacetModel.project_in` of the points in the window, and their indices (None: all points)."""
+        if self.ref is not None and self.rate * math.hypot(az - self.ref[0], el - self.ref[1]) < _WINDOW_PX:
+            return (*self.part.project_in(self.mask, az, el), self.where)
+        uv, nrm, ins, usable = self.model.project_in(self.mask, az, el)
+        if self.box is not None:
+            r_lo, r_hi, c_lo, c_hi = self.box
+            w = _WINDOW_PX
+            with np.errstate(invalid="ignore"):
+                keep = (uv[:, 0] > c_lo - w) & (uv[:, 0] < c_hi + w) & (uv[:, 1] > r_lo - w) & (uv[:, 1] < r_hi + w)
+            keep[1:] |= keep[:-1]  # and each point's neighbours along the outline (its line normal's)
+            keep[:-1] |= keep[1:]
+            self.where = np.flatnonzero(keep)
+            self.part = self.model._with(self.model.pts[self.where], self.model.seg[self.where])
+            self.ref = (az, el)
+        return uv, nrm, ins, usable, None
+
+
 def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gates_px: tuple[float, ...],
                   az: float, el: float) -> tuple:
     """Point-to-line ICP with LM from ``(az, el)``: (az, el, points, rms, support, matches, segments, inside).
@@ -593,15 +629,17 @@ def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gat
     from pihim.inspection import _kernels
 
     r = np.zeros(0)
+    window = _Window(model, mask)
     for gate in gates_px:
-        uv, nrm, _, usable = model.project_in(mask, az, el)
+        uv, nrm, _, usable, where = window.project(az, el)
         if usable.sum() < 20:
             raise PihimInputError("the reflected target leaves the facet")
-        idx, q = match_edge_points(uv, usable, ob, gate, 15, "the reflected target", nrm)
+        k, q = match_edge_points(uv, usable, ob, gate, 15, "the reflected target", nrm)
         # only the matched model points move; their line normals are held for the round (the
         # outline barely turns over a round's few mrad) and re-taken at the next re-match
-        used_pts, inv = _kernels.unique_inverse(idx, len(uv))
-        sub, nq = model.pts[used_pts], nrm[idx]
+        used_pts, inv = _kernels.unique_inverse(k, len(uv))
+        idx, used = (k, used_pts) if where is None else (where[k], where[used_pts])
+        sub, nq = model.pts[used], nrm[k]
 
         prob = _kernels.problem(_kernels.REFLECTION, model._r, model._c, sub, model._cam,
                                 q=np.column_stack([q, nq]), aux=model.aux, idx=inv, gate=gate)
@@ -612,7 +650,7 @@ def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gat
     n = int(inl.sum())
     rms = float(np.sqrt(np.mean(r[inl] ** 2))) if n else float("nan")
     # support: the share of the reflected outline (inside the facet) that lies on an image edge
-    uv, _, ins, _ = model.project_in(mask, az, el)
+    uv, _, ins, _, _ = window.project(az, el)
     qq = np.rint(uv[ins]).astype(int)
     support = float(np.mean(dt[qq[:, 1], qq[:, 0]] <= 1.5)) if ins.any() else 0.0
     return az, el, n, rms, support, found, model.seg[idx], int(ins.sum())

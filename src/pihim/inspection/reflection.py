@@ -168,6 +168,16 @@ def _facet_masks(camera: CameraModel, pose: CameraPose, corners: NDArray, margin
     return masks
 
 
+def _tilted(normal: NDArray, az_mrad: float, el_mrad: float) -> NDArray[np.float64]:
+    """:func:`pihim.field.kinematics.apply_canting_deviation` of one normal by one pair of angles, without the
+    validation and broadcasting (a facet fit's every round)."""
+    x, y, z = (float(v) for v in normal)
+    c, s = math.cos(el_mrad * 1e-3), math.sin(el_mrad * 1e-3)
+    y, z = c * y + s * z, -s * y + c * z
+    c, s = math.cos(az_mrad * 1e-3), math.sin(az_mrad * 1e-3)
+    return np.array([c * x + s * z, y, -s * x + c * z])
+
+
 def _quadratic_basis(a: NDArray, e: NDArray) -> NDArray:
     return np.stack([np.ones_like(a), a, e, a * a, e * e, a * e], axis=1)
 
@@ -269,13 +279,24 @@ class _FacetModel:
         uv = self._project(virt)
         return uv, line_normals(uv, self.seg)
 
+    def motion_px_per_mrad(self) -> float:
+        """A bound of how far any point's projection moves per mrad of canting, px: twice the largest, over
+        every 16th point, of the norm of its pixel's derivatives by the two angles (differences over 1 mrad
+        at the design; the reflection moves almost affinely with the angles)."""
+        bound = getattr(self, "_motion", None)
+        if bound is None:
+            uv = _FacetModel.project_many(self, np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]), self.pts[::16])
+            d = np.hypot(np.linalg.norm(uv[1] - uv[0], axis=1), np.linalg.norm(uv[2] - uv[0], axis=1))
+            bound = self._motion = 2.0 * float(np.nanmax(d, initial=0.0))
+        return bound
+
     def project_in(self, mask: _Mask, az_mrad: float, el_mrad: float) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """:meth:`project` and, for each point, whether it falls in ``mask`` (:meth:`_Mask.inside`) and whether it
         is also usable for matching (a finite line normal): one compiled pass
         (:func:`pihim.inspection._kernels.reflect_in_mask`)."""
         from pihim.inspection import _kernels
 
-        n = self.rot @ apply_canting_deviation(self.normal_local, az_mrad, el_mrad)
+        n = self.rot @ _tilted(self.normal_local, az_mrad, el_mrad)
         return _kernels.reflect_in_mask(self.pts, np.ascontiguousarray(self.seg, dtype=np.int64),
                                         np.asarray(self.centre, float), n, self._r, self._c, self._cam, mask.sub,
                                         mask.r0, mask.c0)
