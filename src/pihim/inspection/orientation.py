@@ -137,12 +137,19 @@ def search_orientation(
         hh, ww = mask.sub.shape
         dt_crop = np.ascontiguousarray(dt[mask.r0:mask.r0 + hh, mask.c0:mask.c0 + ww])
         near = np.zeros((n, n))
+        # every block's quadratic (blocks of one size at once)
+        by_size: dict[float, list[tuple[int, int, float, float]]] = {}
         for i, ga in enumerate(blocks):
             for j, ge in enumerate(blocks):
                 ca, ce = 0.5 * (ga[0] + ga[-1]), 0.5 * (ge[0] + ge[-1])
                 s = max(float(np.max(np.abs(ga - ca))), float(np.max(np.abs(ge - ce))), 1.0)
-                coef = sub_model.quadratic_coefficients(s, (ca, ce))
-                _, nn = _kernels.grid_counts(coef, ga - ca, ge - ce, mask.sub, mask.r0, mask.c0, dt_crop, float(tol_px))
+                by_size.setdefault(s, []).append((i, j, ca, ce))
+        for s, group in by_size.items():
+            coefs = sub_model.quadratic_blocks(s, [(ca, ce) for _, _, ca, ce in group])
+            for (i, j, ca, ce), coef in zip(group, coefs):
+                ga, ge = blocks[i], blocks[j]
+                _, nn = _kernels.grid_counts(np.ascontiguousarray(coef), ga - ca, ge - ce, mask.sub, mask.r0,
+                                             mask.c0, dt_crop, float(tol_px))
                 near[i * block:i * block + len(ga), j * block:j * block + len(ge)] = nn.reshape(len(ga), -1)
         if near.max() > 0:
             scored += 1

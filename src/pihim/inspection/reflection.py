@@ -14,6 +14,7 @@ Used by :mod:`pihim.inspection.canting` and :mod:`pihim.inspection.orientation`.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -182,6 +183,15 @@ def _quadratic_basis(a: NDArray, e: NDArray) -> NDArray:
     return np.stack([np.ones_like(a), a, e, a * a, e * e, a * e], axis=1)
 
 
+@functools.lru_cache(maxsize=64)
+def _quadratic_nodes(s: float) -> tuple[NDArray, NDArray, NDArray]:
+    """The nodes ``{-s, 0, s}^2`` (az and el, az major) of a quadratic's fit and the least-squares matrix (6, 9)
+    that turns their projections into its coefficients (:meth:`_FacetModel.quadratic_coefficients`)."""
+    k = np.array([-s, 0.0, s])
+    na, ne = (g.ravel() for g in np.meshgrid(k, k, indexing="ij"))
+    return na, ne, np.linalg.pinv(_quadratic_basis(na, ne))
+
+
 class _FacetModel:
     """The target's outlines reflected in one HUA facet, projected for candidate canting angles."""
 
@@ -244,10 +254,15 @@ class _FacetModel:
         instead of one per grid node (the refinement uses :meth:`project`,
         exact).
         """
-        k = np.array([-s, 0.0, s])
-        na, ne = (g.ravel() for g in np.meshgrid(k, k, indexing="ij"))
-        uv = self.project_many(na + centre_mrad[0], ne + centre_mrad[1])  # (9, N, 2)
-        return (np.linalg.pinv(_quadratic_basis(na, ne)) @ uv.reshape(9, -1)).reshape(6, -1, 2)
+        return self.quadratic_blocks(s, [centre_mrad])[0]
+
+    def quadratic_blocks(self, s: float, centres_mrad: list[tuple[float, float]]) -> NDArray:
+        """:meth:`quadratic_coefficients` (B, 6, N, 2) around each of B centres: one projection of all their
+        nodes."""
+        na, ne, fit = _quadratic_nodes(float(s))
+        c = np.asarray(centres_mrad, float).reshape(-1, 2)
+        uv = self.project_many((c[:, :1] + na).ravel(), (c[:, 1:] + ne).ravel())  # (9 B, N, 2)
+        return (fit @ uv.reshape(len(c), 9, -1)).reshape(len(c), 6, -1, 2)
 
     def project_quadratic(self, az_mrad: NDArray, el_mrad: NDArray) -> NDArray:
         """Projected points (G, N, 2) for G angle pairs, to second order in the angles
