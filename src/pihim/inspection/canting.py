@@ -114,9 +114,8 @@ chosen on frames 2000-2043 of those, 2026-11-28): fitted from its true
 angles, a facet passed the gates 329 times there, and the estimator had
 found that basin only 152 times; a grid four times finer and tighter than
 the paper's (over +-5 steps) has it as its best peak 296 times. With both:
-the issue's 20
-frames 101 facets at 0.024 / 0.028 mrad (77 at 0.012 / 0.018 before), the
-largest error 0.13; seeds 2000-2119 594 facets at **0.22 / 0.089 mrad**
+the issue's 20 frames 101 facets at 0.024 / 0.028 mrad (77 at 0.012 /
+0.018 before), the largest error 0.13; seeds 2000-2119 594 facets at **0.22 / 0.089 mrad**
 (406 at 0.75 / 0.23), the largest 2.87 (facets of seeds 2088, 2100 and
 2112 2.5-2.9 mrad off relative to their frame's mean; not probed); on 60
 frames rendered after the choice (seeds 3000-3059) 281 facets at **0.34 /
@@ -131,7 +130,14 @@ elevation, none in truth) now measures two facets more than the logged
 angles and is kept (2.6 mrad off in elevation); its facets' deviations stay
 within 0.15 mrad. About
 0.9 s more per frame (1.0 s of CPU; 5.8 s against 4.9 s median on this
-day's machine, over the 3 s target either way; BENCHMARKS.md).
+day's machine, over the 3 s target either way; BENCHMARKS.md). Then a
+fit's rounds were compiled (:func:`pihim.inspection._kernels.reflect_in_mask`,
+:class:`_Window`, the matching's cells) and, of two equally near outline
+samples (every corner), the one whose line passes nearest the edge point is
+matched instead of a k-d tree's pick: 2.8 s median per frame (the canting
+step 2.1 s) on a machine that took 4.7 s the same hour; 103 / 598 / 279
+facets at 0.024 / 0.028, 0.216 / 0.086 and 0.345 / 0.129 mrad on the
+issue's frames, seeds 2000-2119 and 3000-3059 (2026-11-28).
 
 Before the final fits tried the
 neighbouring basins: 87 facets at 0.15 / 0.16 mrad, six of them 0.6-1.15
