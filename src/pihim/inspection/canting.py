@@ -137,7 +137,13 @@ samples (every corner), the one whose line passes nearest the edge point is
 matched instead of a k-d tree's pick: 2.8 s median per frame (the canting
 step 2.1 s) on a machine that took 4.7 s the same hour; 103 / 598 / 279
 facets at 0.024 / 0.028, 0.216 / 0.086 and 0.345 / 0.129 mrad on the
-issue's frames, seeds 2000-2119 and 3000-3059 (2026-11-28).
+issue's frames, seeds 2000-2119 and 3000-3059 (2026-11-28). A turn of the
+HUA must now also fit the facets both outlines measure no more loosely
+(``_keeps_turn``): the wrong turns of seeds 5 and 2113 are refused (the
+HUA's drive-angle correction 0.10 / 0.07 mrad RMS on the issue's frames
+instead of 0.12 / 0.62), 102 / 595 / 279 facets at 0.008 / 0.020, 0.217 /
+0.082 and 0.345 / 0.129 mrad; with drive-angle errors of 5 mrad, the same
+results as before on 20 frames. Seed 2088 keeps a correction 1.1 mrad off.
 
 Before the final fits tried the
 neighbouring basins: 87 facets at 0.15 / 0.16 mrad, six of them 0.6-1.15
@@ -662,18 +668,19 @@ def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gat
     return az, el, n, rms, support, found, model.seg[idx], int(ins.sum())
 
 
-def _keeps_turn(turned: tuple[int, int, float], logged: tuple[int, int, float], target_orientation: bool) -> bool:
+def _keeps_turn(turned: tuple[int, int, float, float], logged: tuple[int, int, float, float],
+                target_orientation: bool) -> bool:
     """Whether the orientation search's turn of the HUA replaces its logged drive angles.
 
     ``turned`` and ``logged`` are each outline's first fits: (facets measured, facets that found the target's
-    outline, mean RMS residual in px). With the target's correction to follow, the turn wins on more facets
-    measured, then on more facets found (what that correction starts from), then on a smaller residual. Without
-    it, the log is the prior: the turn must measure at least two facets more (``estimate_canting``'s
-    ``orientation_span_mrad``).
+    outline, mean RMS residual in px, the same over the facets both measured). With the target's correction to
+    follow, the turn wins on more facets measured, then on more facets found (what that correction starts from),
+    then on a smaller residual. Without it, the log is the prior: the turn must measure at least two facets more
+    (``estimate_canting``'s ``orientation_span_mrad``) and fit the facets both measure no more loosely.
     """
     if target_orientation:
         return (turned[0], turned[1], -turned[2]) > (logged[0], logged[1], -logged[2])
-    return turned[0] >= logged[0] + 2
+    return turned[0] >= logged[0] + 2 and not turned[3] > logged[3]
 
 
 def _direction_spread(normals: ArrayLike) -> float:
@@ -801,7 +808,10 @@ def estimate_canting(
         common tilt of its facets, and one facet more is within chance (on
         rendered frame 28 of ``benchmarks/canting_quality.py``, no drive-angle
         error, a turn 5 mrad off measured 8 facets against 7 and put them
-        0.32 mrad off; 2026-11-28). Default the paper's +-5 deg; None skips
+        0.32 mrad off; 2026-11-28), and it must fit the facets both measure
+        no more loosely (mean RMS residual; on frame 5, a turn 5 mrad off in
+        elevation measured 7 facets against 5 and set the HUA's drive-angle
+        correction 2.6 mrad off). Default the paper's +-5 deg; None skips
         the search.
     target_orientation : bool
         Correct the target's logged drive angles and the HUA's turn
@@ -916,8 +926,10 @@ def estimate_canting(
     def n_used(fits: dict[int, object]) -> int:
         return sum(not isinstance(v, str) for v in fits.values())
 
-    def mean_rms(fits: dict[int, object]) -> float:
-        v = [r[7] for r in fits.values() if not isinstance(r, str)]
+    def mean_rms(fits: dict[int, object], among: dict[int, object] | None = None) -> float:
+        """The mean RMS residual of the facets measured (and measured in ``among`` too)."""
+        v = [r[7] for f, r in fits.items() if not isinstance(r, str)
+             and (among is None or not isinstance(among.get(f, ""), str))]
         return float(np.mean(v)) if v else float("inf")
 
     search = None
@@ -960,8 +972,9 @@ def estimate_canting(
     logged_matches: list = []
     logged = fit_facets(prefer, logged_matches)
     final_prefer = None  # the grid peaks' preference of the outline kept (the logged one's, if kept)
-    if world is not None and _keeps_turn((n_used(fits), len(matches), mean_rms(fits)),
-                                         (n_used(logged), len(logged_matches), mean_rms(logged)), target_orientation):
+    turned_first = (n_used(fits), len(matches), mean_rms(fits), mean_rms(fits, logged))
+    logged_first = (n_used(logged), len(logged_matches), mean_rms(logged), mean_rms(logged, fits))
+    if world is not None and _keeps_turn(turned_first, logged_first, target_orientation):
         notes.append(f"HUA {hua}'s logged drive angles corrected by the orientation search: az {turn_deg[0]:+.2f}, "
                      f"el {turn_deg[1]:+.2f} deg ({n_used(fits)} facets measured in the first fits, {n_used(logged)} "
                      "at the logged angles)")

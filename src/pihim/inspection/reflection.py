@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from pihim.camera.model import CameraModel
 from pihim.camera.pose import CameraPose
 from pihim.field.kinematics import FieldPose, apply_canting_deviation
-from pihim.inspection.pose import facet_outline_segments, line_normals
+from pihim.inspection.pose import facet_outline_segments
 from pihim.render.scene import StructureSizes
 
 __all__ = ["facet_in_view", "hua_turn_transform", "target_outline_segments"]
@@ -206,11 +206,6 @@ class _FacetModel:
         #: The facet for the ``REFLECTION`` problems (:func:`pihim.inspection._kernels.problem`'s ``aux``).
         self.aux = np.concatenate([np.ravel(rot_hua), centre, normal_local])
 
-    def _project(self, pts: NDArray) -> NDArray:
-        from pihim.inspection import _kernels
-
-        return _kernels.project_rc(self._r, self._c, np.ascontiguousarray(pts), self._cam)
-
     def _with(self, pts: NDArray, seg: NDArray) -> _FacetModel:
         """The same model on other sample points."""
         return _FacetModel(self.camera, self.pose, self.rot, self.centre, self.normal_local, pts, seg)
@@ -251,7 +246,7 @@ class _FacetModel:
         Exact projections on the 3 x 3 grid ``centre + {-s, 0, s}^2`` fix the
         quadratic (least squares on the nine nodes); its error is third order,
         far below a pixel over +-17.5 mrad, and it costs nine projections
-        instead of one per grid node (the refinement uses :meth:`project`,
+        instead of one per grid node (the refinement uses :meth:`project_in`,
         exact).
         """
         return self.quadratic_blocks(s, [centre_mrad])[0]
@@ -288,12 +283,6 @@ class _FacetModel:
                                        np.asarray(self.centre, float), np.ascontiguousarray(turns, dtype=float),
                                        np.asarray(pivot, float), self._r, self._c, self._cam)
 
-    def project(self, az_mrad: float, el_mrad: float) -> tuple[NDArray, NDArray]:
-        n = self.rot @ apply_canting_deviation(self.normal_local, az_mrad, el_mrad)
-        virt = self.pts - 2.0 * ((self.pts - self.centre) @ n)[:, None] * n
-        uv = self._project(virt)
-        return uv, line_normals(uv, self.seg)
-
     def motion_px_per_mrad(self) -> float:
         """A bound of how far any point's projection moves per mrad of canting, px: twice the largest, over
         every 16th point, of the norm of its pixel's derivatives by the two angles (differences over 1 mrad
@@ -306,9 +295,9 @@ class _FacetModel:
         return bound
 
     def project_in(self, mask: _Mask, az_mrad: float, el_mrad: float) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-        """:meth:`project` and, for each point, whether it falls in ``mask`` (:meth:`_Mask.inside`) and whether it
-        is also usable for matching (a finite line normal): one compiled pass
-        (:func:`pihim.inspection._kernels.reflect_in_mask`)."""
+        """Pixels (N, 2) of the points at canting ``(az_mrad, el_mrad)``, their line normals (N, 2), whether
+        each falls in ``mask`` (:meth:`_Mask.inside`) and whether it is also usable for matching (a finite
+        line normal): one compiled pass (:func:`pihim.inspection._kernels.reflect_in_mask`)."""
         from pihim.inspection import _kernels
 
         n = self.rot @ _tilted(self.normal_local, az_mrad, el_mrad)
