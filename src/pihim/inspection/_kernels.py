@@ -35,11 +35,14 @@ held to an independent statement by ``tests/inspection/test_kernels.py``.
 * :func:`grid_counts`, :func:`grid_scores`: the canting grid searches' chamfer counts and score of every node;
 * :func:`line_normals`, :func:`nearest_within`: the unit normals of projected
   polylines, and the nearest model point of each edge point within a gate
-  (a bucket grid; of two coincident points, a corner that ends one side and
-  starts the next, the first);
-* :func:`reflect_in_mask`: a canting fit's round -- the target's outline
-  mirrored in a facet's plane, projected, its polyline normals and whether
-  each point falls in the facet's mask -- in one pass.
+  (a bucket grid; of two coincident points -- a corner, which ends one side
+  and starts the next -- the one whose line passes nearer the edge point);
+* :func:`mirror_project`, :func:`reflect_in_mask`: the target's outline
+  mirrored in a facet's plane and projected, for many canting angles or
+  turns of the heliostat at once, and a canting fit's round (one pair of
+  angles, with the polyline normals and whether each point falls in the
+  facet's mask); :func:`unique_inverse`: ``np.unique(..., return_inverse=True)``
+  of small indices without a sort.
 
 References
 ----------
@@ -1058,14 +1061,7 @@ def reflect_in_mask(pts: NDArray, seg: NDArray, centre: NDArray, normal: NDArray
     ``(u, v)`` rounds to (half to even) is True (``pihim.inspection.reflection._Mask.inside``).
     """
     n = pts.shape[0]
-    virt = np.empty((n, 3))
-    for i in range(n):
-        d = (pts[i, 0] - centre[0]) * normal[0] + (pts[i, 1] - centre[1]) * normal[1] \
-            + (pts[i, 2] - centre[2]) * normal[2]
-        t = 2.0 * d
-        for k in range(3):
-            virt[i, k] = pts[i, k] - t * normal[k]
-    uv = project_rc(rot, cpos, virt, cam)
+    uv = mirror_project(pts, normal.reshape(1, 3), centre, np.zeros((0, 3, 3)), centre, rot, cpos, cam)[0]
     nrm = line_normals(uv, seg)
     hh, ww = sub.shape
     ins = np.zeros(n, np.bool_)
