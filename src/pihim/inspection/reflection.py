@@ -205,6 +205,7 @@ class _FacetModel:
         self._c = np.array(pose.position_m, float)
         #: The facet for the ``REFLECTION`` problems (:func:`pihim.inspection._kernels.problem`'s ``aux``).
         self.aux = np.concatenate([np.ravel(rot_hua), centre, normal_local])
+        self._motion: float | None = None  # motion_px_per_mrad, once measured
 
     def _with(self, pts: NDArray, seg: NDArray) -> _FacetModel:
         """The same model on other sample points."""
@@ -287,7 +288,7 @@ class _FacetModel:
         """A bound of how far any point's projection moves per mrad of canting, px: twice the largest, over
         every 16th point, of the norm of its pixel's derivatives by the two angles (differences over 1 mrad
         at the design; the reflection moves almost affinely with the angles)."""
-        bound = getattr(self, "_motion", None)
+        bound = self._motion
         if bound is None:
             uv = _FacetModel.project_many(self, np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]), self.pts[::16])
             d = np.hypot(np.linalg.norm(uv[1] - uv[0], axis=1), np.linalg.norm(uv[2] - uv[0], axis=1))
