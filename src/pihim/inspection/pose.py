@@ -331,16 +331,10 @@ def _aligner(camera: CameraModel, pts: NDArray, maps: _EdgeMaps) -> Iterator[Cal
     start has at most ``2 n_peaks`` alignments); the compiled fits release the
     GIL, and each alignment is computed as on one thread (identical poses).
     """
-    import numba
+    from pihim.inspection._threads import ordered_map
 
-    threads = max(1, min(4, int(numba.config.NUMBA_NUM_THREADS)))
-    if threads < 2:
-        yield lambda poses: [_chamfer_align(camera, p, pts, maps) for p in poses]
-        return
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(threads) as pool:
-        yield lambda poses: list(pool.map(lambda p: _chamfer_align(camera, p, pts, maps), poses))
+    with ordered_map(4) as run:
+        yield lambda poses: run(lambda p: _chamfer_align(camera, p, pts, maps), poses)
 
 
 def _chamfer_align(camera: CameraModel, pose: CameraPose, pts: NDArray, maps: _EdgeMaps) -> CameraPose:
