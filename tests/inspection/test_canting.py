@@ -250,47 +250,43 @@ def test_a_rival_with_far_fewer_matched_points_fitted_more_loosely_does_not_coun
         canting._settle(None, None, start, None, step, (3.0,), [])
 
 
-def test_the_window_of_projected_outline_points_changes_no_fit(ufacet, monkeypatch):
-    """A fit's rounds project only the outline points near the facet while no other can reach it
-    (``canting._Window``): the same facets, angles and residuals as projecting them all, with the window used."""
+def test_the_window_of_projected_outline_points_and_the_threads_change_no_fit(ufacet, monkeypatch):
+    """A fit's rounds project only the outline points near the facet while no other can reach it (the window of
+    ``_kernels.refine_reflection``), and a facet's refinements run on threads: the same facets, angles and
+    residuals as projecting them all, one refinement after the other."""
+    import numba
+
     from pihim.inspection import canting
 
     field, pose, h, az, el, cam, cp, fr = ufacet
     z = np.zeros_like(fr.s0)
     ep = edge_points(fr.s0, z, z)
-    project = canting._Window.project
-    parts = []
 
-    def counted(self, a, e):
-        out = project(self, a, e)
-        parts.append(out[4] is not None and len(out[4]) < len(self.model.pts))
-        return out
-
-    monkeypatch.setattr(canting._Window, "project", counted)
     def result() -> dict:
         out = estimate_canting(cam, cp, pose, "8E3", "7E3", ep, min_dolp=None).to_dict()
         del out["orientation_search"]["seconds"]
         return out
 
+    monkeypatch.setattr(numba.config, "NUMBA_NUM_THREADS", 2)
     windowed = result()
-    assert sum(parts) > 0.5 * len(parts)  # most projections were of a part of the outline
+    assert sum(f["used"] for f in windowed["facets"]) >= 5
     monkeypatch.setattr(canting, "_WINDOW_PX", 0.0)  # every projection of all points
-    parts.clear()
+    monkeypatch.setattr(numba.config, "NUMBA_NUM_THREADS", 1)  # every refinement in this thread
     assert windowed == result()
-    assert parts and not any(parts)
 
 
-def test_a_window_holds_every_outline_point_that_can_reach_the_facet(ufacet, monkeypatch):
+def test_a_window_holds_every_outline_point_that_can_reach_the_facet(ufacet):
     """Within the angles a window allows, the points in the facet's mask, their pixels and line normals are those
-    of all points, even for a window a few pixels wide (points just outside it come in if the bound is wrong)."""
-    from pihim.inspection import canting
+    of all points, even for a window a few pixels wide (points just outside it come in if the bound is wrong);
+    beyond them, all points are projected again and the window is set anew."""
+    from pihim.inspection import _kernels as K
     from pihim.inspection.pose import sample_segments
     from pihim.inspection.reflection import _facet_masks, _FacetModel, target_outline_segments
 
     field, pose, h, az, el, cam, cp, fr = ufacet
     pts, seg = sample_segments(target_outline_segments(pose, field.index("7E3")), 0.01)
     masks = _facet_masks(cam, cp, pose.facet_corners()[h], 6.0)
-    monkeypatch.setattr(canting, "_WINDOW_PX", 4.0)
+    width = 4.0
     rng = np.random.default_rng(3)
     checked = 0
     for f, mask in enumerate(masks):
@@ -298,18 +294,32 @@ def test_a_window_holds_every_outline_point_that_can_reach_the_facet(ufacet, mon
             continue
         model = _FacetModel(cam, cp, pose.rotations[h], pose.facet_centres[h, f], pose.facet_normals_local[h, f],
                             pts, seg).near(mask, 17.5)
-        window = canting._Window(model, mask)
+        rate = model.motion_px_per_mrad()
+        box = np.array(mask.extent(), np.int64)
+        ref, where, part_pts, part_seg = np.zeros(3), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64)
+
+        def project(a: float, e: float) -> tuple:
+            nonlocal where, part_pts, part_seg
+            normal = K.facet_normal(model.aux, a, e)
+            *out, windowed, where, part_pts, part_seg = K._window_project(
+                model.pts, model.seg, np.asarray(model.centre, float), normal, model._r, model._c, model._cam,
+                mask.sub, mask.r0, mask.c0, box, width, rate, a, e, ref, where, part_pts, part_seg)
+            return (*out, windowed)
+
         centre = rng.normal(0.0, 3.0, 2)
-        assert window.project(*centre)[4] is None  # all points: the window's reference
+        assert not project(*centre)[4]  # all points: the window's reference
+        assert ref[0] == 1.0 and tuple(ref[1:]) == tuple(centre)
         for _ in range(10):
             d = rng.normal(size=2)
-            a, e = centre + d / np.hypot(*d) * rng.uniform(0.5, 0.999) * 4.0 / window.rate  # within the bound
-            uv, nrm, ins, usable, where = window.project(a, e)
-            assert where is not None and len(where) < len(model.pts)
+            a, e = centre + d / np.hypot(*d) * rng.uniform(0.5, 0.999) * width / rate  # within the bound
+            uv, nrm, ins, usable, windowed = project(a, e)
+            assert windowed and len(where) < len(model.pts)
             full = model.project_in(mask, a, e)
             np.testing.assert_array_equal(where[ins], np.flatnonzero(full[2]))
             np.testing.assert_array_equal(where[usable], np.flatnonzero(full[3]))
             np.testing.assert_array_equal(uv[ins], full[0][full[2]])
             np.testing.assert_array_equal(nrm[usable], full[1][full[3]])
             checked += int(full[2].sum() > 0)
+        a, e = centre + [1.001 * width / rate, 0.0]  # beyond: all points, and a new reference
+        assert not project(a, e)[4] and tuple(ref[1:]) == (a, e)
     assert checked >= 30

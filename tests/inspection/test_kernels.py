@@ -498,6 +498,84 @@ def test_a_canting_round_s_pass_equals_the_numpy_statement():
 
 
 
+def _canting_fit_numpy(pts, seg, aux, mask, obs, dt, gates, az, el):
+    """A facet's canting fit in plain numpy: each round mirrors and projects every outline point, pairs the edge
+    points with the usable ones (``match_edge_points``), and solves the two angles (``solve``)."""
+    from pihim.field.kinematics import apply_canting_deviation
+    from pihim.inspection.pose import match_edge_points
+
+    rot_hua, centre, design = aux[:9].reshape(3, 3), aux[9:12], aux[12:]
+    rot, cpos, cam = np.asarray(POSE.rotation, float), np.asarray(POSE.position_m, float), K.camera_vector(WIDE)
+
+    def project(a, e):
+        n = rot_hua @ apply_canting_deviation(design, a, e)
+        uv = project_points(WIDE, POSE, pts - 2.0 * ((pts - centre) @ n)[:, None] * n)
+        nrm = line_normals(uv, seg)
+        ins = mask.inside(uv)
+        return uv, nrm, ins, ins & np.isfinite(nrm).all(axis=1)
+
+    for gate in gates:
+        uv, nrm, _, usable = project(az, el)
+        k, q = match_edge_points(uv, usable, obs, gate, 15, "the reflection", nrm)
+        used, inv = np.unique(k, return_inverse=True)
+        prob = K.problem(K.REFLECTION, rot, cpos, pts[used], cam, q=np.column_stack([q, nrm[k]]), aux=aux, idx=inv,
+                         gate=gate)
+        x, r, _ = K.solve(prob, np.array([az, el]), len(q), np.array([0.1, 0.1]), 200, True, 0.5)
+        az, el = x
+    uv, _, ins, _ = project(az, el)
+    qq = np.rint(uv[ins]).astype(int)
+    return az, el, r, k, q, nrm[k], int(ins.sum()), float(np.mean(dt[qq[:, 1], qq[:, 0]] <= 1.5))
+
+
+def test_a_canting_fit_equals_the_numpy_statement_of_its_rounds():
+    """``refine_reflection`` (one compiled call, its window of outline points near the mask, the window off or a
+    few pixels wide) against the fit's rounds in plain numpy; it finds the true angles from 1.4 mrad off, and
+    reports too few usable or matched points as such."""
+    from pihim.field.kinematics import apply_canting_deviation
+    from pihim.inspection.reflection import _FacetModel
+
+    rng = np.random.default_rng(24)
+    pts, seg = _outline(200)
+    pts = pts + [0.0, 8.0, 0.0]  # the target, 8 m behind the facet's plane
+    # the facet faces -y: its design normal (heliostat frame z) turned by the HUA's rotation
+    centre, design = np.array([0.0, 0.5, 2.0]), np.array([0.0, 0.0, 1.0])
+    rot_hua = Rotation.from_euler("x", 90.0, degrees=True).as_matrix()
+    aux = np.concatenate([rot_hua.ravel(), centre, design])
+    true = (3.0, -2.0)
+    n = rot_hua @ apply_canting_deviation(design, *true)
+    uv = project_points(WIDE, POSE, pts - 2.0 * ((pts - centre) @ n)[:, None] * n)
+    (c0, r0), (c1, r1) = np.floor(np.nanpercentile(uv, [10, 90], axis=0)).astype(int)
+    shape = (int(r1) + 60, int(c1) + 60)
+    mask = _Mask(shape, r0, c0, rng.random((r1 - r0, c1 - c0)) < 0.95)
+    obs = np.concatenate([uv[::2] + rng.normal(0.0, 0.05, uv[::2].shape), rng.uniform([c0, r0], [c1, r1], (40, 2))])
+    img = np.ones(shape, np.uint8)
+    q = np.rint(obs).astype(int)
+    img[q[:, 1], q[:, 0]] = 0
+    dt = cv2.distanceTransform(img, cv2.DIST_L2, 5)
+    model = _FacetModel(WIDE, POSE, rot_hua, centre, design, pts, seg)
+    gates = np.array([6.0, 3.0, 1.5, 1.5])
+
+    def fit(window_px, sub=mask.sub, edges=obs):
+        return K.refine_reflection(model.pts, model.seg, aux, model._r, model._c, model._cam, sub, r0, c0,
+                                   np.array(mask.extent(), np.int64), model.motion_px_per_mrad(), window_px, edges,
+                                   dt, gates, 2.0, -1.0, np.array([0.1, 0.1]), 20, 15, 0.5)
+
+    ref = _canting_fit_numpy(pts, seg, aux, mask, obs, dt, gates, 2.0, -1.0)
+    assert ref[0] == pytest.approx(true[0], abs=0.02) and ref[1] == pytest.approx(true[1], abs=0.02)
+    for window_px in (0.0, 4.0, 40.0):
+        status, count, az, el, r, idx, qm, nq, inside, support = fit(window_px)
+        assert (status, count) == (0, 0)
+        assert (az, el) == pytest.approx(ref[:2], abs=1e-9)
+        np.testing.assert_allclose(r, ref[2], rtol=0, atol=1e-8)
+        np.testing.assert_array_equal(idx, ref[3])
+        np.testing.assert_array_equal(qm, ref[4])
+        np.testing.assert_allclose(nq, ref[5], rtol=0, atol=1e-9)
+        assert (inside, support) == (ref[6], pytest.approx(ref[7], abs=1e-12))
+        assert support > 0.9 and inside > 500
+    assert fit(40.0, sub=np.zeros_like(mask.sub))[:2] == (1, 0)  # nothing in the mask
+    assert fit(40.0, edges=obs + 1e4)[:2] == (2, 0)  # no edge point within the gate
+
+
 def test_mirrored_projections_of_many_angle_pairs_equal_the_numpy_statement():
     from pihim.field.kinematics import apply_canting_deviation
 

@@ -62,13 +62,22 @@ def test_facet_in_view_is_the_share_of_the_outline_on_the_sensor():
     assert abs(share[1] - 0.5) <= 1.5 / 96  # 24 points a side: the side across the border splits 12 / 11-12
 
 
-def test_one_facet_normal_tilted_as_apply_canting_deviation_does_to_the_bit():
+def test_one_facet_normal_tilted_as_apply_canting_deviation_does_it():
+    """The compiled normal of every canting fit's round: ``apply_canting_deviation`` to the bit in the heliostat
+    frame, then turned by the HUA's rotation (to a rounding error of the 3 x 3 product's order)."""
+    from scipy.spatial.transform import Rotation
+
     from pihim.field.kinematics import apply_canting_deviation
-    from pihim.inspection.reflection import _tilted
+    from pihim.inspection._kernels import facet_normal
 
     rng = np.random.default_rng(5)
     for _ in range(500):
         n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
         a, e = rng.uniform(-20.0, 20.0, 2)
-        np.testing.assert_array_equal(_tilted(n / np.linalg.norm(n), a, e),
-                                      apply_canting_deviation(n / np.linalg.norm(n), a, e))
+        tilted = apply_canting_deviation(n, a, e)
+        np.testing.assert_array_equal(facet_normal(np.concatenate([np.eye(3).ravel(), [1.0, 2.0, 3.0], n]), a, e),
+                                      tilted)
+        rot = Rotation.random(random_state=rng.integers(2**31)).as_matrix()
+        np.testing.assert_allclose(facet_normal(np.concatenate([rot.ravel(), [1.0, 2.0, 3.0], n]), a, e),
+                                   rot @ tilted, rtol=0, atol=1e-15)

@@ -42,7 +42,12 @@ held to an independent statement by ``tests/inspection/test_kernels.py``.
   turns of the heliostat at once, and a canting fit's round (one pair of
   angles, with the polyline normals and whether each point falls in the
   facet's mask); :func:`unique_inverse`: ``np.unique(..., return_inverse=True)``
-  of small indices without a sort.
+  of small indices without a sort;
+* :func:`facet_normal`, :func:`refine_reflection`: a facet's normal at a pair
+  of canting angles, and a whole canting fit (its rounds of projection,
+  matching and :func:`solve`, over a window of the outline points near the
+  facet's mask) in one call that releases the GIL, so that a facet's
+  refinements from several starts run on threads.
 
 References
 ----------
@@ -65,10 +70,10 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
 
-__all__ = ["CHAMFER", "POINT_TO_LINE", "REFLECTION", "bilinear", "camera_vector", "edge_nms", "grid_counts",
-           "grid_scores", "jacobian", "left_jacobian", "line_normals", "mirror_project", "nearest_within", "problem",
-           "project_pose", "project_rc", "project_rc_jacobian", "reflect_in_mask", "residuals",
-           "rotation_from_vector", "sobel_bilinear", "solve", "unique_inverse"]
+__all__ = ["CHAMFER", "POINT_TO_LINE", "REFLECTION", "bilinear", "camera_vector", "edge_nms", "facet_normal",
+           "grid_counts", "grid_scores", "jacobian", "left_jacobian", "line_normals", "mirror_project",
+           "nearest_within", "problem", "project_pose", "project_rc", "project_rc_jacobian", "refine_reflection",
+           "reflect_in_mask", "residuals", "rotation_from_vector", "sobel_bilinear", "solve", "unique_inverse"]
 
 
 def camera_vector(camera) -> NDArray[np.float64]:
@@ -1019,7 +1024,7 @@ def unique_inverse(idx: NDArray, n: int) -> tuple[NDArray, NDArray]:  # pragma: 
     return used[:c].copy(), inv
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def mirror_project(pts: NDArray, normals: NDArray, centre: NDArray, turns: NDArray, pivot: NDArray, rot: NDArray,
                    cpos: NDArray, cam: NDArray) -> NDArray:  # pragma: no cover - compiled
     """Pixels (G, N, 2) of world points (N, 3) mirrored in the plane through ``centre`` with unit normal
@@ -1152,3 +1157,166 @@ def nearest_within(model: NDArray, obs: NDArray, gate: float,
         out[m] = bi
         tie[m] = same
     return out, tie
+
+
+@njit(cache=True, error_model="numpy")
+def facet_normal(aux: NDArray, az: float, el: float) -> NDArray:  # pragma: no cover - compiled
+    """World (ENU) unit normal of a facet tilted by canting ``(az, el)`` mrad: its design normal (heliostat
+    frame) turned about the heliostat's x axis by ``el``, then about its y axis by ``az``, then by the HUA's
+    rotation (``aux`` as for a ``REFLECTION`` problem: rotation row-major, centre, design normal) --
+    ``rot @ pihim.field.kinematics.apply_canting_deviation(normal, az, el)`` for one pair of angles, without
+    its validation and broadcasting (every round of every canting fit)."""
+    x, y, z = aux[12], aux[13], aux[14]
+    c, s = math.cos(el * 1e-3), math.sin(el * 1e-3)
+    y, z = c * y + s * z, -s * y + c * z
+    c, s = math.cos(az * 1e-3), math.sin(az * 1e-3)
+    t0, t1, t2 = c * x + s * z, y, -s * x + c * z
+    out = np.empty(3)
+    for i in range(3):
+        out[i] = aux[3 * i] * t0 + aux[3 * i + 1] * t1 + aux[3 * i + 2] * t2
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _window_project(pts, seg, centre, normal, rot, cpos, cam, sub, r0, c0, box, window_px, rate, az, el,
+                    ref, where, part_pts, part_seg):  # pragma: no cover - compiled
+    """A round's :func:`reflect_in_mask` of the outline points in a fit's window (see :func:`refine_reflection`).
+
+    ``ref`` (3,) holds whether the window is set and its angles; ``where`` the indices of its points, ``part_pts``
+    and ``part_seg`` those points. Returns the projection, whether it was of the window's points, and the window.
+    """
+    if ref[0] > 0.0 and rate * math.hypot(az - ref[1], el - ref[2]) < window_px:
+        uv, nrm, ins, usable = reflect_in_mask(part_pts, part_seg, centre, normal, rot, cpos, cam, sub, r0, c0)
+        return uv, nrm, ins, usable, True, where, part_pts, part_seg
+    uv, nrm, ins, usable = reflect_in_mask(pts, seg, centre, normal, rot, cpos, cam, sub, r0, c0)
+    if box[0] <= box[1]:  # the mask has a pixel: the points within ``window_px`` of its box, and their neighbours
+        n = uv.shape[0]
+        near = np.zeros(n, np.bool_)
+        for i in range(n):
+            u, v = uv[i, 0], uv[i, 1]
+            near[i] = (u > box[2] - window_px and u < box[3] + window_px and v > box[0] - window_px
+                       and v < box[1] + window_px)
+        keep = near.copy()
+        for i in range(n):
+            if near[i]:
+                if i > 0:
+                    keep[i - 1] = True
+                if i < n - 1:
+                    keep[i + 1] = True
+        where = np.flatnonzero(keep)
+        part_pts = np.empty((where.shape[0], 3))
+        part_seg = np.empty(where.shape[0], np.int64)
+        for k in range(where.shape[0]):
+            for d in range(3):
+                part_pts[k, d] = pts[where[k], d]
+            part_seg[k] = seg[where[k]]
+        ref[0], ref[1], ref[2] = 1.0, az, el
+    return uv, nrm, ins, usable, False, where, part_pts, part_seg
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def refine_reflection(pts: NDArray, seg: NDArray, aux: NDArray, rot: NDArray, cpos: NDArray, cam: NDArray,
+                      sub: NDArray, r0: int, c0: int, box: NDArray, rate: float, window_px: float, obs: NDArray,
+                      dt: NDArray, gates: NDArray, az: float, el: float, x_scale: NDArray, min_usable: int,
+                      min_hits: int, f_scale: float) -> tuple:  # pragma: no cover - compiled
+    """A facet's canting fit from ``(az, el)`` mrad: point-to-line ICP, one round per gate of ``gates`` (px).
+
+    Each round mirrors the target's outline ``pts`` (N, 3; polyline ids ``seg``) in the facet at the current
+    angles and projects it (:func:`reflect_in_mask`, the facet's mask ``sub`` at ``(r0, c0)``); pairs each edge
+    point of ``obs`` (M, 2) with its nearest usable outline point within the gate (:func:`nearest_within`, with
+    line normals); and solves the two angles by :func:`solve` (soft-L1 with scale ``f_scale``, at most 200
+    evaluations) on the ``REFLECTION`` residuals of the matched points, line normals held for the round.
+
+    The window: a round projects only the points within ``window_px`` of the mask's bounding box ``box`` (first
+    and last row, first and last column; first > last for an empty mask) at the angles where all were last
+    projected, and their neighbours along the outline, while ``rate`` (px per mrad, a bound of any point's
+    motion) times the angles' distance from those stays below ``window_px``: no other point can reach the mask,
+    so the points in it, their order and line normals are those of all points.
+
+    Returns
+    -------
+    status : int
+        0, or 1 when fewer than ``min_usable`` outline points are usable in the mask, 2 when fewer than
+        ``min_hits`` edge points match.
+    count : int
+        The usable or matched count that failed (0 with status 0).
+    az, el : float
+        The fitted angles, mrad.
+    r : ndarray, shape (K,)
+        The last round's residuals, px (no loss applied).
+    idx : ndarray of int, shape (K,)
+        The outline point of each residual.
+    q, nq : ndarray, shape (K, 2)
+        The matched edge points and the outline's line normals there.
+    inside : int
+        Outline points in the mask at the fitted angles.
+    support : float
+        The share of those on an image edge: the distance transform ``dt`` (the whole image) ``<= 1.5`` at the
+        pixel each rounds to; 0 with none inside.
+    """
+    centre = aux[9:12].copy()
+    ref = np.zeros(3)
+    where = np.zeros(0, np.int64)
+    part_pts = np.zeros((0, 3))
+    part_seg = np.zeros(0, np.int64)
+    r = np.zeros(0)
+    idx = np.zeros(0, np.int64)
+    q = np.zeros((0, 2))
+    nq = np.zeros((0, 2))
+    no_prox = np.zeros((1, 1), np.float32)
+    for gi in range(gates.shape[0]):
+        gate = gates[gi]
+        normal = facet_normal(aux, az, el)
+        uv, nrm, ins, usable, windowed, where, part_pts, part_seg = _window_project(
+            pts, seg, centre, normal, rot, cpos, cam, sub, r0, c0, box, window_px, rate, az, el, ref, where,
+            part_pts, part_seg)
+        use = np.flatnonzero(usable)
+        if use.shape[0] < min_usable:
+            return 1, use.shape[0], az, el, r, idx, q, nq, 0, 0.0
+        model = np.empty((use.shape[0], 2))
+        mnrm = np.empty((use.shape[0], 2))
+        for i in range(use.shape[0]):
+            model[i, 0], model[i, 1] = uv[use[i], 0], uv[use[i], 1]
+            mnrm[i, 0], mnrm[i, 1] = nrm[use[i], 0], nrm[use[i], 1]
+        j, _ = nearest_within(model, obs, gate, mnrm)
+        hit = np.flatnonzero(j >= 0)
+        if hit.shape[0] < min_hits:
+            return 2, hit.shape[0], az, el, r, idx, q, nq, 0, 0.0
+        k = np.empty(hit.shape[0], np.int64)
+        q = np.empty((hit.shape[0], 2))
+        nq = np.empty((hit.shape[0], 2))
+        qn = np.empty((hit.shape[0], 4))
+        for i in range(hit.shape[0]):
+            k[i] = use[j[hit[i]]]
+            q[i, 0], q[i, 1] = obs[hit[i], 0], obs[hit[i], 1]
+            nq[i, 0], nq[i, 1] = nrm[k[i], 0], nrm[k[i], 1]
+            qn[i, 0], qn[i, 1], qn[i, 2], qn[i, 3] = q[i, 0], q[i, 1], nq[i, 0], nq[i, 1]
+        # only the matched outline points move; their line normals are held for the round
+        used, inv = unique_inverse(k, uv.shape[0])
+        if windowed:
+            idx = where[k]
+            used = where[used]
+        else:
+            idx = k
+        moved = np.empty((used.shape[0], 3))
+        for i in range(used.shape[0]):
+            for d in range(3):
+                moved[i, d] = pts[used[i], d]
+        prob = (2, rot, cpos, moved, cam, no_prox, qn, aux, inv, gate)
+        x0 = np.empty(2)
+        x0[0], x0[1] = az, el
+        x, r, _ = solve(prob, x0, hit.shape[0], x_scale, 200, True, f_scale)
+        az, el = x[0], x[1]
+    normal = facet_normal(aux, az, el)
+    uv, nrm, ins, usable, windowed, where, part_pts, part_seg = _window_project(
+        pts, seg, centre, normal, rot, cpos, cam, sub, r0, c0, box, window_px, rate, az, el, ref, where,
+        part_pts, part_seg)
+    inside = 0
+    on_edge = 0
+    for i in range(uv.shape[0]):
+        if ins[i]:
+            inside += 1
+            if dt[int(np.rint(uv[i, 1])), int(np.rint(uv[i, 0]))] <= 1.5:
+                on_edge += 1
+    support = on_edge / inside if inside else 0.0
+    return 0, 0, az, el, r, idx, q, nq, inside, support

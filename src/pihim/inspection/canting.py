@@ -132,7 +132,7 @@ within 0.15 mrad. About
 0.9 s more per frame (1.0 s of CPU; 5.8 s against 4.9 s median on this
 day's machine, over the 3 s target either way; BENCHMARKS.md). Then a
 fit's rounds were compiled (:func:`pihim.inspection._kernels.reflect_in_mask`,
-:class:`_Window`, the matching's cells) and, of two equally near outline
+a window of the outline points near the facet, the matching's cells) and, of two equally near outline
 samples (every corner), the one whose line passes nearest the edge point is
 matched instead of a k-d tree's pick: 2.8 s median per frame (the canting
 step 2.1 s) on a machine that took 4.7 s the same hour; 103 / 598 / 279
@@ -182,8 +182,9 @@ References
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -212,7 +213,8 @@ from pihim.inspection.reflection import (
     hua_turn_transform,
     target_outline_segments,
 )
-from pihim.inspection.pose import match_edge_points, sample_segments
+from pihim.inspection._threads import ordered_map
+from pihim.inspection.pose import sample_segments
 from pihim.inspection.uncertainty import jackknife_covariance, relative_variance
 from pihim.render.scene import StructureSizes
 
@@ -222,6 +224,8 @@ __all__ = ["CantingResult", "FacetCanting", "OrientationSearch", "PAPER_GRID_STE
 
 #: Scale of the two canting angles in the refinement, mrad.
 _X_SCALE = np.array([0.1, 0.1])
+#: ``run(fn, items)``: an ordered map, e.g. on threads (:func:`pihim.inspection._threads.ordered_map`).
+_Run = Callable[[Callable[[Any], Any], Iterable[Any]], list]
 
 
 class _Gates(NamedTuple):
@@ -285,7 +289,7 @@ _FINE_STRIDE = 2
 #: (``tests/cli/test_cli_canting.py``'s frame, facet 8).
 _DOMINANCE = 1.2
 #: How far, px, from a facet's mask (its bounding box) the outline points a fit's rounds project reach
-#: (:class:`_Window`).
+#: (the window of :func:`pihim.inspection._kernels.refine_reflection`).
 _WINDOW_PX = 40.0
 
 
@@ -395,7 +399,7 @@ class _Start(NamedTuple):
 def _first_fits(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span_mrad: float, step_mrad: float,
                 gates_px: tuple[float, ...], grid_tol_px: float = 5.0, centre_mrad: tuple[float, float] = (0.0, 0.0),
                 prefer_mrad: tuple[float, float] | None = None, ambiguity: float = 0.05, max_peaks: int = 3,
-                support_margin: float = 0.05) -> _Start:
+                support_margin: float = 0.05, run: _Run | None = None) -> _Start:
     """A facet's grid search and the refinements from its peaks (raw angles); :func:`_settle` finishes the fit.
 
     The grid spans ``+-span_mrad`` around ``centre_mrad`` (default the
@@ -459,16 +463,10 @@ def _first_fits(model: _FacetModel, mask: _Mask, obs: NDArray, dt: NDArray, span
     if _FINE_PEAKS:
         starts += _fine_peaks(coef, mask, dt_crop, step_mrad, centre_mrad, starts)
         starts.sort(key=lambda s: (s[0] - pa) ** 2 + (s[1] - pe) ** 2)
-    fits = []
-    error: PihimInputError | None = None
-    for a0, e0 in starts:
-        try:
-            fits.append(_refine_facet(model, mask, ob, dt, gates_px, a0, e0))
-        except PihimInputError as exc:
-            error = exc
+    tried = _refinements(model, mask, ob, dt, gates_px, starts, run)
+    fits = [fit for fit in tried if not isinstance(fit, PihimInputError)]
     if not fits:
-        assert error is not None
-        raise error
+        raise tried[-1]
     best = fits[0]
     for fit in fits[1:]:  # a farther peak must be clearly better supported to displace a nearer one
         if fit[4] > best[4] + support_margin and not _dominated(fit, best):
@@ -520,7 +518,7 @@ def _fine_peaks(coef: NDArray, mask: _Mask, dt_crop: NDArray, step_mrad: float, 
 
 def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mrad: float,
             gates_px: tuple[float, ...], matches: list | None = None, support_margin: float = 0.05,
-            basin_rounds: int = 0, gates: _Gates | None = None) -> tuple:
+            basin_rounds: int = 0, gates: _Gates | None = None, run: _Run | None = None) -> tuple:
     """(grid az, grid el, az, el, model, (matches, segments), points, rms, support) for one facet (raw), from ``start``.
 
     The neighbouring basins: the outline's parallel edges (a target facet's
@@ -561,13 +559,9 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     offsets = along_az + [(de, da) for da, de in along_az]
     for _ in range(basin_rounds if passes(best) else 0):
         base = best
-        tried = []
-        for da, de in offsets:
-            try:
-                fit = _refine_facet(model, mask, ob, dt, gates_px, base[0] + da, base[1] + de)
-            except PihimInputError:
-                continue
-            tried.append(fit)
+        tried = [fit for fit in _refinements(model, mask, ob, dt, gates_px,
+                                             [(base[0] + da, base[1] + de) for da, de in offsets], run)
+                 if not isinstance(fit, PihimInputError)]
         rivals += tried
         top = max((f for f in tried if passes(f)), key=lambda f: f[4], default=None)
         if top is None or not top[4] > best[4] + support_margin:
@@ -576,12 +570,9 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     # the far rivals (``_FAR_STEPS``): a lattice step away; alike in support but looser, they do not count
     if basin_rounds and passes(best):
         steps = [sign * m * step_mrad for m in _FAR_STEPS for sign in (1, -1)]
-        for da, de in [(d, 0.0) for d in steps] + [(0.0, d) for d in steps]:
-            try:
-                fit = _refine_facet(model, mask, ob, dt, gates_px, best[0] + da, best[1] + de)
-            except PihimInputError:
-                continue
-            if fit[3] <= best[3] or fit[4] > best[4] + support_margin:
+        far = [(best[0] + d, best[1]) for d in steps] + [(best[0], best[1] + d) for d in steps]
+        for fit in _refinements(model, mask, ob, dt, gates_px, far, run):
+            if not isinstance(fit, PihimInputError) and (fit[3] <= best[3] or fit[4] > best[4] + support_margin):
                 rivals.append(fit)
     # two distinct fits that the image supports alike: the facet shows too little of the target to tell them
     # apart (a part of its back whose edges repeat), and either would be a made-up number
@@ -598,74 +589,49 @@ def _settle(model: _FacetModel, mask: _Mask, start: _Start, dt: NDArray, step_mr
     return grid_az, grid_el, az, el, model, (found, segments), n, rms, support
 
 
-class _Window:
-    """The outline points a facet fit's rounds project: those within ``_WINDOW_PX`` of the facet's mask (its
-    bounding box) at the angles of the last projection of them all, and their neighbours, while the fit stays
-    so near those angles that no other point can reach the mask (:meth:`_FacetModel.motion_px_per_mrad`);
-    beyond, all again. The points in the mask, their order and line normals are those of all points: the fits
-    are the same, at a fraction of the projections (most of a model's points stay outside the facet)."""
+def _refinements(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gates_px: tuple[float, ...],
+                 starts: list[tuple[float, float]], run: _Run | None = None) -> list:
+    """:func:`_refine_facet` from each start ``(az, el)``, in order: its fit, or the
+    :class:`~pihim.errors.PihimInputError` it raised. On ``run``'s threads
+    (:func:`pihim.inspection._threads.ordered_map`; the fit is one compiled call that releases the GIL), else
+    one after the other: the same fits."""
+    def one(start: tuple[float, float]) -> tuple | PihimInputError:
+        try:
+            return _refine_facet(model, mask, ob, dt, gates_px, *start)
+        except PihimInputError as exc:
+            return exc
 
-    def __init__(self, model: _FacetModel, mask: _Mask):
-        self.model, self.mask = model, mask
-        self.rate = model.motion_px_per_mrad()
-        self.box = mask.extent()
-        self.ref: tuple[float, float] | None = None
-        self.part: _FacetModel = model
-        self.where: NDArray = np.zeros(0, np.int64)
-
-    def project(self, az: float, el: float) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray | None]:
-        """:meth:`_FacetModel.project_in` of the points in the window, and their indices (None: all points)."""
-        if self.ref is not None and self.rate * math.hypot(az - self.ref[0], el - self.ref[1]) < _WINDOW_PX:
-            return (*self.part.project_in(self.mask, az, el), self.where)
-        uv, nrm, ins, usable = self.model.project_in(self.mask, az, el)
-        if self.box is not None:
-            r_lo, r_hi, c_lo, c_hi = self.box
-            w = _WINDOW_PX
-            with np.errstate(invalid="ignore"):
-                keep = (uv[:, 0] > c_lo - w) & (uv[:, 0] < c_hi + w) & (uv[:, 1] > r_lo - w) & (uv[:, 1] < r_hi + w)
-            keep[1:] |= keep[:-1]  # and each point's neighbours along the outline (its line normal's)
-            keep[:-1] |= keep[1:]
-            self.where = np.flatnonzero(keep)
-            self.part = self.model._with(self.model.pts[self.where], self.model.seg[self.where])
-            self.ref = (az, el)
-        return uv, nrm, ins, usable, None
+    return run(one, starts) if run is not None else [one(s) for s in starts]
 
 
 def _refine_facet(model: _FacetModel, mask: _Mask, ob: NDArray, dt: NDArray, gates_px: tuple[float, ...],
                   az: float, el: float) -> tuple:
     """Point-to-line ICP with LM from ``(az, el)``: (az, el, points, rms, support, matches, segments, inside).
 
-    ``matches`` are the last round's matched model points (world), image points and line normals;
-    ``segments`` the target outline segment of each; ``inside`` how many outline samples fall in the facet.
+    One compiled call (:func:`pihim.inspection._kernels.refine_reflection`): a round per gate of ``gates_px``,
+    each projecting only the outline points within ``_WINDOW_PX`` of the facet's mask while no other can reach
+    it (the facet model's motion bound). ``points`` and ``rms`` are the last round's inliers (residual under
+    1 px) and their RMS residual; ``matches`` the last round's matched model points (world), image points and
+    line normals; ``segments`` the target outline segment of each; ``inside`` how many outline samples fall in
+    the facet; ``support`` the share of those on an image edge (within 1.5 px).
     """
     from pihim.inspection import _kernels
 
-    r = np.zeros(0)
-    window = _Window(model, mask)
-    for gate in gates_px:
-        uv, nrm, _, usable, where = window.project(az, el)
-        if usable.sum() < 20:
-            raise PihimInputError("the reflected target leaves the facet")
-        k, q = match_edge_points(uv, usable, ob, gate, 15, "the reflected target", nrm)
-        # only the matched model points move; their line normals are held for the round (the
-        # outline barely turns over a round's few mrad) and re-taken at the next re-match
-        used_pts, inv = _kernels.unique_inverse(k, len(uv))
-        idx, used = (k, used_pts) if where is None else (where[k], where[used_pts])
-        sub, nq = model.pts[used], nrm[k]
-
-        prob = _kernels.problem(_kernels.REFLECTION, model._r, model._c, sub, model._cam,
-                                q=np.column_stack([q, nq]), aux=model.aux, idx=inv, gate=gate)
-        x, r, _ = _kernels.solve(prob, np.array([az, el]), len(q), _X_SCALE, 200, True, 0.5)
-        az, el = float(x[0]), float(x[1])
+    ext = mask.extent()
+    box = np.array([1, 0, 0, 0] if ext is None else ext, np.int64)  # first > last: no pixel, no window
+    status, count, az, el, r, idx, q, nq, inside, support = _kernels.refine_reflection(
+        model.pts, model.seg, model.aux, model._r, model._c, model._cam, mask.sub, mask.r0, mask.c0, box,
+        model.motion_px_per_mrad(), _WINDOW_PX, np.ascontiguousarray(ob, dtype=float), dt,
+        np.asarray(gates_px, float), float(az), float(el), _X_SCALE, 20, 15, 0.5)
+    if status == 1:
+        raise PihimInputError("the reflected target leaves the facet")
+    if status == 2:
+        raise PihimInputError(f"the reflected target matches only {count} edge points")
     found = (model.pts[idx], q, nq)
     inl = np.abs(r) < 1.0
     n = int(inl.sum())
     rms = float(np.sqrt(np.mean(r[inl] ** 2))) if n else float("nan")
-    # support: the share of the reflected outline (inside the facet) that lies on an image edge
-    uv, _, ins, _, _ = window.project(az, el)
-    qq = np.rint(uv[ins]).astype(int)
-    support = float(np.mean(dt[qq[:, 1], qq[:, 0]] <= 1.5)) if ins.any() else 0.0
-    return az, el, n, rms, support, found, model.seg[idx], int(ins.sum())
+    return float(az), float(el), n, rms, float(support), found, model.seg[idx], int(inside)
 
 
 def _keeps_turn(turned: tuple[int, int, float, float], logged: tuple[int, int, float, float],
@@ -881,46 +847,54 @@ def estimate_canting(
                    rounds: int = 0) -> dict[int, object]:
         """Every candidate facet fitted on the current outline, its grid around the design; ``rounds`` of
         refinements from the neighbouring basins (:func:`_settle`)."""
+        def key(f: int) -> tuple:
+            return f, id(outline["pts"]), None if prefer is None else prefer.get(f)
+
         fits: dict[int, object] = {}
-        for f, mask in candidates:
-            prefer_f = None if prefer is None else prefer.get(f)
-            key = (f, id(outline["pts"]), prefer_f)
-            if key not in starts or starts[key][0] is not outline["pts"]:
-                model = facet_model(f).near(mask, span_mrad)
+        # the facets to search: their outline models (the points that can reach the facet) first, then each
+        # facet's refinements, on threads (the same fits)
+        new = [(f, mask) for f, mask in candidates if key(f) not in starts or starts[key(f)][0] is not outline["pts"]]
+        with ordered_map() as run:
+            near = dict(zip((f for f, _ in new), run(lambda c: facet_model(c[0]).near(c[1], span_mrad), new)))
+            for f, mask in candidates:
+                prefer_f = None if prefer is None else prefer.get(f)
+                if f in near:
+                    model = near[f]
+                    try:
+                        start: _Start | PihimInputError = _first_fits(
+                            model, mask, edges.xy, dt, span_mrad, step_mrad, gates_px, prefer_mrad=prefer_f, run=run)
+                    except PihimInputError as exc:
+                        start = exc
+                    starts[key(f)] = (outline["pts"], model, start)  # the outline held: its id stays its own
+                _, model, start = starts[key(f)]
+                found: list = []
                 try:
-                    start: _Start | PihimInputError = _first_fits(model, mask, edges.xy, dt, span_mrad, step_mrad,
-                                                                   gates_px, prefer_mrad=prefer_f)
+                    if isinstance(start, PihimInputError):
+                        raise start
+                    fit = _settle(model, mask, start, dt, step_mrad, gates_px, found, basin_rounds=rounds,
+                                  gates=gates, run=run)
                 except PihimInputError as exc:
-                    start = exc
-                starts[key] = (outline["pts"], model, start)  # the outline held, so that its id stays its own
-            _, model, start = starts[key]
-            found: list = []
-            try:
-                if isinstance(start, PihimInputError):
-                    raise start
-                fit = _settle(model, mask, start, dt, step_mrad, gates_px, found, basin_rounds=rounds, gates=gates)
-            except PihimInputError as exc:
-                fits[f + 1] = f"no usable reflection of {target}: {exc}"
-                continue
-            if collect is not None and found and fit[6] >= min_points and fit[8] >= min_support:
-                collect.append((f, fit[2], fit[3], found[-1]))  # the residual gate aside: see below
-            if fit[6] < min_points:
-                fits[f + 1] = f"too few matched edge points ({fit[6]} < {min_points})"
-                continue
-            if not fit[7] <= max_rms_px:
-                fits[f + 1] = (f"the fit is not sub-pixel consistent (residual {fit[7]:.2f} px > {max_rms_px:g} px:"
-                               " locked to other features)")
-                continue
-            if fit[8] < min_support:
-                fits[f + 1] = (f"the reflection does not look like {target}'s outline (support {fit[8]:.2f} < "
-                               f"{min_support:g}: hidden, or another heliostat)")
-                continue
-            spread = _direction_spread(fit[5][0][2])
-            if not spread >= min_spread:
-                fits[f + 1] = (f"the matched edges run one way (direction spread {spread:.3f} < {min_spread:g}): "
-                               "one angle is not measured")
-                continue
-            fits[f + 1] = fit
+                    fits[f + 1] = f"no usable reflection of {target}: {exc}"
+                    continue
+                if collect is not None and found and fit[6] >= min_points and fit[8] >= min_support:
+                    collect.append((f, fit[2], fit[3], found[-1]))  # the residual gate aside: see below
+                if fit[6] < min_points:
+                    fits[f + 1] = f"too few matched edge points ({fit[6]} < {min_points})"
+                    continue
+                if not fit[7] <= max_rms_px:
+                    fits[f + 1] = (f"the fit is not sub-pixel consistent (residual {fit[7]:.2f} px > "
+                                   f"{max_rms_px:g} px: locked to other features)")
+                    continue
+                if fit[8] < min_support:
+                    fits[f + 1] = (f"the reflection does not look like {target}'s outline (support {fit[8]:.2f} < "
+                                   f"{min_support:g}: hidden, or another heliostat)")
+                    continue
+                spread = _direction_spread(fit[5][0][2])
+                if not spread >= min_spread:
+                    fits[f + 1] = (f"the matched edges run one way (direction spread {spread:.3f} < "
+                                   f"{min_spread:g}): one angle is not measured")
+                    continue
+                fits[f + 1] = fit
         return fits
 
     def n_used(fits: dict[int, object]) -> int:
@@ -964,11 +938,16 @@ def estimate_canting(
         outline.update(plain)
     # on the logged outline, a facet whose grid has near-equal peaks (the target's back is periodic) starts
     # from the one nearest the tilt that mimics the search's turn
-    prefer = None if world is None else {
-        f: _equivalent_tilt(facet_model(f).near(m, span_mrad),
-                            _TurnModel(facet_model(f), drive_h, pivot_h).near(m, span_mrad),
-                            (search.az_mrad, search.el_mrad))
-        for f, m in candidates}
+    def equivalent_tilt(candidate: tuple[int, _Mask]) -> tuple[float, float]:
+        f, m = candidate
+        return _equivalent_tilt(facet_model(f).near(m, span_mrad),
+                                _TurnModel(facet_model(f), drive_h, pivot_h).near(m, span_mrad),
+                                (search.az_mrad, search.el_mrad))
+
+    prefer = None
+    if world is not None:
+        with ordered_map() as run:
+            prefer = {f: tilt for (f, _), tilt in zip(candidates, run(equivalent_tilt, candidates))}
     logged_matches: list = []
     logged = fit_facets(prefer, logged_matches)
     final_prefer = None  # the grid peaks' preference of the outline kept (the logged one's, if kept)
@@ -1056,7 +1035,9 @@ def estimate_canting(
         o_az = o_el = g_az = g_el = None
         notes.append("no facet could be measured")
     # each used fit's standard uncertainty, taken (as the deviations are) relative to the mean over them
-    var = np.array([_jackknife_variance(r[4], *r[5], r[2], r[3], gates_px[-1]) for _, r in used]).reshape(-1, 2)
+    with ordered_map() as run:
+        var = np.array(run(lambda r: _jackknife_variance(r[1][4], *r[1][5], r[1][2], r[1][3], gates_px[-1]),
+                           used)).reshape(-1, 2)
     sd = np.sqrt(relative_variance(var))
     out = []
     k = 0

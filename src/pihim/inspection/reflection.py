@@ -169,16 +169,6 @@ def _facet_masks(camera: CameraModel, pose: CameraPose, corners: NDArray, margin
     return masks
 
 
-def _tilted(normal: NDArray, az_mrad: float, el_mrad: float) -> NDArray[np.float64]:
-    """:func:`pihim.field.kinematics.apply_canting_deviation` of one normal by one pair of angles, without the
-    validation and broadcasting (a facet fit's every round)."""
-    x, y, z = (float(v) for v in normal)
-    c, s = math.cos(el_mrad * 1e-3), math.sin(el_mrad * 1e-3)
-    y, z = c * y + s * z, -s * y + c * z
-    c, s = math.cos(az_mrad * 1e-3), math.sin(az_mrad * 1e-3)
-    return np.array([c * x + s * z, y, -s * x + c * z])
-
-
 def _quadratic_basis(a: NDArray, e: NDArray) -> NDArray:
     return np.stack([np.ones_like(a), a, e, a * a, e * e, a * e], axis=1)
 
@@ -199,7 +189,8 @@ class _FacetModel:
         from pihim.inspection import _kernels
 
         self.camera, self.pose, self.rot, self.centre = camera, pose, rot_hua, centre
-        self.normal_local, self.pts, self.seg = normal_local, np.ascontiguousarray(pts, dtype=float), seg
+        self.normal_local, self.pts = normal_local, np.ascontiguousarray(pts, dtype=float)
+        self.seg = np.ascontiguousarray(seg, dtype=np.int64)
         self._cam = _kernels.camera_vector(camera)
         self._r = np.array(pose.rotation, float)
         self._c = np.array(pose.position_m, float)
@@ -301,8 +292,8 @@ class _FacetModel:
         line normal): one compiled pass (:func:`pihim.inspection._kernels.reflect_in_mask`)."""
         from pihim.inspection import _kernels
 
-        n = self.rot @ _tilted(self.normal_local, az_mrad, el_mrad)
-        return _kernels.reflect_in_mask(self.pts, np.ascontiguousarray(self.seg, dtype=np.int64),
+        n = _kernels.facet_normal(self.aux, float(az_mrad), float(el_mrad))
+        return _kernels.reflect_in_mask(self.pts, self.seg,
                                         np.asarray(self.centre, float), n, self._r, self._c, self._cam, mask.sub,
                                         mask.r0, mask.c0)
 
