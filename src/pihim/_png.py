@@ -1,9 +1,9 @@
 """A small PNG encoder for 8-bit grey and RGB(A) images, tuned for speed.
 
 Rows are stored unfiltered (PNG filter type 0) and the whole image is one
-deflate stream at a fast level: with the optional ``isal`` package (Intel
-ISA-L, ``pip install pihim[fast]``) about 4x faster than zlib at a similar
-size, else with the standard library's zlib. Both release the GIL, so
+deflate stream at a fast level: with the ``isal`` package (Intel ISA-L,
+a dependency of pihim on x86-64 and ARM64) about 4x faster than zlib at a
+similar size, else with the standard library's zlib. Both release the GIL, so
 several images can be encoded at once on several threads. Level 0 stores
 the rows in deflate's uncompressed blocks: a valid PNG the size of its
 pixels for the least CPU (``pihim polar --png``'s previews by default).

@@ -217,7 +217,7 @@ def write_png(path: str | Path, image: NDArray[np.uint8], *, atomic: bool = True
     """Write an RGB ``(H, W, 3)`` or grey ``(H, W)`` uint8 image as PNG, atomically.
 
     Encoded by :func:`pihim._png.encode_png` (unfiltered rows, fast deflate;
-    ISA-L when the ``fast`` extra is installed; ``level`` 0-9, 0 stores the
+    Intel ISA-L where the ``isal`` package is installed; ``level`` 0-9, 0 stores the
     rows uncompressed). ``atomic=False`` writes ``path`` directly (for a
     caller that already writes under a temporary name).
     """

@@ -551,7 +551,7 @@ def polar(
     height: Annotated[int | None, typer.Option(help="Height in pixels (.raw only).")] = None,
     pixel_format: Annotated[str | None, typer.Option(help="Lucid pixel format (.raw only), e.g. PolarizeMono12p.")] = None,
     png: Annotated[bool, typer.Option("--png", help="Also write PNG previews and a captioned figure, <stem>.polar.png.")] = False,
-    png_level: Annotated[int, typer.Option(help="Deflate level of the three bare PNG previews: 0 stores them uncompressed (least CPU, keeps up with the camera), 1-9 compress (smaller files; 1-3 fast with the 'fast' extra). The captioned figure is always compressed.")] = 0,
+    png_level: Annotated[int, typer.Option(help="Deflate level of the three bare PNG previews: 0 stores them uncompressed (least CPU, keeps up with the camera), 1-9 compress (smaller files; 1-3 fast with Intel ISA-L, installed with pihim on x86-64 and ARM64). The captioned figure is always compressed.")] = 0,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Redo frames already done in --out by an earlier run.")] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object per frame on stdout.")] = False,
 ) -> int:
