@@ -20,7 +20,8 @@ reflection by several pixels, more than a facet's canting can absorb.
 +-5 deg in 0.1 deg steps and finds the node where the facets' reflections
 of the target best line up with the image's edges; the facets are fitted on
 the target's outline turned by it, and on the logged outline, and the turn
-is kept if it measures at least as many facets (the search proposes, the
+is kept only if it measures at least two facets more and fits the facets
+both measure no more loosely (:func:`_keeps_turn`; the search proposes, the
 facet fits decide: clutter can raise a false peak).
 
 Optionally (``target_orientation=True``) the **target's** logged drive
