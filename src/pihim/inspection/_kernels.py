@@ -1302,7 +1302,7 @@ def refine_reflection(pts: NDArray, seg: NDArray, aux: NDArray, rot: NDArray, cp
         for i in range(used.shape[0]):
             for d in range(3):
                 moved[i, d] = pts[used[i], d]
-        prob = (2, rot, cpos, moved, cam, no_prox, qn, aux, inv, gate)
+        prob = (REFLECTION, rot, cpos, moved, cam, no_prox, qn, aux, inv, gate)
         x0 = np.empty(2)
         x0[0], x0[1] = az, el
         x, r, _ = solve(prob, x0, hit.shape[0], x_scale, 200, True, f_scale)
