@@ -314,7 +314,9 @@ def test_a_window_holds_every_outline_point_that_can_reach_the_facet(ufacet):
             a, e = centre + d / np.hypot(*d) * rng.uniform(0.5, 0.999) * width / rate  # within the bound
             uv, nrm, ins, usable, windowed = project(a, e)
             assert windowed and len(where) < len(model.pts)
-            full = model.project_in(mask, a, e)
+            full = K.reflect_in_mask(model.pts, model.seg, np.asarray(model.centre, float),  # all points
+                                     K.facet_normal(model.aux, a, e), model._r, model._c, model._cam, mask.sub,
+                                     mask.r0, mask.c0)
             np.testing.assert_array_equal(where[ins], np.flatnonzero(full[2]))
             np.testing.assert_array_equal(where[usable], np.flatnonzero(full[3]))
             np.testing.assert_array_equal(uv[ins], full[0][full[2]])

@@ -238,8 +238,8 @@ class _FacetModel:
         Exact projections on the 3 x 3 grid ``centre + {-s, 0, s}^2`` fix the
         quadratic (least squares on the nine nodes); its error is third order,
         far below a pixel over +-17.5 mrad, and it costs nine projections
-        instead of one per grid node (the refinement uses :meth:`project_in`,
-        exact).
+        instead of one per grid node (the refinement projects exactly:
+        :func:`pihim.inspection._kernels.refine_reflection`).
         """
         return self.quadratic_blocks(s, [centre_mrad])[0]
 
@@ -285,17 +285,6 @@ class _FacetModel:
             d = np.hypot(np.linalg.norm(uv[1] - uv[0], axis=1), np.linalg.norm(uv[2] - uv[0], axis=1))
             bound = self._motion = 2.0 * float(np.nanmax(d, initial=0.0))
         return bound
-
-    def project_in(self, mask: _Mask, az_mrad: float, el_mrad: float) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-        """Pixels (N, 2) of the points at canting ``(az_mrad, el_mrad)``, their line normals (N, 2), whether
-        each falls in ``mask`` (:meth:`_Mask.inside`) and whether it is also usable for matching (a finite
-        line normal): one compiled pass (:func:`pihim.inspection._kernels.reflect_in_mask`)."""
-        from pihim.inspection import _kernels
-
-        n = _kernels.facet_normal(self.aux, float(az_mrad), float(el_mrad))
-        return _kernels.reflect_in_mask(self.pts, self.seg,
-                                        np.asarray(self.centre, float), n, self._r, self._c, self._cam, mask.sub,
-                                        mask.r0, mask.c0)
 
 
 class _TurnModel(_FacetModel):
